@@ -1,0 +1,112 @@
+"""Sub-pixel interpolation of dense maps, with spatial gradients and validity.
+
+Pixel coordinates have their origin at the centre of the top-left pixel.
+"""
+
+from typing import Optional, Tuple
+
+import torch
+from torch import Tensor
+from torch.nn.functional import grid_sample
+
+
+def mask_in_image(p2d: Tensor, size: Tensor, pad: int) -> Tensor:
+    """(..., N) True where p2d (..., N, 2) lies in [pad, size - 1 - pad]; size: (..., 2) = (w, h)."""
+    return ((p2d >= pad) & (p2d <= size[..., None, :] - 1 - pad)).all(-1)
+
+
+def _bilinear(maps: Tensor, p2d: Tensor, gradients: bool) -> Tuple[Tensor, Optional[Tensor]]:
+    """The official sampler: grid_sample (align_corners=True) on coordinates
+    clamped to twice the map, and gradients by central differences at +-1 px.
+    maps: B x C x H x W, p2d: B x N x 2 -> B x N x C, B x N x C x 2."""
+    b, c, h, w = maps.shape
+    scale = p2d.new_tensor([w - 1, h - 1])
+    grid = ((p2d / scale) * 2 - 1).clamp(min=-2, max=2)
+    n = grid.shape[1]
+    if gradients:
+        dx = p2d.new_tensor([2 / (w - 1), 0.0])
+        dy = p2d.new_tensor([0.0, 2 / (h - 1)])
+        grid = torch.cat([grid, grid - dx, grid + dx, grid - dy, grid + dy], 1)
+    out = grid_sample(maps, grid[:, None], mode="bilinear", align_corners=True)
+    out = out.reshape(b, c, -1).transpose(-1, -2)  # B x (5)N x C
+    values = out[:, :n]
+    if not gradients:
+        return values, None
+    x0, x1, y0, y1 = out[:, n:].chunk(4, dim=1)
+    return values, torch.stack([(x1 - x0) / 2, (y1 - y0) / 2], -1)
+
+
+# Keys' cubic convolution kernel (a = -0.5) as a polynomial basis, the same
+# kernel as OpenCV's INTER_CUBIC; see R. Keys, IEEE TASSP 1981.
+_KEYS = torch.tensor([[-1, 2, -1, 0], [3, -5, 0, 2], [-3, 4, 1, 0], [1, -1, 0, 0]]) / 2
+
+
+def _bicubic(maps: Tensor, p2d: Tensor, gradients: bool) -> Tuple[Tensor, Optional[Tensor]]:
+    b, c, h, w = maps.shape
+    n = p2d.shape[1]
+    base = _KEYS.to(p2d)
+    p0 = torch.floor(p2d)
+    frac = p2d - p0  # B x N x 2
+    offsets = torch.arange(-1, 3, device=p2d.device)
+    xs = (p0[..., 0:1].long() + offsets).clamp(0, w - 1)  # B x N x 4
+    ys = (p0[..., 1:2].long() + offsets).clamp(0, h - 1)
+    idx = (ys[..., :, None] * w + xs[..., None, :]).reshape(b, 1, n * 16)
+    patches = maps.reshape(b, c, h * w).gather(-1, idx.expand(b, c, n * 16))
+    patches = patches.reshape(b, c, n, 4, 4)  # rows = y, cols = x
+    powers = torch.stack([frac ** 3, frac ** 2, frac, torch.ones_like(frac)], -1)  # B x N x 2 x 4
+    coeffs = powers @ base.T  # B x N x 2 x 4: weights of the 4 taps per axis
+    cx, cy = coeffs[..., 0, :], coeffs[..., 1, :]
+    values = torch.einsum("bni,bnj,bcnij->bnc", cy, cx, patches)
+    if not gradients:
+        return values, None
+    d_powers = torch.stack([3 * frac ** 2, 2 * frac, torch.ones_like(frac), torch.zeros_like(frac)], -1)
+    d_coeffs = d_powers @ base.T
+    dcx, dcy = d_coeffs[..., 0, :], d_coeffs[..., 1, :]
+    gx = torch.einsum("bni,bnj,bcnij->bnc", cy, dcx, patches)
+    gy = torch.einsum("bni,bnj,bcnij->bnc", dcy, cx, patches)
+    return values, torch.stack([gx, gy], -1)
+
+
+_MODES = {"linear": _bilinear, "cubic": _bicubic}
+
+
+class Interpolator:
+    """Samples dense maps at sub-pixel points.
+
+    mode: ``linear`` (official PixLoc) or ``cubic`` (Keys, needs one more pixel
+    of margin). pad: border margin in pixels of the map; points closer to the
+    border are marked invalid (official ``interpolation.pad``).
+    """
+
+    def __init__(self, mode: str = "linear", pad: int = 2):
+        if mode not in _MODES:
+            raise ValueError(f"Unknown interpolation mode {mode!r}; known: {sorted(_MODES)}.")
+        self.mode = mode
+        self.pad = pad
+
+    def __call__(self, maps: Tensor, p2d: Tensor, gradients: bool = False
+                 ) -> Tuple[Tensor, Tensor, Optional[Tensor]]:
+        """Sample ``maps`` at ``p2d``.
+
+        maps: (B, C, H, W) or (C, H, W); p2d: (B, N, 2) or (N, 2) pixels.
+        Returns values (B, N, C), validity (B, N) (inside the margin) and, if
+        ``gradients``, d values / d p2d (B, N, C, 2); unbatched inputs give
+        unbatched outputs.
+        """
+        batched = maps.dim() == 4
+        if not batched:
+            if maps.dim() != 3 or p2d.dim() != 2:
+                raise ValueError(f"Expected maps (C, H, W) and points (N, 2), got {tuple(maps.shape)} "
+                                 f"and {tuple(p2d.shape)}.")
+            maps, p2d = maps[None], p2d[None]
+        if p2d.dim() != 3 or p2d.shape[-1] != 2 or p2d.shape[0] != maps.shape[0]:
+            raise ValueError(f"Expected maps (B, C, H, W) and points (B, N, 2), got {tuple(maps.shape)} "
+                             f"and {tuple(p2d.shape)}.")
+        h, w = maps.shape[-2:]
+        pad = self.pad + (1 if self.mode == "cubic" else 0)
+        valid = mask_in_image(p2d, p2d.new_tensor([w, h]), pad)
+        values, grads = _MODES[self.mode](maps, p2d, gradients)
+        if not batched:
+            values, valid = values[0], valid[0]
+            grads = None if grads is None else grads[0]
+        return values, valid, grads
