@@ -1,0 +1,131 @@
+"""The training-time two-view refiner of PixLoc and its loss.
+
+Features of a reference and a query image, then LM per level from coarse to
+fine on the pose query_from_ref, starting each level from the detached pose
+of the previous one (Sarlin et al. 2021, Sec. 3.3; official
+``TwoViewRefiner``).
+"""
+
+from dataclasses import dataclass
+from typing import Dict, List, Sequence
+
+import torch
+from torch import Tensor, nn
+from torch.nn.functional import normalize
+
+from .geometry import Camera, Pose
+from .losses import scaled_barron
+from .nets.unet import UNet
+from .optim import FeaturemetricProblem, LevenbergMarquardt
+
+
+@dataclass
+class PairBatch:
+    """B image pairs. Images (B, 3, H, W) RGB in [0, 1]; cameras (B,) at image resolution.
+
+    p3d_ref: (B, N, 3) points in the reference camera frame; mask_points:
+    (B, N) valid points (padding); query_from_ref_init / _gt: (B,) poses.
+    """
+
+    image_ref: Tensor
+    image_query: Tensor
+    camera_ref: Camera
+    camera_query: Camera
+    p3d_ref: Tensor
+    query_from_ref_init: Pose
+    query_from_ref_gt: Pose
+    mask_points: Tensor | None = None
+
+
+def masked_mean(x: Tensor, mask: Tensor, dim: int) -> Tensor:
+    mask = mask.to(x.dtype)
+    return (mask * x).sum(dim) / mask.sum(dim).clamp(min=1)
+
+
+class TwoViewRefiner(nn.Module):
+    """Network + one LM solver per level (index 0 = finest, as the network's levels).
+
+    normalize_features: L2-normalise the dense query maps and the sampled
+    reference features (official default True). success_thresh: a level
+    counts in the loss only if the previous one ended below this many pixels
+    times its stride. clamp_error: pixels.
+    """
+
+    def __init__(self, extractor: UNet, solvers: Sequence[LevenbergMarquardt],
+                 normalize_features: bool = True, success_thresh: float = 3.0, clamp_error: float = 50.0):
+        super().__init__()
+        if len(solvers) != len(extractor.strides):
+            raise ValueError(f"Need one solver per level ({len(extractor.strides)}), got {len(solvers)}.")
+        self.extractor = extractor
+        self.solvers = nn.ModuleList(solvers)
+        self.normalize_features = normalize_features
+        self.success_thresh = success_thresh
+        self.clamp_error = clamp_error
+
+    def forward(self, batch: PairBatch) -> Dict[str, List]:
+        """Returns ``query_from_ref`` (poses after each level, coarse to fine) and ``failed``."""
+        pred_ref = self.extractor(batch.image_ref)
+        pred_q = self.extractor(batch.image_query)
+        T = batch.query_from_ref_init
+        poses, failed, inits = [], [], []
+        for level in reversed(range(len(self.extractor.strides))):
+            solver = self.solvers[level]
+            s = 1 / self.extractor.strides[level]
+            cam_ref, cam_q = batch.camera_ref.scale(s), batch.camera_query.scale(s)
+            p2d_ref, visible = cam_ref.cam2image(batch.p3d_ref)
+            F_ref, mask, _ = solver.interpolator(pred_ref["features"][level], p2d_ref)
+            mask = mask & visible
+            if batch.mask_points is not None:
+                mask = mask & batch.mask_points
+            F_q = pred_q["features"][level]
+            W_ref = W_q = None
+            if self.extractor.compute_confidence:
+                W_ref = solver.interpolator(pred_ref["confidences"][level], p2d_ref)[0][..., 0]
+                W_q = pred_q["confidences"][level][:, 0]
+            if self.normalize_features:
+                F_ref, F_q = normalize(F_ref, dim=-1), normalize(F_q, dim=1)
+            problem = FeaturemetricProblem(batch.p3d_ref, F_ref, F_q, cam_q, W_ref, W_q, mask)
+            result = solver(problem, T)
+            inits.append(T)
+            poses.append(result.pose)
+            failed.append(result.failed)
+            T = result.pose.detach()
+        return {"query_from_ref_init": inits, "query_from_ref": poses, "failed": failed}
+
+    def loss(self, pred: Dict[str, List], batch: PairBatch) -> Dict[str, Tensor]:
+        """Official loss: robust reprojection error of the 3D points in the query, per level.
+
+        Barron (alpha 1, scale 2) / 4 on squared pixel errors, clamped, a level
+        counted only if the previous one succeeded; averaged over levels.
+        Errors are in pixels of the query image at full resolution.
+        """
+        cam_q = batch.camera_query
+
+        def project(T: Pose):
+            return cam_q.cam2image(T.transform(batch.p3d_ref))
+
+        p2d_gt, mask = project(batch.query_from_ref_gt)
+        mask = mask & project(batch.query_from_ref_init)[1]
+        if batch.mask_points is not None:
+            mask = mask & batch.mask_points
+        too_few = mask.sum(-1) < 10
+
+        def reprojection_error(T: Pose) -> Tensor:
+            err = ((p2d_gt - project(T)[0]) ** 2).sum(-1)
+            return masked_mean(scaled_barron(1.0, 2.0)(err)[0] / 4, mask, -1)
+
+        num_levels = len(self.extractor.strides)
+        losses: Dict[str, Tensor] = {}
+        total, success = 0.0, None
+        for i, T in enumerate(pred["query_from_ref"]):
+            err = reprojection_error(T).clamp(max=self.clamp_error)
+            loss = err / num_levels
+            if i > 0:
+                loss = loss * success.to(loss.dtype)
+            success = err < self.success_thresh * self.extractor.strides[-1 - i]
+            losses[f"reprojection_error/{i}"] = err
+            total = total + loss
+        losses["reprojection_error"] = err
+        losses["total"] = total * (~too_few).to(err.dtype)
+        losses["reprojection_error/init"] = reprojection_error(pred["query_from_ref_init"][0])
+        return losses
