@@ -43,8 +43,11 @@ def _radial_tangential(p: Tensor, d: Tensor) -> Tuple[Tensor, Tensor]:
     r2 = (p ** 2).sum(-1, keepdim=True)
     out = p + p * (k1 * r2 + k2 * r2 ** 2)
     # Beyond the inflection point of r (1 + k1 r^2 + k2 r^4), far points fold
-    # back into the image: official PixLoc rejects r^2 above the first root of
-    # 1 + 3 k1 r^2 + 5 k2 r^4 = 0.
+    # back into the image: official PixLoc rejects r^2 above a root of
+    # 1 + 3 k1 r^2 + 5 k2 r^4 = 0. Its exact cases are kept (the root
+    # (sqrt(9 k1^2 - 20 k2) - 3 k1) / (10 k2), no limit for k1 < 0 with k2 = 0,
+    # 1 / (3 k1) for k1 > 0 with k2 <= 0) so that validity masks, hence LM
+    # steps, match the official ones.
     limited = ((k2 > 0) & ((9 * k1 ** 2 - 20 * k2) > 0)) | ((k2 <= 0) & (k1 > 0))
     k2_safe = torch.where(k2 > 0, k2, torch.ones_like(k2))
     k1_safe = torch.where(k1 == 0, torch.ones_like(k1), k1)

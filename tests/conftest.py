@@ -1,0 +1,55 @@
+"""Shared test options and fixtures.
+
+``--device cuda`` runs the same suite on a GPU; tests marked ``gpu`` are
+skipped on CPU. Real data comes from ``$PIXLOC_SHARED`` or ``../shared``
+beside the repository; tests that need it skip cleanly without it.
+"""
+
+import os
+from pathlib import Path
+
+import pytest
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def pytest_addoption(parser):
+    parser.addoption("--device", default="cpu", help="torch device to run the tests on (cpu, cuda)")
+
+
+def pytest_collection_modifyitems(config, items):
+    if not config.getoption("--device").startswith("cuda"):
+        skip = pytest.mark.skip(reason="needs --device cuda")
+        for item in items:
+            if "gpu" in item.keywords:
+                item.add_marker(skip)
+
+
+@pytest.fixture(scope="session")
+def device(request) -> torch.device:
+    dev = torch.device(request.config.getoption("--device"))
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        pytest.skip("CUDA is not available")
+    return dev
+
+
+def shared_dir() -> Path | None:
+    path = Path(os.environ.get("PIXLOC_SHARED", ROOT.parent / "shared"))
+    return path if path.is_dir() else None
+
+
+@pytest.fixture(scope="session")
+def shared() -> Path:
+    path = shared_dir()
+    if path is None:
+        pytest.skip("shared data not found (set PIXLOC_SHARED or put it at ../shared)")
+    return path
+
+
+@pytest.fixture(scope="session")
+def oracle(shared) -> Path:
+    path = shared / "oracle"
+    if not path.is_dir():
+        pytest.skip("oracle fixtures not found in the shared data")
+    return path
