@@ -112,4 +112,4 @@ def lite0_unet(pretrained: bool = True, **kwargs) -> UNet:
     blocks, skip_dims = lite0_blocks()
     if pretrained:
         blocks.load_state_dict(imagenet_lite0_weights(), strict=True)
-    return UNet(blocks, skip_dims, **kwargs)
+    return UNet(blocks, skip_dims, crop_input=True, **kwargs)

@@ -72,6 +72,9 @@ class UNet(nn.Module):
     output_scales: log2 strides of the output levels (official [0, 2, 4]).
     output_dims: channels of each output level (official [32, 128, 128]).
     mean, std: input normalisation of the encoder.
+    crop_input: crop images to a multiple of the coarsest stride before the
+        encoder, for encoders with strided convs (ceil-mode sizes); VGG's
+        floor-mode pooling crops by itself.
 
     forward(image (B, 3, H, W) RGB in [0, 1]) returns ``features``, a list of
     (B, C_l, H_l, W_l) maps, finest first, before L2 normalisation, and
@@ -81,8 +84,10 @@ class UNet(nn.Module):
     def __init__(self, encoder: nn.ModuleList, skip_dims: Sequence[int],
                  decoder: Sequence[int] = (64, 64, 64, 32), output_scales: Sequence[int] = (0, 2, 4),
                  output_dims: Sequence[int] = (32, 128, 128), compute_confidence: bool = True,
-                 mean: Sequence[float] = IMAGENET_MEAN, std: Sequence[float] = IMAGENET_STD):
+                 mean: Sequence[float] = IMAGENET_MEAN, std: Sequence[float] = IMAGENET_STD,
+                 crop_input: bool = False):
         super().__init__()
+        self.crop_input = crop_input
         if len(decoder) != len(skip_dims) - 1:
             raise ValueError(f"The decoder needs {len(skip_dims) - 1} blocks, got {len(decoder)}.")
         if len(output_dims) != len(output_scales) or max(output_scales) >= len(skip_dims):
@@ -116,6 +121,9 @@ class UNet(nn.Module):
         min_size = 2 ** (len(self.encoder) - 1)
         if min(image.shape[-2:]) < min_size:
             raise ValueError(f"Images must be at least {min_size} px on each side, got {tuple(image.shape[-2:])}.")
+        if self.crop_input:
+            h, w = (s - s % min_size for s in image.shape[-2:])
+            image = image[..., :h, :w]
         x = (image - self.mean) / self.std
         skips = []
         for block in self.encoder:

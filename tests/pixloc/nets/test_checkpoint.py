@@ -1,0 +1,63 @@
+import pickle
+
+import numpy as np
+import pytest
+import torch
+
+from pixloc.nets import CheckpointError, load_official_checkpoint
+
+OFFICIAL = "official_megadepth_random/checkpoint_best.tar"
+
+
+def test_loads_strictly_with_its_damping(oracle):
+    model = load_official_checkpoint(oracle / OFFICIAL)
+    assert not model.training
+    for k in range(5):
+        d = np.load(oracle / f"lm_case_{k}.npz")
+        lam = model.solvers[int(d["level"])].damping().detach().numpy()
+        np.testing.assert_allclose(lam, d["damping_lambda"], rtol=1e-6)
+    assert [s.num_iters for s in model.solvers] == [15, 15, 15]
+    assert [s.interpolator.pad for s in model.solvers] == [2, 2, 2]
+    assert model.extractor.strides == (1, 4, 16)
+
+
+class Evil:
+    def __reduce__(self):
+        return (print, ("this would run arbitrary code",))
+
+
+def test_refuses_arbitrary_code(tmp_path):
+    path = tmp_path / "evil.tar"
+    torch.save({"model": {}, "conf": {}, "payload": Evil()}, path)
+    with pytest.raises(CheckpointError, match="arbitrary pickled code"):
+        load_official_checkpoint(path)
+
+
+def test_refuses_corrupt_and_foreign_files(tmp_path, oracle):
+    corrupt = tmp_path / "corrupt.tar"
+    corrupt.write_bytes((oracle / OFFICIAL).read_bytes()[:5000])
+    with pytest.raises(CheckpointError, match="corrupt or not a PyTorch checkpoint"):
+        load_official_checkpoint(corrupt)
+    plain = tmp_path / "plain.pkl"
+    plain.write_bytes(pickle.dumps({"a": 1}))
+    with pytest.raises(CheckpointError):
+        load_official_checkpoint(plain)
+    foreign = tmp_path / "foreign.pth"
+    torch.save({"state_dict": {"w": torch.zeros(1)}}, foreign)
+    with pytest.raises(CheckpointError, match="expected the keys 'model' and 'conf'"):
+        load_official_checkpoint(foreign)
+    with pytest.raises(CheckpointError, match="does not exist"):
+        load_official_checkpoint(tmp_path / "missing.tar")
+
+
+def test_refuses_a_state_dict_that_does_not_match_its_conf(tmp_path, oracle):
+    ckpt = torch.load(oracle / OFFICIAL, weights_only=False)  # trusted fixture
+    ckpt["conf"]["model"]["extractor"]["encoder"] = "vgg16"
+    path = tmp_path / "mismatch.tar"
+    torch.save(ckpt, path)
+    with pytest.raises(CheckpointError, match="does not match its configuration"):
+        load_official_checkpoint(path)
+    ckpt["conf"]["model"]["extractor"]["encoder"] = "resnet50"
+    torch.save(ckpt, path)
+    with pytest.raises(CheckpointError, match="Unsupported extractor"):
+        load_official_checkpoint(path)

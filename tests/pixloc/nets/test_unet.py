@@ -1,0 +1,50 @@
+import numpy as np
+import pytest
+import torch
+
+from pixloc.nets import lite0_unet, load_official_checkpoint
+
+
+@pytest.fixture(scope="module")
+def official(oracle):
+    return load_official_checkpoint(oracle / "official_megadepth_random" / "checkpoint_best.tar")
+
+
+@pytest.mark.parametrize("name", ["a", "b"])
+def test_official_unet_outputs(official, oracle, name, device):
+    d = np.load(oracle / "unet_forward.npz")
+    net = official.extractor.to(device)
+    with torch.no_grad():
+        out = net(torch.from_numpy(d[f"{name}/image"])[None].to(device))
+    for level in range(3):
+        np.testing.assert_allclose(out["features"][level][0].cpu().numpy(), d[f"{name}/features_{level}"],
+                                   atol=1e-4, rtol=0)
+        np.testing.assert_allclose(out["confidences"][level][0, 0].cpu().numpy(),
+                                   d[f"{name}/confidences_{level}"], atol=1e-4, rtol=0)
+
+
+def test_lite0_unet_levels():
+    net = lite0_unet().eval()
+    with torch.no_grad():
+        out = net(torch.rand(2, 3, 130, 200))
+    # Official layout: strides 1, 4, 16 with 32, 128, 128 channels, cropped to multiples of 16.
+    assert [tuple(f.shape) for f in out["features"]] == [(2, 32, 128, 192), (2, 128, 32, 48), (2, 128, 8, 12)]
+    assert [tuple(c.shape) for c in out["confidences"]] == [(2, 1, 128, 192), (2, 1, 32, 48), (2, 1, 8, 12)]
+    assert all(((c > 0) & (c < 1)).all() for c in out["confidences"])
+    assert net.strides == (1, 4, 16)
+    assert sum(p.numel() for p in net.parameters()) < 2_000_000
+
+
+def test_lite0_encoder_is_imagenet_initialised():
+    a, b = lite0_unet(pretrained=True), lite0_unet(pretrained=False)
+    wa, wb = a.encoder[1][0][0].weight, b.encoder[1][0][0].weight
+    assert not torch.equal(wa, wb)
+    assert lite0_unet(pretrained=True).encoder[1][0][0].weight.equal(wa)  # deterministic, from disk
+
+
+def test_bad_images_are_named():
+    net = lite0_unet(pretrained=False)
+    with pytest.raises(ValueError, match=r"\(B, 3, H, W\)"):
+        net(torch.rand(3, 64, 64))
+    with pytest.raises(ValueError, match="at least 16 px"):
+        net(torch.rand(1, 3, 8, 64))

@@ -1,0 +1,23 @@
+import subprocess
+import sys
+
+import pixloc
+
+
+def run(*args):
+    return subprocess.run([sys.executable, "-m", "workflows.cli", *args], capture_output=True, text=True)
+
+
+def test_version_and_help():
+    out = run("--version")
+    assert out.returncode == 0 and out.stdout.strip() == f"pixloc {pixloc.__version__}"
+    out = run("--help")
+    assert out.returncode == 0 and "benchmark" in out.stdout
+
+
+def test_lm_benchmark_prints_both_rates():
+    out = run("benchmark", "lm", "--problems", "2", "--points", "200", "--channels", "16", "--iters", "2",
+              "--repeats", "1")
+    assert out.returncode == 0, out.stderr
+    row = out.stdout.strip().splitlines()[-1].split()
+    assert row[:2] == ["2", "200"] and float(row[2]) > 0 and float(row[3]) > 0 and row[4].endswith("x")
