@@ -1,6 +1,7 @@
 """The featuremetric residual of PixLoc and its Jacobian w.r.t. the query pose."""
 
 from dataclasses import dataclass, replace
+from functools import cached_property
 from typing import NamedTuple, Optional
 
 import torch
@@ -64,6 +65,14 @@ class FeaturemetricProblem:
         return cls(p3d_world[None], F_ref[None], F_query[None], camera.reshape(1),
                    add(W_ref), add(W_query), add(mask))
 
+    @cached_property
+    def query_maps(self) -> Tensor:
+        """(B, C[+1], H, W) query features with the confidence appended as a channel,
+        so that one sampling call serves both (official inference does the same)."""
+        if self.W_query is None:
+            return self.F_query
+        return torch.cat([self.F_query, self.W_query[:, None]], 1)
+
     @property
     def batch_size(self) -> int:
         return self.p3d_world.shape[0]
@@ -71,6 +80,7 @@ class FeaturemetricProblem:
     def index(self, i) -> "FeaturemetricProblem":
         """Sub-batch ``i`` (an int keeps a batch of one)."""
         i = [i] if isinstance(i, int) else i
+
         def sel(x):
             return None if x is None else x[i]
         return replace(self, p3d_world=self.p3d_world[i], F_ref=self.F_ref[i], F_query=self.F_query[i],
@@ -99,14 +109,15 @@ def linearize(cam_from_world: Pose, problem: FeaturemetricProblem,
     """Residuals r_i = F_q(pi(T P_i)) - F_ref,i and their Jacobian factors."""
     p3d_cam = cam_from_world.transform(problem.p3d_world)
     p2d, visible = problem.camera.cam2image(p3d_cam)
-    F_p2d, valid, J_f = interpolator(problem.F_query, p2d, gradients=True)
+    values, valid, grads = interpolator(problem.query_maps, p2d, gradients=True)
+    C = problem.F_ref.shape[-1]
+    F_p2d, J_f = values[..., :C], grads[..., :C, :]
     valid = valid & visible
     if problem.mask is not None:
         valid = valid & problem.mask
     confidence = None
     if problem.W_ref is not None:
-        C_query, _, _ = interpolator(problem.W_query[:, None], p2d)
-        confidence = (problem.W_ref * C_query[..., 0]).masked_fill(~valid, 0.0)
+        confidence = (problem.W_ref * values[..., C]).masked_fill(~valid, 0.0)
     J_p2d_pose = problem.camera.J_cam2image(p3d_cam) @ cam_from_world.J_transform(p3d_cam)
     return Linearization(F_p2d - problem.F_ref, valid, confidence, J_f, J_p2d_pose)
 

@@ -95,6 +95,10 @@ class LevenbergMarquardt(nn.Module):
     feature-map pixels. min_points: fewer valid points at any iteration fails
     the problem (official: 10).
 
+    chunk_points: the batch is linearized in chunks of problems holding at
+    most this many points in all (at least one problem per chunk), so that
+    the working set of large batches stays in cache and memory stays bounded.
+
     Unlike official PixLoc, which stops a batch only when all of it has
     converged, each problem is frozen at the check where it converges, so a
     batched solve gives the same poses as solving the problems one by one.
@@ -102,7 +106,8 @@ class LevenbergMarquardt(nn.Module):
 
     def __init__(self, damping: Optional[nn.Module] = None, loss: str = "scaled_barron(0, 0.1)",
                  num_iters: int = 100, pad: int = 2, interpolation: str = "linear",
-                 min_points: int = 10, stopping: StoppingRule = StoppingRule()):
+                 min_points: int = 10, stopping: StoppingRule = StoppingRule(),
+                 chunk_points: int = 16384):
         super().__init__()
         self.damping = damping if damping is not None else ConstantDamping(0.0)
         self.loss_spec = loss
@@ -111,6 +116,29 @@ class LevenbergMarquardt(nn.Module):
         self.interpolator = Interpolator(interpolation, pad)
         self.min_points = min_points
         self.stopping = stopping
+        self.chunk_points = chunk_points
+
+    def _chunks(self, problem: FeaturemetricProblem):
+        B, N = problem.p3d_world.shape[:2]
+        size = max(1, self.chunk_points // max(N, 1))
+        if size >= B:
+            return [(slice(None), problem)]
+        return [(slice(i, i + size), problem.index(slice(i, i + size))) for i in range(0, B, size)]
+
+    def _normal_equations(self, T: Pose, chunks):
+        """Per problem: gradient (B, 6), Hessian (B, 6, 6), valid count (B,), mean robust cost (B,)."""
+        out = []
+        for sl, part in chunks:
+            lin = linearize(T[sl], part, self.interpolator)
+            num_valid = lin.valid.sum(-1)
+            rho, w_loss, _ = self.loss_fn((lin.res ** 2).sum(-1))
+            weights = w_loss * lin.valid
+            if lin.confidence is not None:
+                weights = weights * lin.confidence
+            g, H = build_system(lin, weights)
+            conf = lin.confidence if lin.confidence is not None else lin.valid.to(rho.dtype)
+            out.append((g, H, num_valid, (rho * conf).sum(-1) / num_valid.clamp(min=1)))
+        return [torch.cat(x) for x in zip(*out)] if len(out) > 1 else out[0]
 
     def forward(self, problem: FeaturemetricProblem, T_init: Pose,
                 num_iters: Optional[int] = None, record_trajectory: bool = False) -> LMResult:
@@ -129,16 +157,10 @@ class LevenbergMarquardt(nn.Module):
         active = torch.ones(B, dtype=torch.bool, device=device)
         iterations = torch.zeros(B, dtype=torch.long, device=device)
         costs, trajectory = [], []
+        chunks = self._chunks(problem)
         for i in range(num_iters):
-            lin = linearize(T, problem, self.interpolator)
-            num_valid = lin.valid.sum(-1)
+            g, H, num_valid, cost = self._normal_equations(T, chunks)
             failed = failed | (num_valid < self.min_points)
-
-            rho, w_loss, _ = self.loss_fn((lin.res ** 2).sum(-1))
-            weights = w_loss * lin.valid
-            if lin.confidence is not None:
-                weights = weights * lin.confidence
-            g, H = build_system(lin, weights)
 
             step_mask = active & ~failed
             delta = solve_damped(g, H, lambda_, step_mask)
@@ -150,8 +172,7 @@ class LevenbergMarquardt(nn.Module):
             failed = failed | bad
             T = Pose(torch.where(bad[:, None], T.data, T_new.data))
 
-            conf = lin.confidence if lin.confidence is not None else lin.valid.to(rho.dtype)
-            costs.append((rho * conf).sum(-1) / num_valid.clamp(min=1))
+            costs.append(cost)
             iterations = iterations + active.long()
             if record_trajectory:
                 trajectory.append(T.detach())

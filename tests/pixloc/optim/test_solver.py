@@ -138,3 +138,14 @@ def test_unrolled_solver_is_differentiable():
     # Analytic-vs-numeric check of the whole unroll w.r.t. the reference features.
     torch.autograd.gradcheck(lambda F: refined(F, *[leaves[k].detach() for k in ("F_query", "W_ref", "W_query")]),
                              (leaves["F_ref"].detach().requires_grad_(True),), atol=1e-5, rtol=1e-3)
+
+
+def test_chunked_linearization_equals_whole_batch():
+    problem, T_init = make_problems(5, 200, 16, "cpu", seed=4)
+    whole = LevenbergMarquardt(ConstantDamping(1e-2), num_iters=12).eval()(problem, T_init)
+    chunked = LevenbergMarquardt(ConstantDamping(1e-2), num_iters=12, chunk_points=400).eval()
+    assert len(chunked._chunks(problem)) == 3  # 2 + 2 + 1 problems
+    result = chunked(problem, T_init)
+    torch.testing.assert_close(result.pose.data, whole.pose.data, atol=1e-6, rtol=0)
+    torch.testing.assert_close(result.cost, whole.cost)
+    assert result.iterations.tolist() == whole.iterations.tolist()
