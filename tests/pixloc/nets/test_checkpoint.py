@@ -39,7 +39,7 @@ def test_refuses_corrupt_and_foreign_files(tmp_path, oracle):
     with pytest.raises(CheckpointError, match="corrupt or not a PyTorch checkpoint"):
         load_official_checkpoint(corrupt)
     plain = tmp_path / "plain.pkl"
-    plain.write_bytes(pickle.dumps({"a": 1}))
+    plain.write_bytes(pickle.dumps({"a": 1}, protocol=2))
     with pytest.raises(CheckpointError):
         load_official_checkpoint(plain)
     foreign = tmp_path / "foreign.pth"

@@ -48,3 +48,14 @@ def test_bad_images_are_named():
         net(torch.rand(3, 64, 64))
     with pytest.raises(ValueError, match="at least 16 px"):
         net(torch.rand(1, 3, 8, 64))
+
+
+@pytest.mark.parametrize("encoder,skips", [("vgg16", [64, 128, 256, 512, 512]), ("vgg19", [64, 128, 256, 512, 512])])
+def test_vgg_unet_has_the_official_layout(encoder, skips):
+    from pixloc.nets.unet import vgg_blocks, vgg_unet
+    _, skip_dims = vgg_blocks(encoder)
+    assert skip_dims == skips
+    keys = set(vgg_unet(encoder).state_dict())
+    last_conv = 5 if encoder == "vgg16" else 7  # torchvision indices inside the last block
+    assert f"encoder.4.{last_conv}.weight" in keys and f"encoder.4.{last_conv + 2}.weight" not in keys
+    assert {"adaptation.2.0.weight", "uncertainty.0.0.bias", "decoder.3.layers.1.running_var"} <= keys
