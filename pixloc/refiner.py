@@ -9,7 +9,6 @@ of the previous one (Sarlin et al. 2021, Sec. 3.3; official
 from dataclasses import dataclass
 from typing import Dict, List, Sequence
 
-import torch
 from torch import Tensor, nn
 from torch.nn.functional import normalize
 

@@ -27,7 +27,8 @@ class Pose(TensorWrapper):
         """R: (..., 3, 3) rotation matrices; t: (..., 3) translations."""
         R, t = torch.as_tensor(R), torch.as_tensor(t)
         if R.shape[-2:] != (3, 3) or t.shape[-1] != 3 or R.shape[:-2] != t.shape[:-1]:
-            raise ValueError(f"Pose.from_Rt expects R (..., 3, 3) and t (..., 3), got {tuple(R.shape)} and {tuple(t.shape)}.")
+            raise ValueError(f"Pose.from_Rt expects R (..., 3, 3) and t (..., 3), "
+                             f"got {tuple(R.shape)} and {tuple(t.shape)}.")
         dtype = torch.promote_types(R.dtype, t.dtype)
         if not dtype.is_floating_point:
             dtype = torch.get_default_dtype()

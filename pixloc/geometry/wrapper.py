@@ -60,7 +60,7 @@ class TensorWrapper:
         return self._new(self._data.reshape(*shape, self._data.shape[-1]))
 
     def unsqueeze(self, dim: int):
-        return self._new(self._data.unsqueeze(dim if dim < 0 else dim))
+        return self._new(self._data.unsqueeze(dim - 1 if dim < 0 else dim))  # skip the data dim
 
     def expand(self, *shape):
         return self._new(self._data.expand(*shape, self._data.shape[-1]))

@@ -19,7 +19,10 @@ PARAMS = {
 MODELS = sorted(COLMAP_MODELS)
 
 
-
+def make_camera(model, shape=()) -> Camera:
+    """A float64 camera of ``model`` with batch shape ``shape``."""
+    cam = Camera.from_colmap(model, 640, 480, PARAMS[model], dtype=torch.float64)
+    return cam.reshape(1).expand(*shape) if shape else cam
 
 
 def points_in_image(cam: Camera, n=50, seed=0, margin=20.0):
@@ -31,9 +34,7 @@ def points_in_image(cam: Camera, n=50, seed=0, margin=20.0):
 @pytest.mark.parametrize("model", MODELS)
 @pytest.mark.parametrize("shape", BATCH_SHAPES)
 def test_project_unproject_round_trip(model, shape):
-    cam = Camera.from_colmap(model, 640, 480, PARAMS[model], dtype=torch.float64)
-    if shape:
-        cam = cam.reshape(1).expand(*shape)
+    cam = make_camera(model, shape)
     p2d = points_in_image(cam)
     rays = cam.image2cam(p2d)
     depth = torch.rand(rays.shape[:-1] + (1,), dtype=torch.float64) * 10 + 0.5
@@ -55,9 +56,7 @@ def test_colmap_principal_point_convention(model):
 @pytest.mark.parametrize("model", MODELS)
 @pytest.mark.parametrize("shape", BATCH_SHAPES)
 def test_J_cam2image_matches_autograd(model, shape):
-    cam = Camera.from_colmap(model, 640, 480, PARAMS[model], dtype=torch.float64)
-    if shape:
-        cam = cam.reshape(1).expand(*shape)
+    cam = make_camera(model, shape)
     p3d = cam.image2cam(points_in_image(cam, n=20, seed=1)) * 3.0
     J = cam.J_cam2image(p3d)
     J_auto = jacobian(lambda p: cam.cam2image(p)[0], p3d)

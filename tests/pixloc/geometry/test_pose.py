@@ -7,7 +7,7 @@ from hypothesis import strategies as st
 
 from pixloc.geometry import Pose, pose_error
 from pixloc.geometry import lie
-from tests.helpers import BATCH_SHAPES, jacobian
+from tests.helpers import BATCH_SHAPES
 
 
 def random_pose(shape, dtype=torch.float64, seed=0, max_angle=math.pi):
@@ -21,9 +21,9 @@ def random_pose(shape, dtype=torch.float64, seed=0, max_angle=math.pi):
 @pytest.mark.parametrize("shape", BATCH_SHAPES)
 def test_inverse_and_composition(shape, device):
     T = random_pose(shape).to(device)
-    I = (T @ T.inv()).matrix()
-    assert I.shape == shape + (4, 4)
-    torch.testing.assert_close(I, torch.eye(4, dtype=I.dtype, device=device).expand_as(I))
+    eye = (T @ T.inv()).matrix()
+    assert eye.shape == shape + (4, 4)
+    torch.testing.assert_close(eye, torch.eye(4, dtype=eye.dtype, device=device).expand_as(eye))
     p = torch.randn(*shape, 7, 3, dtype=torch.float64, device=device)
     U = random_pose(shape, seed=1).to(device)
     torch.testing.assert_close((U @ T).transform(p), U.transform(T.transform(p)))
