@@ -1,0 +1,56 @@
+"""Image reading and resizing, as official PixLoc does them (OpenCV)."""
+
+from pathlib import Path
+from typing import Optional, Tuple
+
+import cv2
+import numpy as np
+import torch
+
+
+class ImageReadError(IOError):
+    """An image file that is missing or cannot be decoded."""
+
+
+def read_image(path) -> np.ndarray:
+    """(H, W, 3) uint8 RGB."""
+    path = Path(path)
+    if not path.is_file():
+        raise ImageReadError(f"image file {path} is missing")
+    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if image is None:
+        raise ImageReadError(f"image file {path} cannot be decoded")
+    return image[..., ::-1]
+
+
+def resize_max(image: np.ndarray, max_size: Optional[int]) -> Tuple[np.ndarray, Tuple[float, float]]:
+    """Downscale (never upscale) so that the longer side is ``max_size``, as official PixLoc.
+
+    Works on float32 0-255 values with cv2 INTER_LINEAR; the scale is
+    max_size / longer side on both axes (official behaviour, not recomputed
+    from the rounded size). Returns the image and (sx, sy).
+    """
+    image = image.astype(np.float32)
+    h, w = image.shape[:2]
+    if max_size is None or max(h, w) <= max_size:
+        return image, (1.0, 1.0)
+    scale = max_size / max(h, w)
+    size = (int(round(w * scale)), int(round(h * scale)))
+    return cv2.resize(image, size, interpolation=cv2.INTER_LINEAR), (scale, scale)
+
+
+def to_tensor(image: np.ndarray) -> torch.Tensor:
+    """(H, W, 3) 0-255 -> (3, H, W) float32 in [0, 1]."""
+    return torch.from_numpy(np.ascontiguousarray(image.transpose(2, 0, 1)) / 255.0).float()
+
+
+def read_depth(path, scale: float) -> np.ndarray:
+    """(H, W) float32 depth in scene units; 0 where invalid (0 or 65535 in 16-bit files)."""
+    path = Path(path)
+    depth = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if depth is None:
+        raise ImageReadError(f"depth file {path} is missing or cannot be decoded")
+    invalid = (depth == 0) | (depth == 65535) if depth.dtype == np.uint16 else ~np.isfinite(depth)
+    depth = depth.astype(np.float32) * scale
+    depth[invalid] = 0
+    return depth

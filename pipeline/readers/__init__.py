@@ -1,0 +1,1 @@
+"""Readers that turn users' 3D data into a ``Scene``."""

@@ -1,0 +1,135 @@
+"""COLMAP models (binary or text) via pycolmap: read, reconstruct, triangulate from known poses."""
+
+import logging
+from pathlib import Path
+from typing import Dict, List, Optional, Sequence
+
+import numpy as np
+import pycolmap
+
+from ..scene import CameraRecord, ImageRecord, Scene, SceneError
+
+logger = logging.getLogger(__name__)
+
+
+def camera_record(camera: pycolmap.Camera) -> CameraRecord:
+    return CameraRecord(camera.model.name, int(camera.width), int(camera.height),
+                        tuple(float(p) for p in camera.params))
+
+
+def scene_from_reconstruction(rec: pycolmap.Reconstruction, image_dir: Path,
+                              tags: Optional[Dict[str, Dict[str, str]]] = None) -> Scene:
+    """A Scene from a pycolmap Reconstruction; registered images only, sorted by name."""
+    image_dir = Path(image_dir)
+    images = sorted((im for im in rec.images.values() if im.has_pose), key=lambda im: im.name)
+    index = {im.image_id: i for i, im in enumerate(images)}
+    records = [ImageRecord(im.name, image_dir / im.name, camera_record(rec.cameras[im.camera_id]),
+                           np.asarray(im.cam_from_world().matrix(), dtype=np.float64),
+                           dict((tags or {}).get(im.name, {})))
+               for im in images]
+    point_ids = sorted(rec.points3D)
+    xyz = np.array([rec.points3D[p].xyz for p in point_ids], dtype=np.float64).reshape(-1, 3)
+    obs_point, obs_image, obs_xy = [], [], []
+    for k, pid in enumerate(point_ids):
+        for el in rec.points3D[pid].track.elements:
+            if el.image_id in index:
+                obs_point.append(k)
+                obs_image.append(index[el.image_id])
+                obs_xy.append(rec.images[el.image_id].points2D[el.point2D_idx].xy)
+    return Scene(records, xyz, obs_point, obs_image, np.array(obs_xy).reshape(-1, 2))
+
+
+def read_colmap(model_dir, image_dir, tags=None) -> Scene:
+    """Read a COLMAP model folder (cameras/images/points3D, .bin or .txt)."""
+    model_dir = Path(model_dir)
+    if not model_dir.is_dir():
+        raise SceneError(f"COLMAP model folder {model_dir} does not exist.")
+    try:
+        rec = pycolmap.Reconstruction(str(model_dir))
+    except Exception as e:  # pycolmap raises plain RuntimeErrors/ValueErrors
+        raise SceneError(f"Cannot read the COLMAP model in {model_dir}: {e}") from None
+    return scene_from_reconstruction(rec, image_dir, tags)
+
+
+def _extract_and_match(database: Path, image_dir: Path, names: Sequence[str],
+                       cameras: Optional[Sequence[CameraRecord]] = None) -> None:
+    """SIFT features and exhaustive matches into ``database``; known intrinsics if given."""
+    options = pycolmap.ImageReaderOptions()
+    if cameras is not None:
+        options.camera_model = "PINHOLE"
+    pycolmap.extract_features(database, image_dir, image_names=list(names),
+                              camera_mode=pycolmap.CameraMode.PER_IMAGE, reader_options=options,
+                              device=pycolmap.Device.cpu)
+    if cameras is not None:
+        by_name = dict(zip(names, cameras))
+        with pycolmap.Database.open(database) as db:
+            for image in db.read_all_images():
+                cam = db.read_camera(image.camera_id)
+                rec = by_name[image.name]
+                known = pycolmap.Camera.create_from_model_name(
+                    cam.camera_id, rec.model, float(rec.params[0]), rec.width, rec.height)
+                known.params = list(rec.params)
+                known.has_prior_focal_length = True
+                db.update_camera(known)
+    pycolmap.match_exhaustive(database, device=pycolmap.Device.cpu)
+
+
+def run_sfm(image_dir, work_dir, names: Optional[Sequence[str]] = None, tags=None) -> Scene:
+    """Structure-from-motion with pycolmap (SIFT, exhaustive matching, incremental mapping).
+
+    Keeps the largest model; images it could not register are left out and logged.
+    """
+    image_dir, work_dir = Path(image_dir), Path(work_dir)
+    work_dir.mkdir(parents=True, exist_ok=True)
+    names = sorted(p.name for p in image_dir.iterdir() if p.suffix.lower() in {".jpg", ".jpeg", ".png"}) \
+        if names is None else list(names)
+    database = work_dir / "database.db"
+    if database.exists():
+        database.unlink()
+    _extract_and_match(database, image_dir, names)
+    options = pycolmap.IncrementalPipelineOptions()
+    options.random_seed = 0
+    options.num_threads = 2
+    models = pycolmap.incremental_mapping(database, image_dir, work_dir / "sparse", options=options)
+    if not models:
+        raise SceneError(f"SfM could not reconstruct any model from {len(names)} images in {image_dir}.")
+    rec = max(models.values(), key=lambda r: r.num_reg_images())
+    missing = set(names) - {im.name for im in rec.images.values() if im.has_pose}
+    if missing:
+        logger.warning("SfM did not register %d of %d images: %s", len(missing), len(names), sorted(missing))
+    rec.write(str(work_dir / "sparse"))
+    return scene_from_reconstruction(rec, image_dir, tags)
+
+
+def triangulate_known_poses(images: List[ImageRecord], image_root, work_dir, *,
+                            min_track_length: int = 2, max_reprojection_error: float = 2.0) -> Scene:
+    """Extract and match SIFT, then triangulate with the given poses and intrinsics held fixed.
+
+    image names must be paths relative to ``image_root``. Tracks shorter than
+    ``min_track_length`` or with a mean reprojection error above
+    ``max_reprojection_error`` pixels are removed.
+    """
+    image_root, work_dir = Path(image_root), Path(work_dir)
+    work_dir.mkdir(parents=True, exist_ok=True)
+    database = work_dir / "database.db"
+    if database.exists():
+        database.unlink()
+    names = [im.name for im in images]
+    _extract_and_match(database, image_root, names, [im.camera for im in images])
+    by_name = {im.name: im for im in images}
+    rec = pycolmap.Reconstruction()
+    with pycolmap.Database.open(database) as db:
+        for image in db.read_all_images():
+            rec.add_camera_with_trivial_rig(db.read_camera(image.camera_id))
+            new = pycolmap.Image(name=image.name, camera_id=image.camera_id, image_id=image.image_id)
+            rec.add_image_with_trivial_frame(new, pycolmap.Rigid3d(by_name[image.name].cam_from_world))
+    rec = pycolmap.triangulate_points(rec, database, image_root, work_dir / "triangulated")
+    for pid, point in list(rec.points3D.items()):
+        if point.track.length() < min_track_length or point.error > max_reprojection_error:
+            rec.delete_point3D(pid)
+    if rec.num_points3D() == 0:
+        raise SceneError("Triangulation from the known poses produced no 3D points.")
+    scene = scene_from_reconstruction(rec, image_root)
+    # Keep the caller's records (tags, depth), in the scene's order.
+    scene.images = [by_name[im.name] for im in scene.images]
+    return scene

@@ -1,0 +1,135 @@
+"""Typed records of a 3D map before features: cameras, posed images, points, observations."""
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Dict, List, Optional, Sequence
+
+import numpy as np
+import torch
+
+from pixloc.geometry import COLMAP_MODELS, Camera, Pose
+
+
+class SceneError(ValueError):
+    """Input that cannot make a map (empty model, unsupported camera, NaN pose...)."""
+
+
+@dataclass(frozen=True)
+class CameraRecord:
+    """A COLMAP camera: model name, image size in pixels, params in COLMAP's convention."""
+
+    model: str
+    width: int
+    height: int
+    params: tuple
+
+    def check(self) -> Optional[str]:
+        """None if usable, else why not."""
+        if self.model not in COLMAP_MODELS:
+            return f"unsupported camera model {self.model!r} (supported: {', '.join(COLMAP_MODELS)})"
+        if not all(math.isfinite(p) for p in self.params) or self.width <= 0 or self.height <= 0:
+            return f"invalid camera {self.model} {self.width}x{self.height} {list(self.params)}"
+        return None
+
+    def to_pixloc(self, dtype=torch.float32) -> Camera:
+        return Camera.from_colmap(self.model, self.width, self.height, self.params, dtype=dtype)
+
+    def to_json(self) -> str:
+        return json.dumps([self.model, self.width, self.height, list(self.params)])
+
+    @classmethod
+    def from_json(cls, s: str) -> "CameraRecord":
+        model, w, h, params = json.loads(s)
+        return cls(model, int(w), int(h), tuple(params))
+
+
+@dataclass
+class ImageRecord:
+    """A reference image: its file, camera and cam_from_world pose ((3, 4) [R | t], float64).
+
+    tags: condition tags (day/night, season, sequence...). depth: an optional
+    depth map file and the factor that turns its values into scene units.
+    """
+
+    name: str
+    path: Path
+    camera: CameraRecord
+    cam_from_world: np.ndarray
+    tags: Dict[str, str] = field(default_factory=dict)
+    depth_path: Optional[Path] = None
+    depth_scale: float = 1.0
+
+    def check(self) -> Optional[str]:
+        reason = self.camera.check()
+        if reason:
+            return reason
+        T = np.asarray(self.cam_from_world)
+        if T.shape != (3, 4) or not np.isfinite(T).all():
+            return "pose is not a finite 3x4 matrix"
+        R = T[:, :3]
+        if abs(np.linalg.det(R) - 1) > 1e-3 or not np.allclose(R @ R.T, np.eye(3), atol=1e-3):
+            return "pose rotation is not a rotation matrix"
+        return None
+
+    def pose(self, dtype=torch.float32) -> Pose:
+        T = torch.from_numpy(np.asarray(self.cam_from_world, dtype=np.float64)).to(dtype)
+        return Pose.from_Rt(T[:, :3], T[:, 3])
+
+
+@dataclass
+class Scene:
+    """A sparse 3D map: images, points (P, 3) in the world frame, and their observations.
+
+    Observation k says that point ``obs_point[k]`` is seen in image
+    ``obs_image[k]`` at ``obs_xy[k]`` (COLMAP pixel coordinates, origin at
+    the top-left corner; NaN where unknown, e.g. points sampled from depth).
+    """
+
+    images: List[ImageRecord]
+    points: np.ndarray
+    obs_point: np.ndarray
+    obs_image: np.ndarray
+    obs_xy: np.ndarray
+
+    def __post_init__(self):
+        self.points = np.asarray(self.points, dtype=np.float64).reshape(-1, 3)
+        self.obs_point = np.asarray(self.obs_point, dtype=np.int64).reshape(-1)
+        self.obs_image = np.asarray(self.obs_image, dtype=np.int64).reshape(-1)
+        self.obs_xy = np.asarray(self.obs_xy, dtype=np.float64).reshape(-1, 2)
+        n = len(self.obs_point)
+        if len(self.obs_image) != n or len(self.obs_xy) != n:
+            raise SceneError("Observation arrays have different lengths.")
+        if n and (self.obs_point.min() < 0 or self.obs_point.max() >= len(self.points)):
+            raise SceneError("Observations reference points that do not exist.")
+        if n and (self.obs_image.min() < 0 or self.obs_image.max() >= len(self.images)):
+            raise SceneError("Observations reference images that do not exist.")
+
+    @property
+    def track_length(self) -> np.ndarray:
+        """(P,) number of images observing each point."""
+        return np.bincount(self.obs_point, minlength=len(self.points))
+
+    def check(self) -> Dict[int, str]:
+        """Problems per image index; raises for a scene that cannot make a map at all."""
+        if not self.images:
+            raise SceneError("The model has no images.")
+        if len(self.points) == 0:
+            raise SceneError("The model has no 3D points.")
+        if not np.isfinite(self.points).all():
+            raise SceneError(f"{int((~np.isfinite(self.points).all(1)).sum())} 3D points are not finite.")
+        problems = {i: r for i, im in enumerate(self.images) if (r := im.check())}
+        for i, im in enumerate(self.images):
+            if i not in problems and not Path(im.path).is_file():
+                problems[i] = f"image file {im.path} is missing"
+        return problems
+
+    def subset(self, keep: Sequence[int]) -> "Scene":
+        """The scene restricted to images ``keep`` (their observations, all points)."""
+        keep = np.asarray(keep, dtype=np.int64)
+        remap = -np.ones(len(self.images), dtype=np.int64)
+        remap[keep] = np.arange(len(keep))
+        sel = remap[self.obs_image] >= 0
+        return Scene([self.images[i] for i in keep], self.points, self.obs_point[sel],
+                     remap[self.obs_image[sel]], self.obs_xy[sel])
