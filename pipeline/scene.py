@@ -12,6 +12,15 @@ import torch
 from pixloc.geometry import COLMAP_MODELS, Camera, Pose
 
 
+def qvec_to_rotmat(qvec) -> np.ndarray:
+    """(3, 3) rotation from a quaternion (w, x, y, z), normalised here."""
+    q = np.asarray(qvec, dtype=np.float64)
+    w, x, y, z = q / np.linalg.norm(q)
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+
+
 class SceneError(ValueError):
     """Input that cannot make a map (empty model, unsupported camera, NaN pose...)."""
 
@@ -50,7 +59,9 @@ class ImageRecord:
     """A reference image: its file, camera and cam_from_world pose ((3, 4) [R | t], float64).
 
     tags: condition tags (day/night, season, sequence...). depth: an optional
-    depth map file and the factor that turns its values into scene units.
+    depth map file, the factor that turns its values into scene units, and
+    the camera of the depth map when it is not registered to the image
+    (same pose, other intrinsics: 7-Scenes).
     """
 
     name: str
@@ -60,6 +71,7 @@ class ImageRecord:
     tags: Dict[str, str] = field(default_factory=dict)
     depth_path: Optional[Path] = None
     depth_scale: float = 1.0
+    depth_camera: Optional[CameraRecord] = None
 
     def check(self) -> Optional[str]:
         reason = self.camera.check()

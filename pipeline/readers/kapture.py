@@ -11,7 +11,7 @@ from typing import Dict, List, Tuple
 
 import numpy as np
 
-from ..scene import CameraRecord, ImageRecord, SceneError
+from ..scene import CameraRecord, ImageRecord, SceneError, qvec_to_rotmat
 
 
 def _rows(path: Path) -> List[List[str]]:
@@ -27,11 +27,7 @@ def _pose(values) -> np.ndarray:
     q = np.array([qw, qx, qy, qz])
     if not np.isfinite(q).all() or np.linalg.norm(q) == 0:
         return np.full((3, 4), np.nan)
-    w, x, y, z = q / np.linalg.norm(q)
-    R = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                  [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                  [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
-    return np.concatenate([R, [[float(tx)], [float(ty)], [float(tz)]]], 1)
+    return np.concatenate([qvec_to_rotmat(q), [[float(tx)], [float(ty)], [float(tz)]]], 1)
 
 
 def _compose(a: np.ndarray, b: np.ndarray) -> np.ndarray:

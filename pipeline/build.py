@@ -1,0 +1,114 @@
+"""Map building stages: scene structure into the store, then features image by image.
+
+Both stages are idempotent: structure is reused when it describes the same
+scene, and feature extraction skips images already done, so an interrupted
+build resumes where it stopped. A bad image is recorded as failed with its
+reason; the rest of the map is built.
+"""
+
+import functools
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Dict, List, Optional, Sequence
+
+import numpy as np
+import torch
+
+from pixloc.nets.registry import load_extractor, state_digest
+
+from .features import FeatureConfig, extract_image_features
+from .scene import Scene
+from .store import (DONE, FAILED, PENDING, create_store, feature_key, image_records, init_features, mark_failed,
+                    open_store, write_image_features)
+
+logger = logging.getLogger(__name__)
+REFUSED = "refused: "  # reason prefix of images that cannot be used at all (not retried)
+
+
+@dataclass
+class ImageResult:
+    """Outcome of one image: ``done`` (computed now), ``skipped`` (already done) or ``failed``."""
+
+    index: int
+    name: str
+    status: str
+    reason: str = ""
+
+
+@functools.lru_cache(maxsize=2)
+def _network(model: str, device: str):
+    net = load_extractor(model).to(device)
+    return net, state_digest(net)
+
+
+def write_structure(scene: Scene, store_path, conf: FeatureConfig, *, chunk_rows: int = 256,
+                    overwrite: bool = False, source: Optional[Dict] = None, device: str = "cpu") -> Dict[int, str]:
+    """Create the store and its feature group; record images that cannot be used as failed.
+
+    Returns {image index: reason} for the images refused up front.
+    """
+    problems = scene.check()
+    root = create_store(store_path, scene, chunk_rows=chunk_rows, overwrite=overwrite, source=source)
+    net, digest = _network(conf.model, device)
+    group = init_features(root, conf, digest, list(net.output_dims))
+    status, reasons = group["status"][:], group["reason"][:]
+    for i in range(len(scene.images)):
+        if i in problems and status[i] != DONE:
+            mark_failed(group, i, f"{REFUSED}{problems[i]}")
+            logger.warning("Image %s left out of the map: %s", scene.images[i].name, problems[i])
+        elif i not in problems and status[i] == FAILED and str(reasons[i]).startswith(REFUSED):
+            group["status"][i] = PENDING  # the problem is gone (e.g. the file is back): retry
+    return problems
+
+
+def extract_features(store_path, conf: FeatureConfig, indices: Sequence[int], *, device: str = "cpu",
+                     overwrite: bool = False) -> List[ImageResult]:
+    """Extract and write the features of images ``indices``; one task of the map-building graph."""
+    root = open_store(store_path, mode="r+")
+    net, digest = _network(conf.model, device)
+    group = init_features(root, conf, digest, list(net.output_dims))  # refuses another model
+    images = image_records(root)
+    xyz = root["points/xyz"][:]
+    results = []
+    for i in indices:
+        image = images[i]
+        status = int(group["status"][i])
+        if status == DONE and not overwrite:
+            results.append(ImageResult(i, image.name, "skipped"))
+            continue
+        if status == FAILED and str(group["reason"][i]).startswith(REFUSED):
+            results.append(ImageResult(i, image.name, "failed", str(group["reason"][i])))
+            continue
+        start, n = int(root["images/row_start"][i]), int(root["images/num_obs"][i])
+        point_ids = root["observations/point"][start:start + n]
+        try:
+            feats = extract_image_features(net, conf, image, xyz[point_ids], device=device)
+        except (OSError, ValueError, RuntimeError) as e:  # per-image failure, recorded with its reason
+            reason = f"{type(e).__name__}: {e}"
+            mark_failed(group, i, reason)
+            logger.warning("Image %s failed: %s", image.name, reason)
+            results.append(ImageResult(i, image.name, "failed", reason))
+            continue
+        write_image_features(group, root, i, feats)
+        results.append(ImageResult(i, image.name, "done"))
+    return results
+
+
+def pending_images(store_path, conf: FeatureConfig) -> List[int]:
+    """Images whose features are not done (pending, or failed for a reason that may pass)."""
+    root = open_store(store_path)
+    key = f"features/{feature_key(conf)}"
+    if key not in root:
+        return list(range(root.attrs["pixloc_map"]["num_images"]))
+    status = root[f"{key}/status"][:]
+    reasons = root[f"{key}/reason"][:]
+    return [i for i, (s, r) in enumerate(zip(status, reasons)) if s != DONE and not str(r).startswith(REFUSED)]
+
+
+def build_map(scene: Scene, store_path, conf: FeatureConfig, **kwargs) -> List[ImageResult]:
+    """Synchronous map build: structure, then every pending image in order."""
+    write_structure(scene, store_path, conf, **kwargs)
+    device = kwargs.get("device", "cpu")
+    with torch.inference_mode():
+        return extract_features(store_path, conf, pending_images(store_path, conf), device=device)

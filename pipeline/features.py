@@ -1,0 +1,87 @@
+"""Reference features at map-point observations, sampled as the official localizer samples them.
+
+For each image scale (official ``multiscale``: target size = resize // s),
+the image is downscaled so that its longer side is at most the target, the
+network runs once, and every level's raw (not normalised) features and
+confidence are bilinearly sampled at the projection of each 3D point the
+image observes, with the level's camera. An observation is valid at a level
+when it projects inside the image and inside the interpolation margin.
+"""
+
+from dataclasses import asdict, dataclass
+from typing import Dict, List, Tuple
+
+import numpy as np
+import torch
+
+from pixloc.interpolation import Interpolator
+from pixloc.nets.unet import UNet
+
+from .images import read_image, resize_max, to_tensor
+from .scene import ImageRecord
+
+
+@dataclass(frozen=True)
+class FeatureConfig:
+    """How reference features are extracted; stored with them and checked on reuse.
+
+    model: network name or checkpoint path (see ``pixloc.nets.registry``).
+    resize: longer image side in pixels at image scale 1 (images are only downscaled).
+    image_scales: official ``multiscale`` factors, coarse first (e.g. (4, 1)).
+    pad: interpolation margin in feature-map pixels (official ``pad``).
+    """
+
+    model: str = "lite0-imagenet"
+    resize: int = 1024
+    image_scales: Tuple[int, ...] = (4, 1)
+    pad: int = 2
+
+    def to_dict(self) -> Dict:
+        d = asdict(self)
+        d["image_scales"] = list(self.image_scales)
+        return d
+
+
+@dataclass
+class ImageFeatures:
+    """Samples for one image: per (scale, level), features (K, C) float32,
+    confidences (K,), valid (K,); and a global descriptor (D,)."""
+
+    samples: Dict[Tuple[int, int], Tuple[np.ndarray, np.ndarray, np.ndarray]]
+    global_descriptor: np.ndarray
+
+
+def gem(features: torch.Tensor, p: float = 3.0) -> torch.Tensor:
+    """Generalised-mean pooling (Radenovic et al. 2018) of (C, H, W) -> L2-normalised (C,)."""
+    pooled = features.clamp(min=1e-6).pow(p).mean((-2, -1)).pow(1 / p)
+    return torch.nn.functional.normalize(pooled, dim=0)
+
+
+@torch.no_grad()
+def extract_image_features(net: UNet, conf: FeatureConfig, image: ImageRecord, p3d_world: np.ndarray,
+                           device: str = "cpu") -> ImageFeatures:
+    """Sample the features of ``image`` at the projections of ``p3d_world`` (K, 3)."""
+    rgb = read_image(image.path)
+    camera = image.camera.to_pixloc(torch.float64)
+    p3d_cam = image.pose(torch.float64).transform(torch.from_numpy(np.asarray(p3d_world, np.float64)))
+    interpolator = Interpolator("linear", conf.pad)
+    samples, descriptor = {}, None
+    for k, image_scale in enumerate(conf.image_scales):
+        resized, (sx, sy) = resize_max(rgb, conf.resize // image_scale)
+        pred = net(to_tensor(resized)[None].to(device))
+        for level, stride in enumerate(net.strides):
+            cam = camera.scale((sx / stride, sy / stride))
+            p2d, visible = cam.cam2image(p3d_cam)
+            fmap = pred["features"][level][0]
+            values, inside, _ = interpolator(fmap, p2d.to(fmap))
+            conf_map = pred["confidences"][level][0] if "confidences" in pred else torch.ones_like(fmap[:1])
+            confidence, _, _ = interpolator(conf_map, p2d.to(fmap))
+            samples[(k, level)] = (values.cpu().numpy(), confidence[:, 0].cpu().numpy(),
+                                   (inside & visible.to(inside.device)).cpu().numpy())
+        if image_scale == 1 or k == len(conf.image_scales) - 1:
+            descriptor = gem(pred["features"][-1][0]).cpu().numpy()
+    return ImageFeatures(samples, descriptor)
+
+
+def level_dims(net: UNet) -> List[int]:
+    return list(net.output_dims)
