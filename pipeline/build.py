@@ -37,7 +37,8 @@ class ImageResult:
 
 
 @functools.lru_cache(maxsize=2)
-def _network(model: str, device: str):
+def network(model: str, device: str = "cpu"):
+    """The feature network and its weights' digest, loaded once per process."""
     net = load_extractor(model).to(device)
     return net, state_digest(net)
 
@@ -50,7 +51,7 @@ def write_structure(scene: Scene, store_path, conf: FeatureConfig, *, chunk_rows
     """
     problems = scene.check()
     root = create_store(store_path, scene, chunk_rows=chunk_rows, overwrite=overwrite, source=source)
-    net, digest = _network(conf.model, device)
+    net, digest = network(conf.model, device)
     group = init_features(root, conf, digest, list(net.output_dims))
     status, reasons = group["status"][:], group["reason"][:]
     for i in range(len(scene.images)):
@@ -64,9 +65,24 @@ def write_structure(scene: Scene, store_path, conf: FeatureConfig, *, chunk_rows
 
 def extract_features(store_path, conf: FeatureConfig, indices: Sequence[int], *, device: str = "cpu",
                      overwrite: bool = False) -> List[ImageResult]:
-    """Extract and write the features of images ``indices``; one task of the map-building graph."""
+    """Extract and write the features of images ``indices``; one task of the map-building graph.
+
+    Runs with one torch thread: convolution results depend on the thread
+    count, and one thread makes stores bitwise identical whatever executor
+    built them (parallelism comes from running several tasks).
+    """
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        with torch.inference_mode():
+            return _extract_features(store_path, conf, indices, device, overwrite)
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _extract_features(store_path, conf, indices, device, overwrite) -> List[ImageResult]:
     root = open_store(store_path, mode="r+")
-    net, digest = _network(conf.model, device)
+    net, digest = network(conf.model, device)
     group = init_features(root, conf, digest, list(net.output_dims))  # refuses another model
     images = image_records(root)
     xyz = root["points/xyz"][:]
@@ -109,6 +125,4 @@ def pending_images(store_path, conf: FeatureConfig) -> List[int]:
 def build_map(scene: Scene, store_path, conf: FeatureConfig, **kwargs) -> List[ImageResult]:
     """Synchronous map build: structure, then every pending image in order."""
     write_structure(scene, store_path, conf, **kwargs)
-    device = kwargs.get("device", "cpu")
-    with torch.inference_mode():
-        return extract_features(store_path, conf, pending_images(store_path, conf), device=device)
+    return extract_features(store_path, conf, pending_images(store_path, conf), device=kwargs.get("device", "cpu"))

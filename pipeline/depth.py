@@ -157,17 +157,20 @@ def densify(scene: Scene, min_depth: float = 1e-3) -> Scene:
         if len(sel) == 0 or im.depth_path is None:
             continue
         depth = _load_depth(im)
-        xy = scene.obs_xy[sel] - 0.5  # COLMAP -> pixel-centre coordinates
+        # The observation's ray, then where it falls in the depth map (same pose,
+        # possibly other intrinsics when depth is not registered to colour).
+        rays = im.camera.to_pixloc(torch.float64).image2cam(torch.from_numpy(scene.obs_xy[sel] - 0.5))
+        xy, in_front = _depth_camera(im).cam2image(rays)
+        xy, rays = xy.numpy(), rays.numpy()
         x0, y0 = np.floor(xy[:, 0]).astype(int), np.floor(xy[:, 1]).astype(int)
-        ok = (x0 >= 0) & (y0 >= 0) & (x0 + 1 < depth.shape[1]) & (y0 + 1 < depth.shape[0])
+        ok = in_front.numpy() & (x0 >= 0) & (y0 >= 0) & (x0 + 1 < depth.shape[1]) & (y0 + 1 < depth.shape[0])
         fx, fy = xy[:, 0] - x0, xy[:, 1] - y0
         x0c, y0c = np.clip(x0, 0, depth.shape[1] - 2), np.clip(y0, 0, depth.shape[0] - 2)
         corners = np.stack([depth[y0c, x0c], depth[y0c, x0c + 1], depth[y0c + 1, x0c], depth[y0c + 1, x0c + 1]])
         d = (corners[0] * (1 - fx) * (1 - fy) + corners[1] * fx * (1 - fy)
              + corners[2] * (1 - fx) * fy + corners[3] * fx * fy)
         ok &= (corners > min_depth).all(0)  # no interpolation across holes
-        rays = im.camera.to_pixloc(torch.float64).image2cam(torch.from_numpy(xy[ok])).numpy()
-        points[scene.obs_point[sel[ok]]] = _to_world(im, rays * d[ok][:, None])
+        points[scene.obs_point[sel[ok]]] = _to_world(im, rays[ok] * d[ok][:, None])
         moved[scene.obs_point[sel[ok]]] = True
     logger.info("Densification moved %d of %d points.", int(moved.sum()), len(points))
     return Scene(scene.images, points, scene.obs_point, scene.obs_image, scene.obs_xy)

@@ -21,6 +21,11 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
 
+    from .cli_build_map import add_arguments as build_map_arguments
+    build_map_arguments(sub.add_parser(
+        "build-map", help="build a map store (points, observations, reference features)",
+        description="Build a map store from a COLMAP model, images, known poses or RGB-D frames."))
+
     bench = sub.add_parser("benchmark", help="run a benchmark and print figures against its baseline")
     bench_sub = bench.add_subparsers(dest="benchmark", metavar="NAME", required=True)
     lm_parser = bench_sub.add_parser(
@@ -36,6 +41,9 @@ def main(argv: Optional[List[str]] = None) -> int:
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    if not args.verbose:
+        for noisy in ("distributed", "bokeh", "tornado"):
+            logging.getLogger(noisy).setLevel(logging.WARNING)
     if not getattr(args, "func", None):
         parser.print_help()
         return 0

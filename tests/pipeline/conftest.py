@@ -1,0 +1,9 @@
+import pytest
+
+from pipeline.readers.colmap import read_colmap
+
+
+@pytest.fixture(scope="session")
+def maupertuis(shared):
+    root = shared / "data" / "maupertuis"
+    return read_colmap(root / "reconstruction", root / "images")

@@ -1,0 +1,102 @@
+import numpy as np
+import pytest
+import torch
+
+from pipeline.depth import _depth_camera, _load_depth, _to_cam, densify, rgbd_scene
+from pipeline.readers.colmap import read_colmap, run_sfm, triangulate_known_poses
+from pipeline.readers.kapture import read_kapture
+from pipeline.readers.rgbd import read_7scenes, read_pose_txt
+from pipeline.readers.strecha import read_strecha
+from pipeline.scene import CameraRecord, Scene, SceneError
+
+
+def reprojection_errors(scene: Scene) -> np.ndarray:
+    """Pixel distance between each observation and its point projected with our camera model."""
+    errors = []
+    for i, im in enumerate(scene.images):
+        sel = scene.obs_image == i
+        p2d, _ = im.camera.to_pixloc(torch.float64).cam2image(
+            im.pose(torch.float64).transform(torch.from_numpy(scene.points[scene.obs_point[sel]])))
+        errors.append(np.linalg.norm(p2d.numpy() + 0.5 - scene.obs_xy[sel], axis=1))
+    return np.concatenate(errors)
+
+
+def test_colmap_text_model(maupertuis):
+    assert len(maupertuis.images) == 4 and len(maupertuis.points) == 1039 and len(maupertuis.obs_point) == 3355
+    assert maupertuis.images[0].camera.model == "SIMPLE_PINHOLE"
+    assert maupertuis.check() == {}
+    # COLMAP's own mean reprojection error is 0.34 px: our projection must agree.
+    assert np.mean(reprojection_errors(maupertuis)) < 0.5
+
+
+def test_strecha_known_poses_triangulate_below_one_pixel(shared, tmp_path):
+    root = shared / "data" / "strecha" / "fountain-P11"
+    scene = triangulate_known_poses(read_strecha(root), root / "images", tmp_path)
+    assert len(scene.images) == 11 and len(scene.points) > 5000
+    assert scene.track_length.min() >= 2
+    assert np.median(reprojection_errors(scene)) < 1.0
+
+
+def test_kapture_rig_poses(shared, tmp_path):
+    root = shared / "data" / "virtual_gallery" / "mapping"
+    images = read_kapture(root)
+    assert len(images) == 12 and {im.tags["camera"] for im in images} == {"training_camera_0", "training_camera_1"}
+    assert all(im.tags["rig"] == "training_rig" for im in images)
+    # The two cameras of one rig frame: 60 degrees apart, as rigs.txt says.
+    a, b = images[0], images[1]
+    R = b.cam_from_world[:, :3] @ a.cam_from_world[:, :3].T
+    assert np.degrees(np.arccos((np.trace(R) - 1) / 2)) == pytest.approx(60.0, abs=1e-3)
+    # The rig convention (sensor_from_rig) is the one under which matches triangulate.
+    scene = triangulate_known_poses(images, root / "sensors" / "records_data", tmp_path)
+    assert len(scene.points) > 3000 and np.median(reprojection_errors(scene)) < 1.0
+
+
+@pytest.mark.slow
+def test_sfm_of_sacre_coeur(shared, tmp_path):
+    scene = run_sfm(shared / "data" / "sacre_coeur" / "mapping", tmp_path)
+    assert len(scene.images) >= 8 and len(scene.points) > 1000
+    assert np.mean(reprojection_errors(scene)) < 1.5
+
+
+def test_7scenes_rgbd_map_lies_on_the_depth_surface(shared):
+    images = read_7scenes(shared / "data" / "7scenes_stairs", [2, 3])
+    assert len(images) == 6
+    scene = rgbd_scene(images, method="tsdf")
+    assert len(scene.points) > 5000 and scene.track_length.min() >= 2
+    gaps = []
+    for i, im in enumerate(images):  # every frame that observes a point, not only the one it came from
+        sel = scene.obs_image == i
+        p_cam = _to_cam(im, scene.points[scene.obs_point[sel]])
+        uv = np.round(_depth_camera(im).cam2image(torch.from_numpy(p_cam))[0].numpy()).astype(int)
+        gaps.append(np.abs(p_cam[:, 2] - _load_depth(im)[uv[:, 1], uv[:, 0]]))
+    gaps = np.concatenate(gaps)
+    assert np.median(gaps) < 0.01 and np.mean(gaps < 0.02) > 0.8
+
+
+def test_rgbd_pose_txt_frames(shared):
+    root = shared / "data" / "rgbd_slambook" / "kinect_room"
+    cam = CameraRecord("PINHOLE", 640, 480, (518.0, 519.0, 325.5, 253.5))
+    images = read_pose_txt(root, cam, depth_scale=1e-3, depth_ext=".pgm")
+    scene = rgbd_scene(images, method="frames", stride=8)
+    assert len(images) == 5 and len(scene.points) > 1000
+
+
+def test_densify_moves_points_onto_depth(shared):
+    images = read_7scenes(shared / "data" / "7scenes_stairs", [2])
+    scene = rgbd_scene(images, method="frames", stride=16)
+    noisy = Scene(scene.images, scene.points + np.random.default_rng(0).normal(0, 0.05, scene.points.shape),
+                  scene.obs_point, scene.obs_image, scene.obs_xy)
+    dense = densify(noisy)
+    before = np.linalg.norm(noisy.points - scene.points, axis=1)
+    after = np.linalg.norm(dense.points - scene.points, axis=1)
+    assert np.median(after) < 0.2 * np.median(before)
+
+
+def test_bad_sources_are_named(tmp_path, shared):
+    with pytest.raises(SceneError, match="does not exist"):
+        read_colmap(tmp_path / "nope", tmp_path)
+    with pytest.raises(SceneError, match="not a kapture dataset"):
+        read_kapture(tmp_path)
+    empty = Scene([], np.zeros((0, 3)), [], [], np.zeros((0, 2)))
+    with pytest.raises(SceneError, match="no images"):
+        empty.check()

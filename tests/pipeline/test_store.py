@@ -1,0 +1,125 @@
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from torch.nn.functional import grid_sample
+
+from pipeline.build import build_map, network
+from pipeline.features import FeatureConfig
+from pipeline.images import read_image, resize_max, to_tensor
+from pipeline.scene import CameraRecord, Scene, SceneError
+from pipeline.store import DONE, FAILED, StoreError, feature_key, image_rows, open_store
+from tests.pipeline.helpers import assert_same_store
+
+CONF = FeatureConfig(resize=512, image_scales=(4, 1))
+
+
+@pytest.fixture(scope="module")
+def built(maupertuis, tmp_path_factory):
+    path = tmp_path_factory.mktemp("store") / "map.zarr"
+    results = build_map(maupertuis, path, CONF)
+    return path, results
+
+
+def test_structure(built, maupertuis):
+    path, results = built
+    assert [(r.name, r.status) for r in results] == [("01.jpg", "failed"), ("03.jpg", "done")] * 4
+    root = open_store(path)
+    meta = root.attrs["pixloc_map"]
+    assert meta["num_observations"] == 3355 and meta["num_points"] == 1039
+    # Each image's block starts on a chunk boundary: workers never share a chunk.
+    assert (root["images/row_start"][:] % meta["chunk_rows"] == 0).all()
+    for i in range(4):
+        rows = image_rows(root, i)
+        pts = root["observations/point"][rows]
+        assert sorted(pts) == sorted(maupertuis.obs_point[maupertuis.obs_image == i])
+
+
+def test_stored_features_equal_the_network_at_projections(built, maupertuis):
+    """Recompute independently (numpy projection, torch grid_sample) and compare with the store."""
+    path, _ = built
+    root = open_store(path)
+    group = root[f"features/{feature_key(CONF)}"]
+    net, _ = network(CONF.model)
+    i = 2
+    image = maupertuis.images[i]
+    rows = image_rows(root, i)
+    xyz = root["points/xyz"][:][root["observations/point"][rows]]
+    f, cx, cy = image.camera.params
+    T = image.cam_from_world
+    p = xyz @ T[:, :3].T + T[:, 3]
+    uv_colmap = f * p[:, :2] / p[:, 2:] + [cx, cy]  # COLMAP pixel-corner convention
+    rgb = read_image(image.path)
+    for k, s in enumerate(CONF.image_scales):
+        resized, (sx, _) = resize_max(rgb, CONF.resize // s)
+        with torch.no_grad():
+            torch.set_num_threads(1)
+            pred = net(to_tensor(resized)[None])
+            torch.set_num_threads(2)
+        for level, stride in enumerate(net.strides):
+            fmap = pred["features"][level]
+            h, w = fmap.shape[-2:]
+            uv = uv_colmap * sx / stride - 0.5  # resized feature-map pixels, centre origin
+            grid = torch.from_numpy(uv / [w - 1, h - 1] * 2 - 1).float()[None, None]
+            expected = grid_sample(fmap, grid, align_corners=True)[0, :, 0].T.numpy()
+            inside = (uv >= 2).all(1) & (uv <= [w - 3, h - 3]).all(1)
+            stored = group[f"s{k}/l{level}/features"][rows].astype(np.float32)
+            valid = group[f"s{k}/l{level}/valid"][rows]
+            assert np.array_equal(valid, inside)
+            np.testing.assert_allclose(stored[valid], expected[valid], rtol=2e-3, atol=2e-3)
+
+
+def test_rebuild_is_identical_and_skips_everything(built, maupertuis, tmp_path):
+    path, _ = built
+    again = build_map(maupertuis, path, CONF)
+    assert again == []  # nothing pending
+    fresh = tmp_path / "fresh.zarr"
+    build_map(maupertuis, fresh, CONF)
+    assert_same_store(path, fresh)
+
+
+def test_another_model_or_config_is_refused(built, maupertuis, tmp_path):
+    path, _ = built
+    root = open_store(path, mode="r+")
+    group = root[f"features/{feature_key(CONF)}"]
+    digest = group.attrs["model_digest"]
+    group.attrs["model_digest"] = "0000000000000000"
+    try:
+        with pytest.raises(StoreError, match="refusing to mix"):
+            build_map(maupertuis, path, CONF)
+    finally:
+        group.attrs["model_digest"] = digest
+    with pytest.raises(StoreError, match="holds another map"):
+        build_map(maupertuis.subset([0, 1, 2]), path, CONF)
+    with pytest.raises(StoreError, match="does not exist"):
+        open_store(tmp_path / "missing.zarr")
+
+
+def test_bad_images_fail_with_a_reason_and_the_rest_is_built(maupertuis, tmp_path):
+    corrupt = tmp_path / "corrupt.jpg"
+    corrupt.write_bytes(b"not a jpeg")
+    images = list(maupertuis.images)
+    images[0] = dataclasses.replace(images[0], path=tmp_path / "missing.jpg")
+    images[1] = dataclasses.replace(images[1], path=corrupt)
+    images[2] = dataclasses.replace(images[2], camera=CameraRecord("THIN_PRISM_FISHEYE", 100, 100, (1.0,) * 16))
+    bad_pose = images[3].cam_from_world.copy()
+    bad_pose[0, 3] = np.nan
+    images.append(dataclasses.replace(images[3], name="nan_pose.jpg", cam_from_world=bad_pose))
+    scene = Scene(images, maupertuis.points, maupertuis.obs_point, maupertuis.obs_image, maupertuis.obs_xy)
+    results = build_map(scene, tmp_path / "map.zarr", CONF)
+    group = open_store(tmp_path / "map.zarr")[f"features/{feature_key(CONF)}"]
+    status, reasons = group["status"][:], [str(r) for r in group["reason"][:]]
+    assert status.tolist() == [FAILED, FAILED, FAILED, DONE, FAILED]
+    assert "missing" in reasons[0]
+    assert "cannot be decoded" in reasons[1]
+    assert "unsupported camera model 'THIN_PRISM_FISHEYE'" in reasons[2]
+    assert "pose is not a finite" in reasons[4]
+    assert [(r.name, r.status) for r in results] == [("01.jpg", "failed"), ("03.jpg", "done")]
+
+
+def test_empty_model_is_a_clear_error(tmp_path, maupertuis):
+    empty = Scene(maupertuis.images, np.zeros((0, 3)), [], [], np.zeros((0, 2)))
+    with pytest.raises(SceneError, match="no 3D points"):
+        build_map(empty, tmp_path / "map.zarr", CONF)

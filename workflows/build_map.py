@@ -1,0 +1,107 @@
+"""The map-building workflow: a plan of stages, run synchronously or on a Dask cluster.
+
+Nothing runs while planning. The structure stage is a single write on the
+client; feature extraction is one task per batch of images, annotated with
+``resources={"GPU": 1}`` on GPU devices. Tasks are idempotent (a finished
+image is skipped), so a killed worker's tasks are simply rerun elsewhere and
+an interrupted build resumes with what is missing.
+"""
+
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Dict, List, Optional
+
+import numpy as np
+
+from pipeline.build import ImageResult, extract_features, network, pending_images, write_structure
+from pipeline.features import FeatureConfig
+from pipeline.scene import Scene
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass
+class BuildPlan:
+    """What a build will do: the scene, the store, the feature config and the task batches."""
+
+    scene: Scene
+    store: Path
+    conf: FeatureConfig
+    batches: List[List[int]]
+    dims: List[int]
+    device: str = "cpu"
+    chunk_rows: int = 256
+    source: Dict = field(default_factory=dict)
+
+    def expected_bytes(self) -> int:
+        """Approximate store size: padded rows x (features f16 + confidence f16 + valid) per scale and level."""
+        num_obs = np.bincount(self.scene.obs_image, minlength=len(self.scene.images))
+        rows = int((np.maximum(1, -(-num_obs // self.chunk_rows)) * self.chunk_rows).sum())
+        dims = self.dims
+        per_row = len(self.conf.image_scales) * sum(2 * d + 3 for d in dims) + 8 + 8
+        return rows * per_row + len(self.scene.points) * 28 + len(self.scene.images) * (4 * dims[-1] + 200)
+
+    def describe(self) -> str:
+        n_obs = len(self.scene.obs_point)
+        todo = sum(len(b) for b in self.batches)
+        lines = [
+            f"map store      {self.store}",
+            f"source         {self.source}",
+            f"features       {self.conf.to_dict()} on {self.device}",
+            "stages:",
+            f"  1 structure  {len(self.scene.images)} images, {len(self.scene.points)} points, {n_obs} observations",
+            f"  2 features   {todo} images to extract in {len(self.batches)} tasks "
+            f"({len(self.scene.images) - todo} already done or refused)",
+            f"expected size  {self.expected_bytes() / 2**20:.1f} MiB",
+        ]
+        return "\n".join(lines)
+
+
+def plan_build(scene: Scene, store, conf: FeatureConfig, *, batch_size: int = 1, device: str = "cpu",
+               chunk_rows: int = 256, source: Optional[Dict] = None) -> BuildPlan:
+    """Plan a build; images already done in an existing store are not planned again."""
+    store = Path(store)
+    todo = pending_images(store, conf) if store.exists() else list(range(len(scene.images)))
+    batches = [todo[i:i + batch_size] for i in range(0, len(todo), batch_size)]
+    dims = list(network(conf.model, "cpu")[0].output_dims)
+    return BuildPlan(scene, store, conf, batches, dims, device, chunk_rows, source or {})
+
+
+def run_sync(plan: BuildPlan, progress: bool = False) -> List[ImageResult]:
+    """Run the plan in this process."""
+    write_structure(plan.scene, plan.store, plan.conf, chunk_rows=plan.chunk_rows, source=plan.source,
+                    device=plan.device)
+    batches = pending_batches(plan)
+    results = []
+    iterator = batches
+    if progress:
+        from tqdm import tqdm
+        iterator = tqdm(batches, desc="features", unit="task")
+    for batch in iterator:
+        results += extract_features(plan.store, plan.conf, batch, device=plan.device)
+    return results
+
+
+def pending_batches(plan: BuildPlan) -> List[List[int]]:
+    """The plan's batches less images finished since planning (or refused at the structure stage)."""
+    todo = set(pending_images(plan.store, plan.conf))
+    batches = [[i for i in b if i in todo] for b in plan.batches]
+    return [b for b in batches if b]
+
+
+def run_dask(plan: BuildPlan, client, progress: bool = False) -> List[ImageResult]:
+    """Run the plan on a dask.distributed client: one task per batch, retried if its worker dies."""
+    write_structure(plan.scene, plan.store, plan.conf, chunk_rows=plan.chunk_rows, source=plan.source,
+                    device=plan.device)
+    resources = {"GPU": 1} if plan.device.startswith("cuda") else None
+    futures = [client.submit(extract_features, str(plan.store), plan.conf, batch, device=plan.device,
+                             key=f"features-{batch[0]}-{len(batch)}", pure=False, retries=3, resources=resources)
+               for batch in pending_batches(plan)]
+    if progress and futures:
+        from distributed import progress as dask_progress
+        dask_progress(futures)
+    results = []
+    for batch_results in client.gather(futures, errors="raise"):
+        results += batch_results
+    return results

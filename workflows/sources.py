@@ -1,0 +1,57 @@
+"""Map sources: what users have (a COLMAP model, images, known poses, kapture, RGB-D), as a Scene."""
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Optional, Tuple
+
+from pipeline.depth import densify, rgbd_scene
+from pipeline.readers.colmap import read_colmap, run_sfm, triangulate_known_poses
+from pipeline.readers.kapture import read_kapture
+from pipeline.readers.rgbd import read_7scenes
+from pipeline.readers.strecha import read_strecha
+from pipeline.scene import Scene
+
+KINDS = ("colmap", "sfm", "strecha", "kapture", "7scenes")
+
+
+@dataclass(frozen=True)
+class MapSource:
+    """Where a map comes from.
+
+    kind: ``colmap`` (model folder ``path`` + ``images``), ``sfm`` (reconstruct
+    the images in ``path`` with pycolmap), ``strecha`` / ``kapture`` (known
+    poses: SIFT + triangulation), ``7scenes`` (RGB-D frames of ``sequences``).
+    rgbd_points: ``tsdf`` or ``frames``. densify: move SfM points onto depth.
+    """
+
+    kind: str
+    path: Path
+    images: Optional[Path] = None
+    sequences: Tuple[int, ...] = field(default_factory=tuple)
+    rgbd_points: str = "tsdf"
+    densify: bool = False
+
+    def to_dict(self):
+        return {"kind": self.kind, "path": str(self.path), "images": str(self.images) if self.images else None,
+                "sequences": list(self.sequences), "rgbd_points": self.rgbd_points, "densify": self.densify}
+
+
+def load_scene(source: MapSource, work_dir: Path) -> Scene:
+    """The Scene of ``source``; SfM and triangulation write their COLMAP files under ``work_dir``."""
+    path = Path(source.path)
+    if source.kind == "colmap":
+        scene = read_colmap(path, source.images or path.parent / "images")
+    elif source.kind == "sfm":
+        scene = run_sfm(path, work_dir / "sfm")
+    elif source.kind == "strecha":
+        scene = triangulate_known_poses(read_strecha(path), path / "images", work_dir / "triangulation")
+    elif source.kind == "kapture":
+        scene = triangulate_known_poses(read_kapture(path), path / "sensors" / "records_data",
+                                        work_dir / "triangulation")
+    elif source.kind == "7scenes":
+        if not source.sequences:
+            raise ValueError("A 7scenes source needs --sequences (e.g. 2 3, the official training split).")
+        scene = rgbd_scene(read_7scenes(path, source.sequences), method=source.rgbd_points)
+    else:
+        raise ValueError(f"Unknown map source {source.kind!r}; known: {', '.join(KINDS)}.")
+    return densify(scene) if source.densify else scene
