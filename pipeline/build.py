@@ -9,10 +9,8 @@ reason; the rest of the map is built.
 import functools
 import logging
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Dict, List, Optional, Sequence
 
-import numpy as np
 import torch
 
 from pixloc.nets.registry import load_extractor, state_digest

@@ -10,7 +10,7 @@ from typing import List, Optional, Tuple
 import numpy as np
 import torch
 
-from .images import read_depth, read_image
+from .images import read_depth
 from .scene import ImageRecord, Scene, SceneError
 
 logger = logging.getLogger(__name__)

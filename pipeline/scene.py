@@ -1,5 +1,6 @@
 """Typed records of a 3D map before features: cameras, posed images, points, observations."""
 
+import dataclasses
 import json
 import math
 from dataclasses import dataclass, field
@@ -136,6 +137,13 @@ class Scene:
             if i not in problems and not Path(im.path).is_file():
                 problems[i] = f"image file {im.path} is missing"
         return problems
+
+    def repeated(self, times: int) -> "Scene":
+        """The scene with its images repeated ``times`` under new names ``k/name``
+        (same files and points): a larger map for benchmarks and parallel tests."""
+        images = [dataclasses.replace(im, name=f"{k}/{im.name}") for k in range(times) for im in self.images]
+        obs_image = np.concatenate([self.obs_image + k * len(self.images) for k in range(times)])
+        return Scene(images, self.points, np.tile(self.obs_point, times), obs_image, np.tile(self.obs_xy, (times, 1)))
 
     def subset(self, keep: Sequence[int]) -> "Scene":
         """The scene restricted to images ``keep`` (their observations, all points)."""

@@ -3,6 +3,15 @@
 # torch is installed first and pinned, so that no CUDA build is ever pulled in.
 set -euo pipefail
 cd "$(dirname "$0")/.."
+# open3d links against libusb-1.0 (a Debian package, not on a fresh machine).
+if ! ldconfig -p | grep -q "libusb-1.0.so.0"; then
+    if [ "$(id -u)" = 0 ]; then
+        apt-get update -qq && apt-get install -y -qq libusb-1.0-0 >/dev/null
+    else
+        echo "open3d needs libusb-1.0: run 'sudo apt-get install libusb-1.0-0'" >&2
+        exit 1
+    fi
+fi
 if [ ! -x .venv/bin/python ]; then
     python3 -m venv .venv
 fi

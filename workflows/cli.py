@@ -8,11 +8,6 @@ from typing import List, Optional
 import pixloc
 
 
-def _benchmark(args: argparse.Namespace) -> int:
-    from .benchmarks import lm
-    return lm.main(args)
-
-
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="pixloc",
@@ -28,11 +23,14 @@ def build_parser() -> argparse.ArgumentParser:
 
     bench = sub.add_parser("benchmark", help="run a benchmark and print figures against its baseline")
     bench_sub = bench.add_subparsers(dest="benchmark", metavar="NAME", required=True)
-    lm_parser = bench_sub.add_parser(
-        "lm", help="LM iterations per second, batched vs one problem at a time")
-    from .benchmarks.lm import add_arguments
-    add_arguments(lm_parser)
-    lm_parser.set_defaults(func=_benchmark)
+    from .benchmarks import build_map as bench_build_map
+    from .benchmarks import lm as bench_lm
+    for name, module, text in [
+            ("lm", bench_lm, "LM iterations per second, batched vs one problem at a time"),
+            ("build-map", bench_build_map, "map building: images/s and bytes per observation, 1 vs 2 workers")]:
+        p = bench_sub.add_parser(name, help=text)
+        module.add_arguments(p)
+        p.set_defaults(func=module.main)
     return parser
 
 

@@ -1,21 +1,8 @@
 """Shared helpers for map-store tests."""
 
-import dataclasses
-
 import numpy as np
 import zarr
 
-from pipeline.scene import Scene
-
-
-def replicated(scene: Scene, times: int) -> Scene:
-    """The scene with its images repeated under new names (more images for parallel tests)."""
-    images, obs = [], []
-    for k in range(times):
-        images += [dataclasses.replace(im, name=f"{k}/{im.name}") for im in scene.images]
-        obs.append(scene.obs_image + k * len(scene.images))
-    n = times
-    return Scene(images, scene.points, np.tile(scene.obs_point, n), np.concatenate(obs), np.tile(scene.obs_xy, (n, 1)))
 
 
 def store_arrays(path) -> dict:

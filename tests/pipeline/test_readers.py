@@ -2,12 +2,15 @@ import numpy as np
 import pytest
 import torch
 
+from pipeline.build import build_map
 from pipeline.depth import _depth_camera, _load_depth, _to_cam, densify, rgbd_scene
 from pipeline.readers.colmap import read_colmap, run_sfm, triangulate_known_poses
 from pipeline.readers.kapture import read_kapture
 from pipeline.readers.rgbd import read_7scenes, read_pose_txt
 from pipeline.readers.strecha import read_strecha
+from pipeline.features import FeatureConfig
 from pipeline.scene import CameraRecord, Scene, SceneError
+from pipeline.store import feature_key, open_store
 
 
 def reprojection_errors(scene: Scene) -> np.ndarray:
@@ -51,11 +54,15 @@ def test_kapture_rig_poses(shared, tmp_path):
     assert len(scene.points) > 3000 and np.median(reprojection_errors(scene)) < 1.0
 
 
-@pytest.mark.slow
-def test_sfm_of_sacre_coeur(shared, tmp_path):
+def test_sfm_of_sacre_coeur_then_a_store(shared, tmp_path):
     scene = run_sfm(shared / "data" / "sacre_coeur" / "mapping", tmp_path)
     assert len(scene.images) >= 8 and len(scene.points) > 1000
     assert np.mean(reprojection_errors(scene)) < 1.5
+    conf = FeatureConfig(resize=512, image_scales=(1,))
+    results = build_map(scene, tmp_path / "map.zarr", conf)
+    assert [r.status for r in results] == ["done"] * len(scene.images)
+    group = open_store(tmp_path / "map.zarr")[f"features/{feature_key(conf)}"]
+    assert group["s0/l0/valid"][:].sum() > 0.9 * len(scene.obs_point)
 
 
 def test_7scenes_rgbd_map_lies_on_the_depth_surface(shared):

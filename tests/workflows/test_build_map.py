@@ -1,0 +1,134 @@
+"""Map building through the workflow: a real Dask cluster, killed workers, interrupted runs."""
+
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from pipeline.features import FeatureConfig
+from pipeline.readers.colmap import read_colmap
+from pipeline.store import DONE, feature_key, open_store
+from tests.pipeline.helpers import assert_same_store
+from workflows.build_map import plan_build, run_dask, run_sync
+
+CONF = FeatureConfig(resize=1024, image_scales=(4, 1))
+ROOT = Path(__file__).resolve().parents[2]
+DASK = Path(sys.executable).parent / "dask"
+
+
+@pytest.fixture(scope="module")
+def scene(shared):
+    root = shared / "data" / "maupertuis"
+    return read_colmap(root / "reconstruction", root / "images").repeated(4)  # 16 images
+
+
+@pytest.fixture(scope="module")
+def reference(scene, tmp_path_factory):
+    """The synchronous build, which every other build must equal exactly."""
+    path = tmp_path_factory.mktemp("sync") / "map.zarr"
+    results = run_sync(plan_build(scene, path, CONF))
+    assert [r.status for r in results] == ["done"] * 16
+    return path
+
+
+def done_count(path) -> int:
+    try:
+        return int((open_store(path)[f"features/{feature_key(CONF)}/status"][:] == DONE).sum())
+    except Exception:  # the store is still being created
+        return 0
+
+
+def wait_for(predicate, timeout=120.0):
+    start = time.time()
+    while not predicate():
+        if time.time() - start > timeout:
+            raise TimeoutError("condition not reached")
+        time.sleep(0.05)
+
+
+@pytest.fixture
+def cluster(tmp_path):
+    """A scheduler and two worker processes on 127.0.0.1, started with the dask CLI."""
+    if not DASK.exists():
+        pytest.skip("the dask command is not installed next to this Python")
+    sched_file = tmp_path / "scheduler.json"
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    procs = [subprocess.Popen([str(DASK), "scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard",
+                               "--scheduler-file", str(sched_file)], env=env, stderr=subprocess.DEVNULL)]
+    wait_for(sched_file.exists, 60)
+    for name in ("a", "b"):
+        procs.append(subprocess.Popen(
+            [str(DASK), "worker", "--scheduler-file", str(sched_file), "--nthreads", "1", "--no-nanny",
+             "--no-dashboard", "--name", name, "--host", "127.0.0.1"], env=env, stderr=subprocess.DEVNULL))
+    from distributed import Client
+    client = Client(scheduler_file=str(sched_file), timeout=60)
+    client.wait_for_workers(2, timeout=60)
+    yield client, {"a": procs[1], "b": procs[2]}
+    client.close()
+    for p in procs:
+        p.kill()
+        p.wait()
+
+
+def test_distributed_build_equals_sync(scene, reference, cluster, tmp_path):
+    client, _ = cluster
+    path = tmp_path / "map.zarr"
+    results = run_dask(plan_build(scene, path, CONF), client)
+    assert sorted(r.index for r in results) == list(range(16)) and {r.status for r in results} == {"done"}
+    assert {w["name"] for w in client.scheduler_info()["workers"].values()} == {"a", "b"}
+    assert_same_store(reference, path)
+
+
+def test_killed_worker_mid_build(scene, reference, cluster, tmp_path):
+    client, workers = cluster
+    path = tmp_path / "map.zarr"
+    outcome = {}
+    runner = threading.Thread(target=lambda: outcome.update(results=run_dask(plan_build(scene, path, CONF), client)))
+    runner.start()
+    wait_for(lambda: done_count(path) >= 3)
+    workers["a"].send_signal(signal.SIGKILL)  # the scheduler reschedules its tasks on b
+    runner.join(300)
+    assert "results" in outcome
+    assert done_count(path) == 16
+    assert_same_store(reference, path)
+
+
+def test_interrupted_build_resumes_only_missing_images(scene, reference, tmp_path):
+    path = tmp_path / "map.zarr"
+    script = (
+        "import sys; sys.path.insert(0, sys.argv[1])\n"
+        "from tests.workflows.test_build_map import CONF\n"
+        "from pipeline.readers.colmap import read_colmap\n"
+        "from workflows.build_map import plan_build, run_sync\n"
+        "root = sys.argv[3]\n"
+        "scene = read_colmap(root + '/reconstruction', root + '/images').repeated(4)\n"
+        "run_sync(plan_build(scene, sys.argv[2], CONF))\n")
+    shared_root = str(scene.images[0].path.parent.parent)
+    proc = subprocess.Popen([sys.executable, "-c", script, str(ROOT), str(path), shared_root])
+    wait_for(lambda: done_count(path) >= 4)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    done_before = done_count(path)
+    assert 4 <= done_before < 16
+    status = open_store(path)[f"features/{feature_key(CONF)}/status"][:]
+    missing = sorted(int(i) for i in (status != DONE).nonzero()[0])
+    results = run_sync(plan_build(scene, path, CONF))
+    assert sorted(r.index for r in results) == missing  # nothing finished is redone
+    assert {r.status for r in results} == {"done"}
+    assert_same_store(reference, path)
+
+
+def test_dry_run_prints_the_plan(shared, tmp_path):
+    root = shared / "data" / "maupertuis"
+    out = subprocess.run([sys.executable, "-m", "workflows.cli", "build-map", "colmap", str(root / "reconstruction"),
+                          "--images", str(root / "images"), "--store", str(tmp_path / "m.zarr"), "--dry-run"],
+                         capture_output=True, text=True, cwd=ROOT)
+    assert out.returncode == 0, out.stderr
+    assert "4 images, 1039 points, 3355 observations" in out.stdout
+    assert "4 images to extract in 4 tasks" in out.stdout and "expected size" in out.stdout
+    assert not (tmp_path / "m.zarr").exists()
