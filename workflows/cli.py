@@ -45,7 +45,13 @@ def main(argv: Optional[List[str]] = None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 0
-    return args.func(args)
+    try:
+        return args.func(args)
+    except (ValueError, OSError) as e:  # bad input: SceneError, StoreError, CheckpointError, missing files
+        if args.verbose:
+            raise
+        print(f"pixloc: error: {e}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

@@ -22,6 +22,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--sequences", type=int, nargs="+", default=[], help="7-Scenes sequences of the map")
     p.add_argument("--rgbd-points", choices=["tsdf", "frames"], default="tsdf")
     p.add_argument("--densify", action="store_true", help="move SfM points onto the depth maps")
+    p.add_argument("--intrinsics", type=float, nargs=4, default=[], metavar=("FX", "FY", "CX", "CY"),
+                   help="posetxt: pinhole intrinsics of colour and depth (COLMAP convention)")
+    p.add_argument("--depth-scale", type=float, default=1e-3, help="posetxt: depth units to scene units")
+    p.add_argument("--depth-ext", default=".png", help="posetxt: depth file extension")
     p.add_argument("--model", default="lite0-imagenet", help="feature network name or checkpoint path")
     p.add_argument("--resize", type=int, default=1024, help="longer image side at image scale 1")
     p.add_argument("--image-scales", type=int, nargs="+", default=[4, 1])
@@ -38,7 +42,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    source = MapSource(args.kind, args.path, args.images, tuple(args.sequences), args.rgbd_points, args.densify)
+    source = MapSource(args.kind, args.path, args.images, tuple(args.sequences), args.rgbd_points, args.densify,
+                       tuple(args.intrinsics), args.depth_scale, args.depth_ext)
     conf = FeatureConfig(args.model, args.resize, tuple(args.image_scales), args.pad)
     work_dir = args.work_dir or args.store.with_suffix(".work")
     t0 = time.time()

@@ -7,11 +7,12 @@ from typing import Optional, Tuple
 from pipeline.depth import densify, rgbd_scene
 from pipeline.readers.colmap import read_colmap, run_sfm, triangulate_known_poses
 from pipeline.readers.kapture import read_kapture
-from pipeline.readers.rgbd import read_7scenes
+from pipeline.images import read_image
+from pipeline.readers.rgbd import read_7scenes, read_pose_txt
 from pipeline.readers.strecha import read_strecha
-from pipeline.scene import Scene
+from pipeline.scene import CameraRecord, Scene
 
-KINDS = ("colmap", "sfm", "strecha", "kapture", "7scenes")
+KINDS = ("colmap", "sfm", "strecha", "kapture", "7scenes", "posetxt")
 
 
 @dataclass(frozen=True)
@@ -20,7 +21,9 @@ class MapSource:
 
     kind: ``colmap`` (model folder ``path`` + ``images``), ``sfm`` (reconstruct
     the images in ``path`` with pycolmap), ``strecha`` / ``kapture`` (known
-    poses: SIFT + triangulation), ``7scenes`` (RGB-D frames of ``sequences``).
+    poses: SIFT + triangulation), ``7scenes`` (RGB-D frames of ``sequences``),
+    ``posetxt`` (``color/``, ``depth/``, ``pose.txt``; needs ``intrinsics`` =
+    (fx, fy, cx, cy) in COLMAP convention, ``depth_scale`` and ``depth_ext``).
     rgbd_points: ``tsdf`` or ``frames``. densify: move SfM points onto depth.
     """
 
@@ -30,10 +33,14 @@ class MapSource:
     sequences: Tuple[int, ...] = field(default_factory=tuple)
     rgbd_points: str = "tsdf"
     densify: bool = False
+    intrinsics: Tuple[float, ...] = field(default_factory=tuple)
+    depth_scale: float = 1e-3
+    depth_ext: str = ".png"
 
     def to_dict(self):
         return {"kind": self.kind, "path": str(self.path), "images": str(self.images) if self.images else None,
-                "sequences": list(self.sequences), "rgbd_points": self.rgbd_points, "densify": self.densify}
+                "sequences": list(self.sequences), "rgbd_points": self.rgbd_points, "densify": self.densify,
+                "intrinsics": list(self.intrinsics), "depth_scale": self.depth_scale, "depth_ext": self.depth_ext}
 
 
 def load_scene(source: MapSource, work_dir: Path) -> Scene:
@@ -52,6 +59,13 @@ def load_scene(source: MapSource, work_dir: Path) -> Scene:
         if not source.sequences:
             raise ValueError("A 7scenes source needs --sequences (e.g. 2 3, the official training split).")
         scene = rgbd_scene(read_7scenes(path, source.sequences), method=source.rgbd_points)
+    elif source.kind == "posetxt":
+        if len(source.intrinsics) != 4:
+            raise ValueError("A posetxt source needs --intrinsics FX FY CX CY (COLMAP convention).")
+        width, height = read_image(next((path / "color").iterdir())).shape[1::-1]
+        camera = CameraRecord("PINHOLE", width, height, tuple(source.intrinsics))
+        images = read_pose_txt(path, camera, source.depth_scale, source.depth_ext)
+        scene = rgbd_scene(images, method=source.rgbd_points)
     else:
         raise ValueError(f"Unknown map source {source.kind!r}; known: {', '.join(KINDS)}.")
     return densify(scene) if source.densify else scene

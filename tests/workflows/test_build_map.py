@@ -132,3 +132,16 @@ def test_dry_run_prints_the_plan(shared, tmp_path):
     assert "4 images, 1039 points, 3355 observations" in out.stdout
     assert "4 images to extract in 4 tasks" in out.stdout and "expected size" in out.stdout
     assert not (tmp_path / "m.zarr").exists()
+
+
+def test_rgbd_pose_txt_source_plan(shared, tmp_path):
+    out = subprocess.run([sys.executable, "-m", "workflows.cli", "build-map", "posetxt",
+                          str(shared / "data" / "rgbd_slambook" / "kinect_room"), "--intrinsics", "518", "519",
+                          "325.5", "253.5", "--depth-ext", ".pgm", "--rgbd-points", "frames",
+                          "--store", str(tmp_path / "k.zarr"), "--dry-run"], capture_output=True, text=True, cwd=ROOT)
+    assert out.returncode == 0, out.stderr
+    assert "1 structure  5 images" in out.stdout
+    out = subprocess.run([sys.executable, "-m", "workflows.cli", "build-map", "posetxt", str(tmp_path),
+                          "--store", str(tmp_path / "k.zarr"), "--dry-run"], capture_output=True, text=True, cwd=ROOT)
+    assert out.returncode == 2 and "pixloc: error: A posetxt source needs --intrinsics" in out.stderr
+    assert "Traceback" not in out.stderr
