@@ -29,12 +29,15 @@ class FeatureConfig:
     resize: longer image side in pixels at image scale 1 (images are only downscaled).
     image_scales: official ``multiscale`` factors, coarse first (e.g. (4, 1)).
     pad: interpolation margin in feature-map pixels (official ``pad``).
+    dtype: storage type of features and confidences, ``float16`` (default, half
+        the size) or ``float32`` (bit-exact with extraction, for parity studies).
     """
 
     model: str = "lite0-imagenet"
     resize: int = 1024
     image_scales: Tuple[int, ...] = (4, 1)
     pad: int = 2
+    dtype: str = "float16"
 
     def to_dict(self) -> Dict:
         d = asdict(self)

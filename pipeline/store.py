@@ -113,7 +113,8 @@ def feature_key(conf: FeatureConfig) -> str:
     """The store group of a feature config: derived from it, so two configs never share one."""
     name = Path(conf.model).stem if Path(conf.model).suffix else conf.model
     scales = "-".join(str(s) for s in conf.image_scales)
-    return f"{name}_r{conf.resize}_s{scales}_p{conf.pad}"
+    dtype = "" if conf.dtype == "float16" else f"_{conf.dtype}"
+    return f"{name}_r{conf.resize}_s{scales}_p{conf.pad}{dtype}"
 
 
 def init_features(root: zarr.Group, conf: FeatureConfig, digest: str, dims: List[int]) -> zarr.Group:
@@ -138,8 +139,8 @@ def init_features(root: zarr.Group, conf: FeatureConfig, digest: str, dims: List
     for k in range(len(conf.image_scales)):
         for level, dim in enumerate(dims):
             g = f"s{k}/l{level}"
-            group.create_array(f"{g}/features", shape=(R, dim), chunks=(chunk, dim), dtype="float16", fill_value=0)
-            group.create_array(f"{g}/confidences", shape=(R,), chunks=(chunk,), dtype="float16", fill_value=0)
+            group.create_array(f"{g}/features", shape=(R, dim), chunks=(chunk, dim), dtype=conf.dtype, fill_value=0)
+            group.create_array(f"{g}/confidences", shape=(R,), chunks=(chunk,), dtype=conf.dtype, fill_value=0)
             group.create_array(f"{g}/valid", shape=(R,), chunks=(chunk,), dtype="bool", fill_value=False)
     return group
 
@@ -167,9 +168,10 @@ def write_image_features(group: zarr.Group, root: zarr.Group, i: int, feats: Ima
     n_pad = block.stop - block.start
     for (k, level), (f, c, v) in feats.samples.items():
         g = group[f"s{k}/l{level}"]
-        fp = np.zeros((n_pad, f.shape[1]), np.float16)
+        dtype = g["features"].dtype
+        fp = np.zeros((n_pad, f.shape[1]), dtype)
         fp[: len(f)] = f
-        cp = np.zeros(n_pad, np.float16)
+        cp = np.zeros(n_pad, dtype)
         cp[: len(c)] = c
         vp = np.zeros(n_pad, bool)
         vp[: len(v)] = v

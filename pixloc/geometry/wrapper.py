@@ -47,6 +47,9 @@ class TensorWrapper:
     def to(self, *args, **kwargs):
         return self._new(self._data.to(*args, **kwargs))
 
+    def cpu(self):
+        return self._new(self._data.cpu())
+
     def float(self):
         return self._new(self._data.float())
 

@@ -9,6 +9,8 @@ from torch import nn
 
 from .checkpoint import load_official_checkpoint
 from .efficientnet import lite0_unet
+from ..optim import LearnedDamping, LevenbergMarquardt
+from ..refiner import TwoViewRefiner
 from .unet import UNet
 
 
@@ -23,6 +25,18 @@ def _seeded(build: Callable[[], UNet], seed: int = 0) -> Callable[[], UNet]:
 MODELS: Dict[str, Callable[[], UNet]] = {
     "lite0-imagenet": _seeded(lambda: lite0_unet(pretrained=True)),
 }
+
+
+def load_refiner(spec: str) -> TwoViewRefiner:
+    """Network and per-level LM solvers: an official checkpoint's, or a named network with
+    the official initial damping (LearnedDamping at theta = 0) on every level."""
+    if spec in MODELS:
+        net = MODELS[spec]().eval()
+        solvers = [LevenbergMarquardt(LearnedDamping(), num_iters=100, pad=2) for _ in net.strides]
+        return TwoViewRefiner(net, solvers).eval()
+    if Path(spec).is_file():
+        return load_official_checkpoint(spec)
+    raise ValueError(f"Unknown feature model {spec!r}: give one of {sorted(MODELS)} or a checkpoint file.")
 
 
 def load_extractor(spec: str) -> UNet:

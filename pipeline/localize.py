@@ -1,0 +1,153 @@
+"""Localization of one query against a map store: PixLoc's coarse-to-fine refinement.
+
+As the official ``RetrievalRefiner`` / ``BaseRefiner``: the 3D points seen by
+the selected reference images (track length >= ``min_track_length``), their
+stored reference features (observations invalid at any level dropped), either
+averaged per point weighted by confidence or each kept as its own residual,
+then per image scale the query's dense features and LM from the coarsest to
+the finest level. A failure at any level keeps the prior, marked failed.
+"""
+
+import time
+from dataclasses import dataclass, field
+from typing import Dict, List, Optional, Sequence
+
+import numpy as np
+import torch
+from torch.nn.functional import normalize
+
+from pixloc.geometry import Pose
+from pixloc.optim import FeaturemetricProblem, LevenbergMarquardt
+from pixloc.nets.unet import UNet
+
+from .images import ImageReadError, read_image, resize_max, to_tensor
+from .map_reader import MapReader
+from .queries import QueryRecord
+
+
+@dataclass(frozen=True)
+class LocalizerConfig:
+    """num_dbs: reference images used. average_observations: one residual per point
+    (confidence-weighted mean over references) instead of one per observation.
+    num_iters: LM iterations per level. min_track_length, min_points: official filters."""
+
+    num_dbs: int = 5
+    average_observations: bool = False
+    num_iters: int = 100
+    min_track_length: int = 3
+    min_points: int = 10
+
+
+@dataclass
+class QueryResult:
+    """The outcome of one query; poses are cam_from_world (3, 4)."""
+
+    name: str
+    success: bool
+    prior: Optional[np.ndarray]
+    refined: Optional[np.ndarray]
+    references: List[str] = field(default_factory=list)
+    num_points: int = 0
+    cost: float = float("nan")
+    iterations: int = 0
+    reason: str = ""
+    timings: Dict[str, float] = field(default_factory=dict)
+    per_level: List[Dict] = field(default_factory=list)
+
+    @property
+    def pose(self) -> Optional[np.ndarray]:
+        """The pose to report: refined if successful, else the prior (official behaviour)."""
+        return self.refined if self.success else self.prior
+
+
+def _pose(T: np.ndarray) -> Pose:
+    T = torch.as_tensor(np.asarray(T, dtype=np.float64))
+    return Pose.from_Rt(T[:, :3], T[:, 3])
+
+
+def _matrix(T: Pose) -> np.ndarray:
+    return np.concatenate([T.R.double().numpy(), T.t.double().numpy()[:, None]], 1)
+
+
+class Localizer:
+    """Localizes queries against one map with one network and its per-level solvers."""
+
+    def __init__(self, net: UNet, solvers: Sequence[LevenbergMarquardt], reader: MapReader,
+                 conf: LocalizerConfig, device: str = "cpu"):
+        self.net, self.solvers, self.reader, self.conf, self.device = net, list(solvers), reader, conf, device
+        for s in self.solvers:
+            s.num_iters = conf.num_iters
+            s.eval()
+
+    def reference_features(self, dbs: List[int], scale: int):
+        """Points (K, 3) and per level (features (K, C) normalised, confidences (K,))."""
+        obs = self.reader.observations(dbs, self.conf.min_track_length)
+        feats = self.reader.features(obs, scale)
+        valid = np.logical_and.reduce([v for _, _, v in feats])
+        point = obs.point[valid]
+        levels = [(f[valid], w[valid]) for f, w, _ in feats]
+        if self.conf.average_observations:
+            uniq, inverse = np.unique(point, return_inverse=True)
+            averaged = []
+            for f, w in levels:
+                wsum = np.bincount(inverse, weights=w, minlength=len(uniq))
+                fsum = np.zeros((len(uniq), f.shape[1]))
+                np.add.at(fsum, inverse, f * w[:, None])
+                count = np.bincount(inverse, minlength=len(uniq))
+                averaged.append((fsum / wsum[:, None], wsum / count))
+            point, levels = uniq, averaged
+        xyz = torch.from_numpy(self.reader.xyz[point]).float()
+        return xyz, [(normalize(torch.from_numpy(np.asarray(f, np.float32)), dim=-1),
+                      torch.from_numpy(np.asarray(w, np.float32))) for f, w in levels]
+
+    @torch.no_grad()
+    def localize(self, query: QueryRecord, dbs: List[int], prior: np.ndarray) -> QueryResult:
+        t_start = time.perf_counter()
+        refs = [self.reader.names[i] for i in dbs]
+        result = QueryResult(query.name, False, np.asarray(prior, np.float64), None, refs)
+        obs = self.reader.observations(dbs, self.conf.min_track_length)
+        result.num_points = int(len(np.unique(obs.point)))
+        if result.num_points < self.conf.min_points:
+            result.reason = f"references see {result.num_points} points (< {self.conf.min_points})"
+            return result
+        try:
+            rgb = read_image(query.path)
+        except ImageReadError as e:
+            result.reason = str(e)
+            return result
+        camera = query.camera.to_pixloc(torch.float64)
+        T = _pose(prior).float()
+        fconf = self.reader.conf
+        for k, image_scale in enumerate(fconf.image_scales):
+            t0 = time.perf_counter()
+            p3d, refs_f = self.reference_features(dbs, k)
+            resized, (sx, sy) = resize_max(rgb, fconf.resize // image_scale)
+            pred = self.net(to_tensor(resized)[None].to(self.device))
+            result.timings[f"features_s{k}"] = time.perf_counter() - t0
+            t0 = time.perf_counter()
+            for level in reversed(range(len(self.net.strides))):
+                stride = self.net.strides[level]
+                F_q = normalize(pred["features"][level][0], dim=0)
+                W_q = pred["confidences"][level][0, 0]
+                cam = camera.scale((sx / stride, sy / stride)).float()
+                F_ref, W_ref = refs_f[level]
+                problem = FeaturemetricProblem.single(p3d.to(F_q), F_ref.to(F_q), F_q, cam.to(F_q.device),
+                                                      W_ref.to(F_q), W_q)
+                lm = self.solvers[level](problem, T.reshape(1).to(F_q))
+                failed = bool(lm.failed[0])
+                result.per_level.append({"scale": int(image_scale), "level": level, "failed": failed,
+                                         "pose": _matrix(lm.pose[0].cpu()).tolist(),
+                                         "iterations": int(lm.iterations[0])})
+                result.iterations += int(lm.iterations[0])
+                result.cost = float(lm.cost[0, -1])
+                if failed:
+                    result.reason = (f"LM failed at image scale {image_scale}, level {level} "
+                                     f"({int(lm.num_valid[0])} valid points)")
+                    result.timings[f"optim_s{k}"] = time.perf_counter() - t0
+                    result.timings["total"] = time.perf_counter() - t_start
+                    return result
+                T = lm.pose[0].cpu()
+            result.timings[f"optim_s{k}"] = time.perf_counter() - t0
+        result.success, result.refined = True, _matrix(T)
+        result.timings["total"] = time.perf_counter() - t_start
+        return result

@@ -1,0 +1,113 @@
+"""Read access to a map store for localization: observations of reference images and their features."""
+
+import functools
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import List, Optional, Tuple
+
+import numpy as np
+
+from .features import FeatureConfig
+from .scene import CameraRecord
+from .store import DONE, StoreError, feature_key, open_store
+
+
+@dataclass
+class Observations:
+    """M observations of the selected points in the selected reference images.
+
+    point: (M,) point ids; db: (M,) reference image index; rows: (M,) store rows.
+    """
+
+    point: np.ndarray
+    db: np.ndarray
+    rows: np.ndarray
+
+
+class MapReader:
+    """A map store opened for localization with one feature config.
+
+    Refuses a store whose features were made by another model (``digest``)
+    or config. Reference blocks are read once and cached.
+    """
+
+    def __init__(self, path, conf: FeatureConfig, digest: Optional[str] = None, cache_images: int = 256):
+        self.path = Path(path)
+        root = open_store(self.path)
+        key = f"features/{feature_key(conf)}"
+        if key not in root:
+            available = sorted(root["features"].group_keys()) if "features" in root else []
+            raise StoreError(f"{path} has no features for {conf.to_dict()} (it has: {available or 'none'}).")
+        self.group = root[key]
+        if self.group.attrs.get("config") != conf.to_dict():
+            raise StoreError(f"{path}: features {key} were made with {self.group.attrs.get('config')}.")
+        if digest is not None and self.group.attrs.get("model_digest") != digest:
+            raise StoreError(f"{path}: features were made with model {self.group.attrs.get('model_digest')}, "
+                             f"not the localizer's {digest}: rebuild the map with this model.")
+        self.conf = conf
+        self.dims: List[int] = list(self.group.attrs["dims"])
+        self.names = [str(n) for n in root["images/name"][:]]
+        self.index = {n: i for i, n in enumerate(self.names)}
+        self.cameras = [CameraRecord.from_json(str(c)) for c in root["images/camera"][:]]
+        self.tags = [json.loads(str(t)) for t in root["images/tags"][:]]
+        T = root["images/cam_from_world"][:]
+        self.cam_from_world = np.concatenate([T[:, :9].reshape(-1, 3, 3), T[:, 9:, None]], 2)
+        self.row_start = root["images/row_start"][:]
+        self.num_obs = root["images/num_obs"][:]
+        self.status = self.group["status"][:]
+        self.xyz = root["points/xyz"][:]
+        self.track_length = root["points/track_length"][:]
+        self.obs_point = root["observations/point"][:]
+        self.global_descriptors = self.group["global"][:]
+        self._block = functools.lru_cache(maxsize=cache_images)(self._read_block)
+
+    def usable(self, i: int) -> bool:
+        return int(self.status[i]) == DONE
+
+    def observations(self, dbs: List[int], min_track_length: int) -> Observations:
+        """Every observation, in ``dbs``, of the points they see with track length >= min."""
+        rows = [np.arange(self.row_start[i], self.row_start[i] + self.num_obs[i]) for i in dbs]
+        db = np.concatenate([np.full(len(r), i) for r, i in zip(rows, dbs)]) if rows else np.zeros(0, int)
+        rows = np.concatenate(rows) if rows else np.zeros(0, int)
+        point = self.obs_point[rows]
+        keep = self.track_length[point] >= min_track_length
+        return Observations(point[keep], db[keep], rows[keep])
+
+    def _read_block(self, i: int, scale: int, level: int) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+        s = slice(int(self.row_start[i]), int(self.row_start[i] + self.num_obs[i]))
+        g = self.group[f"s{scale}/l{level}"]
+        return (g["features"][s].astype(np.float32), g["confidences"][s].astype(np.float32), g["valid"][s])
+
+    def features(self, obs: Observations, scale: int) -> List[Tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """Per level: features (M, C) float32, confidences (M,), valid (M,) of the observations."""
+        out = []
+        for level, dim in enumerate(self.dims):
+            F = np.zeros((len(obs.rows), dim), np.float32)
+            W = np.zeros(len(obs.rows), np.float32)
+            V = np.zeros(len(obs.rows), bool)
+            for i in np.unique(obs.db):
+                sel = np.flatnonzero(obs.db == i)
+                f, w, v = self._block(int(i), scale, level)
+                local = obs.rows[sel] - self.row_start[i]
+                F[sel], W[sel], V[sel] = f[local], w[local], v[local]
+            out.append((F, W, V))
+        return out
+
+
+def global_descriptor_ranking(reader: MapReader, descriptor: np.ndarray, k: int,
+                              candidates: Optional[List[int]] = None) -> List[int]:
+    """Top-k usable reference images by cosine similarity of global descriptors."""
+    ids = np.array([i for i in (candidates if candidates is not None else range(len(reader.names)))
+                    if reader.usable(i)])
+    if len(ids) == 0:
+        return []
+    sim = reader.global_descriptors[ids] @ descriptor
+    return [int(i) for i in ids[np.argsort(-sim, kind="stable")[:k]]]
+
+
+def by_name(reader: MapReader, names: List[str]) -> Tuple[List[int], List[str]]:
+    """Indices of reference names, and the names not in the map."""
+    found = [reader.index[n] for n in names if n in reader.index]
+    return found, [n for n in names if n not in reader.index]
+
