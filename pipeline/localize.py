@@ -76,7 +76,6 @@ class Localizer:
                  conf: LocalizerConfig, device: str = "cpu"):
         self.net, self.solvers, self.reader, self.conf, self.device = net, list(solvers), reader, conf, device
         for s in self.solvers:
-            s.num_iters = conf.num_iters
             s.eval()
 
     def reference_features(self, dbs: List[int], scale: int):
@@ -101,7 +100,16 @@ class Localizer:
                       torch.from_numpy(np.asarray(w, np.float32))) for f, w in levels]
 
     @torch.no_grad()
-    def localize(self, query: QueryRecord, dbs: List[int], prior: np.ndarray) -> QueryResult:
+    def predict(self, rgb: np.ndarray, k: int):
+        """Dense query prediction at image scale index k, and the resize factors."""
+        resized, scales = resize_max(rgb, self.reader.conf.resize // self.reader.conf.image_scales[k])
+        return self.net(to_tensor(resized)[None].to(self.device)), scales
+
+    @torch.no_grad()
+    def localize(self, query: QueryRecord, dbs: List[int], prior: np.ndarray,
+                 rgb: Optional[np.ndarray] = None, cache: Optional[Dict] = None) -> QueryResult:
+        """Refine ``prior`` against references ``dbs``; ``rgb`` and ``cache`` (k -> prediction)
+        let callers reuse the query image and predictions across hypotheses."""
         t_start = time.perf_counter()
         refs = [self.reader.names[i] for i in dbs]
         result = QueryResult(query.name, False, np.asarray(prior, np.float64), None, refs)
@@ -110,19 +118,22 @@ class Localizer:
         if result.num_points < self.conf.min_points:
             result.reason = f"references see {result.num_points} points (< {self.conf.min_points})"
             return result
-        try:
-            rgb = read_image(query.path)
-        except ImageReadError as e:
-            result.reason = str(e)
-            return result
+        if rgb is None:
+            try:
+                rgb = read_image(query.path)
+            except ImageReadError as e:
+                result.reason = str(e)
+                return result
+        cache = {} if cache is None else cache
         camera = query.camera.to_pixloc(torch.float64)
         T = _pose(prior).float()
         fconf = self.reader.conf
         for k, image_scale in enumerate(fconf.image_scales):
             t0 = time.perf_counter()
             p3d, refs_f = self.reference_features(dbs, k)
-            resized, (sx, sy) = resize_max(rgb, fconf.resize // image_scale)
-            pred = self.net(to_tensor(resized)[None].to(self.device))
+            if k not in cache:
+                cache[k] = self.predict(rgb, k)
+            pred, (sx, sy) = cache[k]
             result.timings[f"features_s{k}"] = time.perf_counter() - t0
             t0 = time.perf_counter()
             for level in reversed(range(len(self.net.strides))):
@@ -133,7 +144,7 @@ class Localizer:
                 F_ref, W_ref = refs_f[level]
                 problem = FeaturemetricProblem.single(p3d.to(F_q), F_ref.to(F_q), F_q, cam.to(F_q.device),
                                                       W_ref.to(F_q), W_q)
-                lm = self.solvers[level](problem, T.reshape(1).to(F_q))
+                lm = self.solvers[level](problem, T.reshape(1).to(F_q), num_iters=self.conf.num_iters)
                 failed = bool(lm.failed[0])
                 result.per_level.append({"scale": int(image_scale), "level": level, "failed": failed,
                                          "pose": _matrix(lm.pose[0].cpu()).tolist(),

@@ -21,6 +21,12 @@ def build_parser() -> argparse.ArgumentParser:
         "build-map", help="build a map store (points, observations, reference features)",
         description="Build a map store from a COLMAP model, images, known poses or RGB-D frames."))
 
+    from .cli_localize import add_arguments as localize_arguments
+    from .cli_localize import add_evaluate_arguments
+    localize_arguments(sub.add_parser("localize", help="localize queries against a map store",
+                                      description="Localize queries (retrieval, prior, PixLoc refinement)."))
+    add_evaluate_arguments(sub.add_parser("evaluate", help="pose errors and recall of a localize output"))
+
     bench = sub.add_parser("benchmark", help="run a benchmark and print figures against its baseline")
     bench_sub = bench.add_subparsers(dest="benchmark", metavar="NAME", required=True)
     from .benchmarks import build_map as bench_build_map

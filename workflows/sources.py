@@ -2,9 +2,12 @@
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Optional, Tuple
+from typing import List, Optional, Tuple
+
+import numpy as np
 
 from pipeline.depth import densify, rgbd_scene
+from pipeline.queries import QueryRecord, read_queries_with_intrinsics
 from pipeline.readers.colmap import read_colmap, run_sfm, triangulate_known_poses
 from pipeline.readers.kapture import read_kapture
 from pipeline.images import read_image
@@ -69,3 +72,42 @@ def load_scene(source: MapSource, work_dir: Path) -> Scene:
     else:
         raise ValueError(f"Unknown map source {source.kind!r}; known: {', '.join(KINDS)}.")
     return densify(scene) if source.densify else scene
+
+
+QUERY_KINDS = ("list", "7scenes", "kapture", "strecha", "colmap")
+
+
+def _as_query(image, tags=None) -> QueryRecord:
+    return QueryRecord(image.name, image.path, image.camera, {**image.tags, **dict(tags or {})},
+                       np.asarray(image.cam_from_world))
+
+
+def load_queries(kind: str, path: Path, images: Optional[Path] = None, sequences: Tuple[int, ...] = (),
+                 names: Optional[List[str]] = None) -> List[QueryRecord]:
+    """Queries with ground truth where the data has it.
+
+    ``list``: a queries_with_intrinsics file, images in ``images``; ``7scenes``: frames
+    of ``sequences``; ``kapture`` / ``strecha``: posed images; ``colmap``: a model's
+    images (their SfM poses as ground truth). ``names`` keeps only those queries.
+    """
+    path = Path(path)
+    if kind == "list":
+        if images is None:
+            raise ValueError("A query list needs --query-images.")
+        queries = read_queries_with_intrinsics(path, images)
+    elif kind == "7scenes":
+        if not sequences:
+            raise ValueError("7scenes queries need --query-sequences (official test split: 1 4).")
+        queries = [_as_query(im) for im in read_7scenes(path, sequences)]
+    elif kind == "kapture":
+        queries = [_as_query(im) for im in read_kapture(path)]
+    elif kind == "strecha":
+        queries = [_as_query(im) for im in read_strecha(path)]
+    elif kind == "colmap":
+        queries = [_as_query(im) for im in read_colmap(path, images or path.parent / "images").images]
+    else:
+        raise ValueError(f"Unknown query source {kind!r}; known: {', '.join(QUERY_KINDS)}.")
+    if names is not None:
+        keep = set(names)
+        queries = [q for q in queries if q.name in keep]
+    return queries

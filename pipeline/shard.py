@@ -1,0 +1,160 @@
+"""Localization of one shard of queries: retrieval, pose prior, refinement, records.
+
+A shard writes its records once, atomically, so a rerun skips finished shards.
+Every query gets exactly one record; a query that cannot be localized gets
+``success: false`` and a reason, and keeps its prior when it has one.
+"""
+
+import functools
+import logging
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Dict, List, Optional
+
+import numpy as np
+import torch
+
+from pixloc.nets.registry import load_refiner, state_digest
+
+from .features import FeatureConfig, gem
+from .images import ImageReadError, read_image
+from .localize import Localizer, LocalizerConfig, QueryResult
+from .map_reader import MapReader, by_name, global_descriptor_ranking
+from .priors import covisibility_clusters, pose_approximation
+from .queries import QueryRecord
+from .results import read_records, result_to_record, write_records
+from .store import StoreError
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class RetrievalConfig:
+    """method: ``global`` (top-k by the store's global descriptors) or ``pairs`` (a ranked
+    pairs file). k: references retrieved. same_tag: restrict references to those sharing
+    this tag with the query (RobotCar practice: ``camera``)."""
+
+    method: str = "global"
+    pairs: Optional[str] = None
+    k: int = 10
+    same_tag: Optional[str] = None
+
+
+@dataclass(frozen=True)
+class LocalizationJob:
+    """All a worker needs to localize a shard (picklable, recorded with the outputs).
+
+    prior: ``top1``, ``average`` (covisibility cluster, similarity-weighted), or
+    ``hypotheses`` (each of the top ``num_hypotheses`` reference poses refined; the
+    lowest final featuremetric cost wins).
+    """
+
+    store: str
+    features: FeatureConfig
+    model: str
+    localizer: LocalizerConfig
+    retrieval: RetrievalConfig
+    prior: str = "top1"
+    num_hypotheses: int = 3
+    device: str = "cpu"
+
+    def to_dict(self) -> Dict:
+        return asdict(self)
+
+
+@functools.lru_cache(maxsize=2)
+def _refiner(model: str, device: str):
+    refiner = load_refiner(model).to(device).eval()
+    return refiner, state_digest(refiner.extractor)
+
+
+@functools.lru_cache(maxsize=4)
+def _pairs(path: str) -> Dict[str, List[str]]:
+    from .queries import read_pairs
+    return read_pairs(path)
+
+
+def _failure(query: QueryRecord, reason: str, prior=None, refs=None) -> QueryResult:
+    return QueryResult(query.name, False, prior, None, list(refs or []), reason=reason)
+
+
+def _retrieve(job: LocalizationJob, reader: MapReader, localizer: Localizer, query: QueryRecord,
+              rgb: np.ndarray, cache: Dict):
+    candidates = None
+    if job.retrieval.same_tag:
+        value = query.tags.get(job.retrieval.same_tag)
+        candidates = [i for i, t in enumerate(reader.tags) if t.get(job.retrieval.same_tag) == value]
+    if job.retrieval.method == "pairs":
+        names = _pairs(job.retrieval.pairs).get(query.name, [])
+        dbs, missing = by_name(reader, names)
+        if missing:
+            logger.warning("%s: %d retrieved references are not in the map: %s", query.name, len(missing),
+                           missing[:3])
+        dbs = [i for i in dbs if reader.usable(i) and (candidates is None or i in candidates)][:job.retrieval.k]
+        return dbs, None
+    k_last = len(reader.conf.image_scales) - 1
+    if k_last not in cache:
+        cache[k_last] = localizer.predict(rgb, k_last)
+    descriptor = gem(cache[k_last][0]["features"][-1][0]).cpu().numpy()
+    dbs = global_descriptor_ranking(reader, descriptor, job.retrieval.k, candidates)
+    return dbs, reader.global_descriptors[dbs] @ descriptor
+
+
+def localize_query(job: LocalizationJob, reader: MapReader, localizer: Localizer, query: QueryRecord
+                   ) -> QueryResult:
+    try:
+        rgb = read_image(query.path)
+    except ImageReadError as e:
+        return _failure(query, str(e))
+    reason = query.camera.check()
+    if reason:
+        return _failure(query, reason)
+    cache: Dict = {}
+    dbs, similarity = _retrieve(job, reader, localizer, query, rgb, cache)
+    if not dbs:
+        return _failure(query, "no retrieval match among the map's usable reference images")
+    num = job.localizer.num_dbs
+    if job.prior == "average":
+        if similarity is None:
+            similarity = np.ones(len(dbs))
+        sim = dict(zip(dbs, similarity))
+        cluster = covisibility_clusters(dbs[:num], reader.obs_point, reader.row_start, reader.num_obs)[0]
+        prior = pose_approximation([reader.cam_from_world[i] for i in cluster], [sim[i] for i in cluster])
+        return localizer.localize(query, cluster, prior, rgb, cache)
+    if job.prior == "hypotheses":
+        results = [localizer.localize(query, dbs[:num], reader.cam_from_world[i], rgb, cache)
+                   for i in dbs[:job.num_hypotheses]]
+        ok = [r for r in results if r.success]
+        return min(ok, key=lambda r: r.cost) if ok else results[0]
+    if job.prior != "top1":
+        raise ValueError(f"Unknown prior {job.prior!r}: use top1, average or hypotheses.")
+    return localizer.localize(query, dbs[:num], reader.cam_from_world[dbs[0]], rgb, cache)
+
+
+def localize_shard(job: LocalizationJob, queries: List[QueryRecord], out_path) -> List[Dict]:
+    """Localize ``queries`` and write their records to ``out_path``; a finished shard is read back."""
+    out_path = Path(out_path)
+    if out_path.exists():
+        return read_records(out_path)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # one thread per task: parallelism comes from workers
+    try:
+        refiner, digest = _refiner(job.model, job.device)
+        try:
+            reader = MapReader(job.store, job.features, digest)
+        except StoreError as e:
+            results = [_failure(q, f"map store unusable: {e}") for q in queries]
+        else:
+            localizer = Localizer(refiner.extractor, refiner.solvers, reader, job.localizer, job.device)
+            results = []
+            for q in queries:
+                try:
+                    results.append(localize_query(job, reader, localizer, q))
+                except (OSError, ValueError, RuntimeError) as e:  # recorded, never dropped
+                    logger.warning("Query %s failed: %s", q.name, e)
+                    results.append(_failure(q, f"{type(e).__name__}: {e}"))
+    finally:
+        torch.set_num_threads(threads)
+    records = [result_to_record(r, q.tags) for r, q in zip(results, queries)]
+    write_records(records, out_path)
+    return records
