@@ -1,0 +1,151 @@
+"""Batch localization end to end on real data: outputs, evaluation, Dask, failures, resume."""
+
+import dataclasses
+import json
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pipeline.build import build_map
+from pipeline.depth import rgbd_scene
+from pipeline.evaluate import INDOOR_THRESHOLDS, evaluate
+from pipeline.features import FeatureConfig
+from pipeline.localize import LocalizerConfig
+from pipeline.readers.rgbd import read_7scenes
+from pipeline.results import read_records
+from pipeline.shard import LocalizationJob, RetrievalConfig
+from tests.workflows.test_build_map import cluster, wait_for  # noqa: F401  (fixture)
+from workflows.localize import plan_localization, run_dask, run_sync
+from workflows.sources import load_queries
+
+ROOT = Path(__file__).resolve().parents[2]
+FCONF = FeatureConfig(resize=320, image_scales=(1,))
+LCONF = LocalizerConfig(num_dbs=3, num_iters=15)
+
+
+def without_timings(records):
+    return [{k: v for k, v in r.items() if k != "timings"} for r in records]
+
+
+@pytest.fixture(scope="module")
+def seven_scenes(shared, tmp_path_factory):
+    """An RGB-D map of 7-Scenes stairs sequences 2 and 3, and the queries of sequences 1 and 4."""
+    root = shared / "data" / "7scenes_stairs"
+    store = tmp_path_factory.mktemp("map") / "map.zarr"
+    scene = rgbd_scene(read_7scenes(root, [2, 3]), method="frames", stride=24)
+    build_map(scene, store, FCONF)
+    queries = load_queries("7scenes", root, sequences=(1, 4))
+    job = LocalizationJob(str(store), FCONF, FCONF.model, LCONF, RetrievalConfig(k=5))
+    return job, queries
+
+
+@pytest.fixture(scope="module")
+def sync_records(seven_scenes, tmp_path_factory):
+    job, queries = seven_scenes
+    return run_sync(plan_localization(job, queries, tmp_path_factory.mktemp("sync"), shard_size=2))
+
+
+def test_7scenes_with_retrieval(seven_scenes, sync_records):
+    job, queries = seven_scenes
+    assert [r["name"] for r in sync_records] == [q.name for q in queries]  # one record each, in order
+    for r in sync_records:
+        assert r["references"] and all(ref.startswith(("seq-02/", "seq-03/")) for ref in r["references"])
+        assert r["tags"]["sequence"] in ("seq-01", "seq-04")
+        assert r["success"] and len(r["per_level"]) == 3 and r["num_points"] >= 10
+    gt = {q.name: q.cam_from_world_gt for q in queries}
+    summary = evaluate(sync_records, gt, INDOOR_THRESHOLDS)
+    assert set(summary) == {"all", "sequence=seq-01", "sequence=seq-04"}
+    assert summary["all"]["refined"]["count"] == 6
+    # The numbers go in the closing note; the untrained network cannot be held to accuracy here.
+    print(json.dumps({k: {w: v[w] for w in ("prior", "refined")} for k, v in summary.items()}, indent=1))
+
+
+def test_outputs(seven_scenes, sync_records, tmp_path):
+    job, queries = seven_scenes
+    plan = plan_localization(job, queries, tmp_path, shard_size=2)
+    run_sync(plan)
+    lines = (tmp_path / "poses.txt").read_text().splitlines()
+    assert len(lines) == 6
+    name, *values = lines[0].split()
+    assert name == Path(queries[0].name).name and len(values) == 7
+    q = np.array(values[:4], float)
+    assert abs(np.linalg.norm(q) - 1) < 1e-6 and q[0] >= 0
+    assert without_timings(read_records(tmp_path / "records.jsonl")) == without_timings(sync_records)
+
+
+def test_distributed_equals_sync_and_survives_a_killed_worker(seven_scenes, sync_records, cluster, tmp_path):  # noqa: F811
+    client, workers = cluster
+    job, queries = seven_scenes
+    records = run_dask(plan_localization(job, queries, tmp_path / "a", shard_size=1), client)
+    assert without_timings(records) == without_timings(sync_records)
+    plan = plan_localization(job, queries, tmp_path / "b", shard_size=1)
+    outcome = {}
+    runner = threading.Thread(target=lambda: outcome.update(records=run_dask(plan, client)))
+    runner.start()
+    wait_for(lambda: len(list((tmp_path / "b" / "shards").glob("*.jsonl"))) >= 1)
+    workers["a"].send_signal(signal.SIGKILL)
+    runner.join(600)
+    names = [r["name"] for r in outcome["records"]]
+    assert names == [q.name for q in queries]  # every query exactly once
+
+
+def test_bad_input_gives_per_query_failures(seven_scenes, tmp_path):
+    job, queries = seven_scenes
+    corrupt = tmp_path / "corrupt.jpg"
+    corrupt.write_bytes(b"\xff\xd8 not really")
+    pairs = tmp_path / "pairs.txt"
+    pairs.write_text(f"{queries[3].name} not/in/the/map.jpg\n")
+    bad = [dataclasses.replace(queries[0], path=tmp_path / "missing.jpg"),
+           dataclasses.replace(queries[1], path=corrupt), queries[2]]
+    records = run_sync(plan_localization(job, bad, tmp_path / "a"))
+    assert [r["success"] for r in records] == [False, False, True]
+    assert "missing" in records[0]["reason"] and "cannot be decoded" in records[1]["reason"]
+    # no retrieval match
+    pjob = dataclasses.replace(job, retrieval=RetrievalConfig("pairs", str(pairs)))
+    rec = run_sync(plan_localization(pjob, [queries[3]], tmp_path / "b"))[0]
+    assert not rec["success"] and "no retrieval match" in rec["reason"]
+    # references seeing fewer than min_points points
+    fjob = dataclasses.replace(job, localizer=dataclasses.replace(LCONF, min_points=10**6))
+    rec = run_sync(plan_localization(fjob, [queries[3]], tmp_path / "c"))[0]
+    assert not rec["success"] and "points (< 1000000)" in rec["reason"] and rec["prior"] is not None
+    # a store built with another model
+    ojob = dataclasses.replace(job, model=str(ROOT / "nope.tar"))
+    with pytest.raises(ValueError, match="Unknown feature model"):
+        run_sync(plan_localization(ojob, [queries[3]], tmp_path / "d"))
+    with pytest.raises(ValueError, match="query list is empty"):
+        plan_localization(job, [], tmp_path / "e")
+
+
+def test_store_of_another_model_fails_each_query(seven_scenes, oracle, tmp_path):
+    job, queries = seven_scenes
+    ckpt = str(oracle / "official_megadepth_random" / "checkpoint_best.tar")
+    ojob = dataclasses.replace(job, model=ckpt)
+    records = run_sync(plan_localization(ojob, queries[:2], tmp_path))
+    assert [r["success"] for r in records] == [False, False]
+    assert all("map store unusable" in r["reason"] and "not the localizer's" in r["reason"] for r in records)
+
+
+def test_interrupted_run_resumes_by_shard(seven_scenes, tmp_path):
+    job, queries = seven_scenes
+    plan = plan_localization(job, queries, tmp_path, shard_size=1)
+    script = ("import sys, pickle; sys.path.insert(0, sys.argv[1])\n"
+              "from workflows.localize import run_sync\n"
+              "run_sync(pickle.load(open(sys.argv[2], 'rb')))\n")
+    import pickle
+    (tmp_path / "plan.pkl").write_bytes(pickle.dumps(plan))
+    proc = subprocess.Popen([sys.executable, "-c", script, str(ROOT), str(tmp_path / "plan.pkl")])
+    wait_for(lambda: len(plan.pending()) <= 4, timeout=300)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    finished = {k: plan.shard_path(k).stat().st_mtime_ns for k in range(6) if plan.shard_path(k).exists()}
+    assert 2 <= len(finished) < 6
+    time.sleep(0.01)
+    records = run_sync(plan)
+    assert [r["name"] for r in records] == [q.name for q in queries]
+    assert all(plan.shard_path(k).stat().st_mtime_ns == t for k, t in finished.items())  # not redone
