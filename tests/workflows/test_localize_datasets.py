@@ -1,0 +1,63 @@
+"""Localization on the shared real datasets; the printed numbers go in the closing notes.
+
+With the untrained ``lite0-imagenet`` decoder these runs check the pipeline
+on real data (retrieval, priors, every query answered, evaluation), not
+accuracy; accuracy comes with trained weights.
+"""
+
+import json
+
+import numpy as np
+import pytest
+
+from pipeline.build import build_map
+from pipeline.evaluate import evaluate
+from pipeline.features import FeatureConfig
+from pipeline.localize import LocalizerConfig
+from pipeline.readers.colmap import triangulate_known_poses
+from pipeline.readers.kapture import read_kapture
+from pipeline.readers.strecha import read_strecha
+from pipeline.shard import LocalizationJob, RetrievalConfig
+from workflows.localize import plan_localization, run_sync
+from workflows.sources import load_queries
+
+FCONF = FeatureConfig(resize=512, image_scales=(1,))
+LCONF = LocalizerConfig(num_dbs=3, num_iters=30)
+
+
+def run(store, queries, out):
+    job = LocalizationJob(str(store), FCONF, FCONF.model, LCONF, RetrievalConfig(k=5))
+    records = run_sync(plan_localization(job, queries, out, shard_size=4))
+    summary = evaluate(records, {q.name: q.cam_from_world_gt for q in queries})
+    print(json.dumps({k: {w: v[w] for w in ("prior", "refined")} for k, v in summary.items()}, indent=1))
+    return records, summary
+
+
+@pytest.mark.parametrize("held_out", ["0003.jpg", "0007.jpg"])
+def test_strecha_leave_one_out(shared, tmp_path, held_out):
+    root = shared / "data" / "strecha" / "fountain-P11"
+    images = read_strecha(root)
+    mapping = [im for im in images if im.name != held_out]
+    scene = triangulate_known_poses(mapping, root / "images", tmp_path / "sfm")
+    build_map(scene, tmp_path / "map.zarr", FCONF)
+    queries = [q for q in load_queries("strecha", root) if q.name == held_out]
+    records, summary = run(tmp_path / "map.zarr", queries, tmp_path / "out")
+    (rec,) = records
+    assert held_out not in rec["references"]
+    # Retrieval finds a neighbour of the held-out view (the sequence is ordered along a path).
+    k = int(held_out[:4])
+    assert int(rec["references"][0][:4]) in (k - 2, k - 1, k + 1, k + 2)
+    assert summary["all"]["prior"]["median_t"] < 5.0  # metres: a neighbour's pose
+
+
+def test_virtual_gallery_queries_against_mapping(shared, tmp_path):
+    root = shared / "data" / "virtual_gallery"
+    mapping = read_kapture(root / "mapping")
+    scene = triangulate_known_poses(mapping, root / "mapping" / "sensors" / "records_data", tmp_path / "sfm")
+    build_map(scene, tmp_path / "map.zarr", FCONF)
+    queries = load_queries("kapture", root / "query")
+    assert len(queries) == 4 and len({q.camera.params[0] for q in queries}) == 4  # four focal lengths
+    records, summary = run(tmp_path / "map.zarr", queries, tmp_path / "out")
+    assert [r["name"] for r in records] == [q.name for q in queries]
+    assert all(r["references"] for r in records)
+    assert np.isfinite(summary["all"]["prior"]["median_t"])
