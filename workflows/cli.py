@@ -26,6 +26,8 @@ def build_parser() -> argparse.ArgumentParser:
     localize_arguments(sub.add_parser("localize", help="localize queries against a map store",
                                       description="Localize queries (retrieval, prior, PixLoc refinement)."))
     add_evaluate_arguments(sub.add_parser("evaluate", help="pose errors and recall of a localize output"))
+    from .cli_localize import add_report_arguments
+    add_report_arguments(sub.add_parser("report", help="HTML report of a localize output (plots, examples)"))
 
     bench = sub.add_parser("benchmark", help="run a benchmark and print figures against its baseline")
     bench_sub = bench.add_subparsers(dest="benchmark", metavar="NAME", required=True)

@@ -122,3 +122,20 @@ def format_summary(summary) -> str:
             lines.append(f"{key:<28} {which:<8} n={r['count']:<4} median {r['median_t']:.3f} / "
                          f"{r['median_R']:.2f} deg  {recalls}")
     return "\n".join(lines)
+
+
+def add_report_arguments(p: argparse.ArgumentParser) -> None:
+    add_query_arguments(p)
+    p.add_argument("--output", type=Path, required=True, help="a pixloc localize output folder")
+    p.add_argument("--examples", type=int, default=3, help="example queries shown")
+    p.add_argument("--indoor", action="store_true", help="thresholds (5 cm, 5 deg)")
+    p.set_defaults(func=report_main)
+
+
+def report_main(args: argparse.Namespace) -> int:
+    from .report import make_report
+    queries = load_queries(args.query_kind, args.query_path, args.query_images, tuple(args.query_sequences),
+                           args.query_names)
+    path = make_report(args.output, queries, args.examples, INDOOR_THRESHOLDS if args.indoor else None)
+    print(f"report: {path}")
+    return 0

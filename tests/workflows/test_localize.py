@@ -149,3 +149,18 @@ def test_interrupted_run_resumes_by_shard(seven_scenes, tmp_path):
     records = run_sync(plan)
     assert [r["name"] for r in records] == [q.name for q in queries]
     assert all(plan.shard_path(k).stat().st_mtime_ns == t for k, t in finished.items())  # not redone
+
+
+def test_html_report(seven_scenes, tmp_path):
+    import base64
+    import re
+
+    from workflows.report import make_report
+    job, queries = seven_scenes
+    run_sync(plan_localization(job, queries, tmp_path, shard_size=3))
+    path = make_report(tmp_path, queries, num_examples=2, thresholds=INDOOR_THRESHOLDS)
+    page = path.read_text()
+    images = re.findall(r'src="data:image/png;base64,([A-Za-z0-9+/=]+)"', page)
+    assert len(images) == 3  # error curves + 2 examples
+    assert all(base64.b64decode(b)[:8] == b"\x89PNG\r\n\x1a\n" for b in images)
+    assert "sequence=seq-01" in page and "recall@0.05m,5.0deg" in page
