@@ -33,9 +33,11 @@ def build_parser() -> argparse.ArgumentParser:
     bench_sub = bench.add_subparsers(dest="benchmark", metavar="NAME", required=True)
     from .benchmarks import build_map as bench_build_map
     from .benchmarks import lm as bench_lm
+    from .benchmarks import localize as bench_localize
     for name, module, text in [
             ("lm", bench_lm, "LM iterations per second, batched vs one problem at a time"),
-            ("build-map", bench_build_map, "map building: images/s and bytes per observation, 1 vs 2 workers")]:
+            ("build-map", bench_build_map, "map building: images/s and bytes per observation, 1 vs 2 workers"),
+            ("localize", bench_localize, "queries/s with stored features vs the official re-extraction")]:
         p = bench_sub.add_parser(name, help=text)
         module.add_arguments(p)
         p.set_defaults(func=module.main)

@@ -38,10 +38,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--workers", type=int, default=2, help="worker processes of the local cluster")
     p.add_argument("--sync", action="store_true", help="run in this process, without Dask")
     p.add_argument("--dry-run", action="store_true", help="print the plan and exit")
+    p.add_argument("--preset", help="dataset preset with the paper's settings (see workflows/presets)")
     p.set_defaults(func=main)
+    p.set_defaults(_parser_defaults={a.dest: a.default for a in p._actions})
 
 
 def main(args: argparse.Namespace) -> int:
+    if args.preset:
+        from . import presets
+        presets.apply(args, presets.load(args.preset), args._parser_defaults)
     source = MapSource(args.kind, args.path, args.images, tuple(args.sequences), args.rgbd_points, args.densify,
                        tuple(args.intrinsics), args.depth_scale, args.depth_ext)
     conf = FeatureConfig(args.model, args.resize, tuple(args.image_scales), args.pad)

@@ -43,7 +43,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--workers", type=int, default=2)
     p.add_argument("--sync", action="store_true", help="run in this process, without Dask")
     p.add_argument("--dry-run", action="store_true")
+    p.add_argument("--preset", help="dataset preset with the paper's settings (see workflows/presets)")
     p.set_defaults(func=main)
+    p.set_defaults(_parser_defaults={a.dest: a.default for a in p._actions})
 
 
 def store_feature_config(store: Path, key=None) -> FeatureConfig:
@@ -61,6 +63,9 @@ def store_feature_config(store: Path, key=None) -> FeatureConfig:
 
 
 def main(args: argparse.Namespace) -> int:
+    if args.preset:
+        from . import presets
+        presets.apply(args, presets.load(args.preset), args._parser_defaults)
     fconf = store_feature_config(args.store, args.features)
     job = LocalizationJob(
         str(args.store), fconf, fconf.model,
@@ -96,6 +101,7 @@ def add_evaluate_arguments(p: argparse.ArgumentParser) -> None:
     add_query_arguments(p)
     p.add_argument("--output", type=Path, required=True, help="a pixloc localize output folder")
     p.add_argument("--indoor", action="store_true", help="thresholds (5 cm, 5 deg) as for 7-Scenes/Cambridge")
+    p.add_argument("--preset", help="take the dataset preset's thresholds")
     p.set_defaults(func=evaluate_main)
 
 
@@ -106,7 +112,11 @@ def evaluate_main(args: argparse.Namespace) -> int:
     if not gt:
         raise ValueError("These queries have no ground truth to evaluate against.")
     records = read_records(args.output / "records.jsonl")
-    summary = evaluate(records, gt, INDOOR_THRESHOLDS if args.indoor else DEFAULT_THRESHOLDS)
+    thresholds = INDOOR_THRESHOLDS if args.indoor else DEFAULT_THRESHOLDS
+    if args.preset:
+        from . import presets
+        thresholds = tuple(tuple(t) for t in presets.load(args.preset)["thresholds"])
+    summary = evaluate(records, gt, thresholds)
     (args.output / "evaluation.json").write_text(json.dumps(summary, indent=1))
     print(format_summary(summary))
     return 0

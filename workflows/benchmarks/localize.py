@@ -1,0 +1,100 @@
+"""Benchmark: queries per second, stored reference features (ours) vs the official way.
+
+The official PixLoc localizer re-extracts the dense features of every
+reference image for every query (base_refiner.py: "TODO: can we compute this
+offline before hand?"); ours reads them from the map store. Both run the
+same refinement at the Cambridge settings (5 references, image scales
+[4, 1], observations averaged, 100 LM iterations per level) on a map of the
+Sacre Coeur (the oracle's SfM model), each query one task on a LocalCluster.
+"""
+
+import argparse
+import os
+import resource
+import shutil
+import tempfile
+import time
+from pathlib import Path
+
+from pipeline.build import build_map
+from pipeline.features import FeatureConfig
+from pipeline.localize import LocalizerConfig
+from pipeline.queries import read_pairs, read_queries_with_intrinsics
+from pipeline.readers.colmap import read_colmap
+from pipeline.shard import LocalizationJob, RetrievalConfig
+
+from ..localize import plan_localization, run_dask
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--shared", type=Path, default=Path(os.environ.get("PIXLOC_SHARED", "../shared")))
+    p.add_argument("--workers", type=int, nargs="+", default=[1, 2])
+    p.add_argument("--iters", type=int, default=100)
+    p.add_argument("--resize", type=int, default=1024)
+
+
+def _peak_rss_mib() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def official_way_shard(job: LocalizationJob, queries, out_path, images_root: str):
+    """The official localizer's data flow: re-extract the references' features for this query
+    into a private store, then localize from it (extraction and sampling are identical)."""
+    from pipeline.readers.colmap import read_colmap as rc
+    from pipeline.shard import localize_shard
+    tmp = Path(tempfile.mkdtemp())
+    try:
+        scene = rc(Path(job.store).parent / "sfm", images_root)
+        pairs = read_pairs(job.retrieval.pairs)
+        refs = set(pairs[queries[0].name][:job.localizer.num_dbs])
+        keep = [i for i, im in enumerate(scene.images) if im.name in refs]
+        store = tmp / "per_query.zarr"
+        build_map(scene.subset(keep), store, job.features)
+        from dataclasses import replace
+        return localize_shard(replace(job, store=str(store)), queries, out_path)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def main(args: argparse.Namespace) -> int:
+    from distributed import Client, LocalCluster
+
+    oracle = args.shared / "oracle"
+    images = args.shared / "data" / "sacre_coeur" / "mapping"
+    work = Path(tempfile.mkdtemp())
+    try:
+        scene = read_colmap(oracle / "sacre_coeur_sfm", images)
+        shutil.copytree(oracle / "sacre_coeur_sfm", work / "sfm")
+        fconf = FeatureConfig(resize=args.resize, image_scales=(4, 1))
+        t0 = time.perf_counter()
+        build_map(scene, work / "map.zarr", fconf)
+        build_s = time.perf_counter() - t0
+        queries = read_queries_with_intrinsics(oracle / "queries_with_intrinsics.txt", images)
+        job = LocalizationJob(str(work / "map.zarr"), fconf, fconf.model,
+                              LocalizerConfig(num_dbs=5, average_observations=True, num_iters=args.iters),
+                              RetrievalConfig("pairs", str(oracle / "pairs.txt")))
+        print(f"Localization, Cambridge settings, {len(queries)} queries on a {len(scene.images)}-image map "
+              f"(built once in {build_s:.1f} s), {args.iters} LM iterations per level")
+        print(f"{'workers':>7} {'official q/s':>13} {'ours q/s':>9} {'ours/official':>14} "
+              f"{'peak MiB/worker (official, ours)':>33}")
+        for workers in args.workers:
+            rates = {}
+            peaks = {}
+            for way in ("official", "ours"):
+                with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                                  dashboard_address=None) as cluster, Client(cluster) as client:
+                    plan = plan_localization(job, queries, work / f"{way}-{workers}", shard_size=1)
+                    t0 = time.perf_counter()
+                    if way == "ours":
+                        run_dask(plan, client)
+                    else:
+                        futures = [client.submit(official_way_shard, job, plan.shards[k], str(plan.shard_path(k)),
+                                                 str(images), pure=False) for k in plan.pending()]
+                        client.gather(futures)
+                    rates[way] = len(queries) / (time.perf_counter() - t0)
+                    peaks[way] = max(client.run(_peak_rss_mib).values())
+            print(f"{workers:>7} {rates['official']:>13.3f} {rates['ours']:>9.3f} "
+                  f"{rates['ours'] / rates['official']:>13.2f}x {peaks['official']:>16.0f}, {peaks['ours']:.0f}")
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+    return 0
