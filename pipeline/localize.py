@@ -66,15 +66,21 @@ def _pose(T: np.ndarray) -> Pose:
 
 
 def _matrix(T: Pose) -> np.ndarray:
-    return np.concatenate([T.R.double().numpy(), T.t.double().numpy()[:, None]], 1)
+    """(3, 4) float64, the rotation projected back onto SO(3): hundreds of float32 LM updates
+    leave it slightly non-orthonormal."""
+    U, _, Vt = np.linalg.svd(T.R.double().numpy())
+    R = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+    return np.concatenate([R, T.t.double().numpy()[:, None]], 1)
 
 
 class Localizer:
     """Localizes queries against one map with one network and its per-level solvers."""
 
     def __init__(self, net: UNet, solvers: Sequence[LevenbergMarquardt], reader: MapReader,
-                 conf: LocalizerConfig, device: str = "cpu"):
+                 conf: LocalizerConfig, device: str = "cpu", levels: Optional[Sequence[int]] = None):
+        """levels: the levels to optimise, e.g. (0, 1) for the paper's refinement mode; default all."""
         self.net, self.solvers, self.reader, self.conf, self.device = net, list(solvers), reader, conf, device
+        self.levels = sorted(set(levels if levels is not None else range(len(net.strides))), reverse=True)
         for s in self.solvers:
             s.eval()
 
@@ -136,7 +142,7 @@ class Localizer:
             pred, (sx, sy) = cache[k]
             result.timings[f"features_s{k}"] = time.perf_counter() - t0
             t0 = time.perf_counter()
-            for level in reversed(range(len(self.net.strides))):
+            for level in self.levels:
                 stride = self.net.strides[level]
                 F_q = normalize(pred["features"][level][0], dim=0)
                 W_q = pred["confidences"][level][0, 0]

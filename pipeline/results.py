@@ -39,11 +39,16 @@ def record_pose(rec: Dict) -> Optional[np.ndarray]:
     return None if T is None else np.asarray(T, np.float64)
 
 
-def write_poses(records: Iterable[Dict], path, prepend_camera: bool = False) -> int:
+def write_poses(records: Iterable[Dict], path, prepend_camera: Optional[bool] = None) -> int:
     """``name qw qx qy qz tx ty tz`` (cam_from_world) per query with a pose; returns the count.
 
-    prepend_camera: write ``parentdir/basename`` names (RobotCar, 7-Scenes, Cambridge).
+    prepend_camera: write ``parentdir/basename`` names (RobotCar, 7-Scenes, Cambridge);
+    by default only when basenames alone would be ambiguous.
     """
+    records = list(records)
+    if prepend_camera is None:
+        basenames = [Path(r["name"]).name for r in records]
+        prepend_camera = len(set(basenames)) < len(basenames)
     lines = []
     for rec in records:
         T = record_pose(rec)

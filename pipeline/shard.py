@@ -9,7 +9,7 @@ import functools
 import logging
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Dict, List, Optional
+from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 import torch
@@ -30,14 +30,17 @@ logger = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class RetrievalConfig:
-    """method: ``global`` (top-k by the store's global descriptors) or ``pairs`` (a ranked
-    pairs file). k: references retrieved. same_tag: restrict references to those sharing
-    this tag with the query (RobotCar practice: ``camera``)."""
+    """method: ``global`` (top-k by the store's global descriptors), ``pairs`` (a ranked
+    pairs file) or ``hloc`` (global descriptors of queries and references from an hloc
+    HDF5 file ``descriptors``, e.g. NetVLAD, as official PixLoc reads them). k:
+    references retrieved. same_tag: restrict references to those sharing this tag with
+    the query (RobotCar practice: ``camera``)."""
 
     method: str = "global"
     pairs: Optional[str] = None
     k: int = 10
     same_tag: Optional[str] = None
+    descriptors: Optional[str] = None
 
 
 @dataclass(frozen=True)
@@ -46,7 +49,10 @@ class LocalizationJob:
 
     prior: ``top1``, ``average`` (covisibility cluster, similarity-weighted), or
     ``hypotheses`` (each of the top ``num_hypotheses`` reference poses refined; the
-    lowest final featuremetric cost wins).
+    lowest final featuremetric cost wins), or ``poses`` (refinement mode: the poses of
+    another pipeline, file ``prior_poses`` in the visuallocalization.net format).
+    levels: optimise only these levels (the paper's refinement mode uses the two
+    finest, (0, 1)); default all.
     """
 
     store: str
@@ -57,6 +63,8 @@ class LocalizationJob:
     prior: str = "top1"
     num_hypotheses: int = 3
     device: str = "cpu"
+    prior_poses: Optional[str] = None
+    levels: Optional[Tuple[int, ...]] = None
 
     def to_dict(self) -> Dict:
         return asdict(self)
@@ -72,6 +80,45 @@ def _refiner(model: str, device: str):
 def _pairs(path: str) -> Dict[str, List[str]]:
     from .queries import read_pairs
     return read_pairs(path)
+
+
+@functools.lru_cache(maxsize=2)
+def _hloc_descriptors(path: str) -> Dict[str, np.ndarray]:
+    """``name -> global_descriptor`` of an hloc global-features HDF5 file (NetVLAD, ...)."""
+    import h5py
+
+    out = {}
+    with h5py.File(path, "r") as f:
+        def visit(name, obj):
+            if isinstance(obj, h5py.Dataset) and name.endswith("/global_descriptor"):
+                d = np.asarray(obj, np.float32).reshape(-1)
+                out[name[: -len("/global_descriptor")]] = d / max(np.linalg.norm(d), 1e-12)
+        f.visititems(visit)
+    return out
+
+
+@functools.lru_cache(maxsize=2)
+def _prior_poses(path: str) -> Dict[str, np.ndarray]:
+    """``name qw qx qy qz tx ty tz`` lines -> cam_from_world (3, 4), by name as written
+    and by ``parentdir/basename`` and basename where those are unambiguous."""
+    from .scene import qvec_to_rotmat
+
+    out = {}
+    for line in Path(path).read_text().splitlines():
+        if line.strip() and not line.startswith("#"):
+            name, *v = line.split()
+            out[name] = np.concatenate([qvec_to_rotmat(np.array(v[:4], float)), np.array(v[4:7], float)[:, None]], 1)
+    return out
+
+
+def _find_prior(priors: Dict[str, np.ndarray], name: str) -> Optional[np.ndarray]:
+    """The prior of query ``name``: exact, then ``parentdir/basename``, then a unique basename."""
+    p = Path(name)
+    for key in (name, f"{p.parent.name}/{p.name}"):
+        if key in priors:
+            return priors[key]
+    matches = [k for k in priors if Path(k).name == p.name]
+    return priors[matches[0]] if len(matches) == 1 else None
 
 
 def _failure(query: QueryRecord, reason: str, prior=None, refs=None) -> QueryResult:
@@ -92,6 +139,15 @@ def _retrieve(job: LocalizationJob, reader: MapReader, localizer: Localizer, que
                            missing[:3])
         dbs = [i for i in dbs if reader.usable(i) and (candidates is None or i in candidates)][:job.retrieval.k]
         return dbs, None
+    if job.retrieval.method == "hloc":
+        descriptors = _hloc_descriptors(job.retrieval.descriptors)
+        if query.name not in descriptors:
+            return [], None
+        ids = [i for i in range(len(reader.names)) if reader.usable(i) and reader.names[i] in descriptors
+               and (candidates is None or i in candidates)]
+        sim = np.array([descriptors[reader.names[i]] @ descriptors[query.name] for i in ids])
+        order = np.argsort(-sim, kind="stable")[:job.retrieval.k]
+        return [ids[j] for j in order], sim[order]
     k_last = len(reader.conf.image_scales) - 1
     if k_last not in cache:
         cache[k_last] = localizer.predict(rgb, k_last)
@@ -126,8 +182,14 @@ def localize_query(job: LocalizationJob, reader: MapReader, localizer: Localizer
                    for i in dbs[:job.num_hypotheses]]
         ok = [r for r in results if r.success]
         return min(ok, key=lambda r: r.cost) if ok else results[0]
+    if job.prior == "poses":
+        priors = _prior_poses(job.prior_poses)
+        prior = _find_prior(priors, query.name)
+        if prior is None:
+            return _failure(query, f"no prior pose for this query in {job.prior_poses}", refs=dbs[:num])
+        return localizer.localize(query, dbs[:num], prior, rgb, cache)
     if job.prior != "top1":
-        raise ValueError(f"Unknown prior {job.prior!r}: use top1, average or hypotheses.")
+        raise ValueError(f"Unknown prior {job.prior!r}: use top1, average, hypotheses or poses.")
     return localizer.localize(query, dbs[:num], reader.cam_from_world[dbs[0]], rgb, cache)
 
 
@@ -145,7 +207,8 @@ def localize_shard(job: LocalizationJob, queries: List[QueryRecord], out_path) -
         except StoreError as e:
             results = [_failure(q, f"map store unusable: {e}") for q in queries]
         else:
-            localizer = Localizer(refiner.extractor, refiner.solvers, reader, job.localizer, job.device)
+            localizer = Localizer(refiner.extractor, refiner.solvers, reader, job.localizer, job.device,
+                                  levels=job.levels)
             results = []
             for q in queries:
                 try:

@@ -33,7 +33,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--pairs", type=Path, help="retrieval pairs file (default: global descriptors)")
     p.add_argument("--retrieval-k", type=int, default=10)
     p.add_argument("--same-tag", help="restrict references to those sharing this tag with the query")
-    p.add_argument("--prior", choices=["top1", "average", "hypotheses"], default="top1")
+    p.add_argument("--descriptors", type=Path, help="hloc HDF5 global descriptors for retrieval (e.g. NetVLAD)")
+    p.add_argument("--prior", choices=["top1", "average", "hypotheses", "poses"], default="top1")
+    p.add_argument("--prior-poses", type=Path, help="refinement mode: poses file of another pipeline")
+    p.add_argument("--levels", type=int, nargs="+", help="optimise only these levels (refinement mode: 0 1)")
     p.add_argument("--num-dbs", type=int, default=5, help="reference images per query")
     p.add_argument("--average-observations", action="store_true")
     p.add_argument("--iters", type=int, default=100, help="LM iterations per level")
@@ -70,9 +73,13 @@ def main(args: argparse.Namespace) -> int:
     job = LocalizationJob(
         str(args.store), fconf, fconf.model,
         LocalizerConfig(num_dbs=args.num_dbs, average_observations=args.average_observations, num_iters=args.iters),
-        RetrievalConfig("pairs" if args.pairs else "global", str(args.pairs) if args.pairs else None,
-                        args.retrieval_k, args.same_tag),
-        prior=args.prior, device=args.device)
+        RetrievalConfig("pairs" if args.pairs else "hloc" if args.descriptors else "global",
+                        str(args.pairs) if args.pairs else None, args.retrieval_k, args.same_tag,
+                        str(args.descriptors) if args.descriptors else None),
+        prior=args.prior, device=args.device, prior_poses=str(args.prior_poses) if args.prior_poses else None,
+        levels=tuple(args.levels) if args.levels else None)
+    if args.prior == "poses" and not args.prior_poses:
+        raise ValueError("--prior poses needs --prior-poses FILE.")
     queries = load_queries(args.query_kind, args.query_path, args.query_images, tuple(args.query_sequences),
                            args.query_names)
     plan = plan_localization(job, queries, args.output, args.shard_size)

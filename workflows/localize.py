@@ -77,7 +77,7 @@ def run_dask(plan: LocalizationPlan, client, progress: bool = False) -> List[Dic
     return merge(plan)
 
 
-def merge(plan: LocalizationPlan, prepend_camera: bool = False) -> List[Dict]:
+def merge(plan: LocalizationPlan, prepend_camera=None) -> List[Dict]:
     """All shard records, in query order, written to records.jsonl and poses.txt."""
     records = []
     for k in range(len(plan.shards)):
