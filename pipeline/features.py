@@ -9,7 +9,7 @@ when it projects inside the image and inside the interpolation margin.
 """
 
 from dataclasses import asdict, dataclass
-from typing import Dict, List, Tuple
+from typing import Dict, Tuple
 
 import numpy as np
 import torch
@@ -85,6 +85,3 @@ def extract_image_features(net: UNet, conf: FeatureConfig, image: ImageRecord, p
             descriptor = gem(pred["features"][-1][0]).cpu().numpy()
     return ImageFeatures(samples, descriptor)
 
-
-def level_dims(net: UNet) -> List[int]:
-    return list(net.output_dims)

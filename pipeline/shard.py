@@ -71,7 +71,8 @@ class LocalizationJob:
 
 
 @functools.lru_cache(maxsize=2)
-def _refiner(model: str, device: str):
+def localization_model(model: str, device: str = "cpu"):
+    """The refiner (network + per-level solvers) and its network's digest, once per process."""
     refiner = load_refiner(model).to(device).eval()
     return refiner, state_digest(refiner.extractor)
 
@@ -201,7 +202,7 @@ def localize_shard(job: LocalizationJob, queries: List[QueryRecord], out_path) -
     threads = torch.get_num_threads()
     torch.set_num_threads(1)  # one thread per task: parallelism comes from workers
     try:
-        refiner, digest = _refiner(job.model, job.device)
+        refiner, digest = localization_model(job.model, job.device)
         try:
             reader = MapReader(job.store, job.features, digest)
         except StoreError as e:

@@ -86,8 +86,3 @@ def merge(plan: LocalizationPlan, prepend_camera=None) -> List[Dict]:
     write_poses(records, plan.output / "poses.txt", prepend_camera)
     return records
 
-
-def load_ground_truth(records_or_queries) -> Dict:
-    return {q.name: q.cam_from_world_gt for q in records_or_queries if q.cam_from_world_gt is not None}
-
-

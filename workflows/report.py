@@ -99,7 +99,7 @@ def example_figure(record: Dict, query: QueryRecord, reader: MapReader, net) -> 
 def make_report(output: Path, queries: List[QueryRecord], num_examples: int = 3,
                 thresholds=None) -> Path:
     """Write ``output/report.html`` from ``records.jsonl`` (and the run's ``job.json``)."""
-    from pipeline.shard import _refiner
+    from pipeline.shard import localization_model
 
     records = read_records(output / "records.jsonl")
     gt = {q.name: q.cam_from_world_gt for q in queries if q.cam_from_world_gt is not None}
@@ -121,7 +121,7 @@ def make_report(output: Path, queries: List[QueryRecord], num_examples: int = 3,
     job = json.loads((output / "job.json").read_text())["job"]
     fconf = dict(job["features"])
     fconf["image_scales"] = tuple(fconf["image_scales"])
-    refiner, digest = _refiner(job["model"], "cpu")
+    refiner, digest = localization_model(job["model"], "cpu")
     reader = MapReader(job["store"], FeatureConfig(**fconf), digest)
     by_name = {q.name: q for q in queries}
     parts.append("<h2>Examples</h2>")
