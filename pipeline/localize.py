@@ -10,13 +10,13 @@ the finest level. A failure at any level keeps the prior, marked failed.
 
 import time
 from dataclasses import dataclass, field
-from typing import Dict, List, Optional, Sequence
+from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 import torch
 from torch.nn.functional import normalize
 
-from pixloc.geometry import Pose
+from pixloc.geometry import Camera, Pose
 from pixloc.optim import FeaturemetricProblem, LevenbergMarquardt
 from pixloc.nets.unet import UNet
 
@@ -116,55 +116,97 @@ class Localizer:
                  rgb: Optional[np.ndarray] = None, cache: Optional[Dict] = None) -> QueryResult:
         """Refine ``prior`` against references ``dbs``; ``rgb`` and ``cache`` (k -> prediction)
         let callers reuse the query image and predictions across hypotheses."""
+        return self.localize_batch([(query, dbs, prior, rgb, cache)])[0]
+
+    @torch.no_grad()
+    def localize_batch(self, items: List[Tuple]) -> List[QueryResult]:
+        """Localize several queries, solving each level as one LM batch per group of queries
+        whose feature maps have the same shape and whose cameras the same model.
+
+        items: (query, dbs, prior, rgb or None, cache or None). The per-problem stopping rule of
+        the solver makes the result of each query the same as localizing it alone.
+        """
         t_start = time.perf_counter()
-        refs = [self.reader.names[i] for i in dbs]
-        result = QueryResult(query.name, False, np.asarray(prior, np.float64), None, refs)
-        obs = self.reader.observations(dbs, self.conf.min_track_length)
-        result.num_points = int(len(np.unique(obs.point)))
-        if result.num_points < self.conf.min_points:
-            result.reason = f"references see {result.num_points} points (< {self.conf.min_points})"
-            return result
-        if rgb is None:
-            try:
-                rgb = read_image(query.path)
-            except ImageReadError as e:
-                result.reason = str(e)
-                return result
-        cache = {} if cache is None else cache
-        camera = query.camera.to_pixloc(torch.float64)
-        T = _pose(prior).float()
-        fconf = self.reader.conf
-        for k, image_scale in enumerate(fconf.image_scales):
+        states = []
+        for query, dbs, prior, rgb, cache in items:
+            result = QueryResult(query.name, False, np.asarray(prior, np.float64), None,
+                                 [self.reader.names[i] for i in dbs])
+            obs = self.reader.observations(dbs, self.conf.min_track_length)
+            result.num_points = int(len(np.unique(obs.point)))
+            if result.num_points < self.conf.min_points:
+                result.reason = f"references see {result.num_points} points (< {self.conf.min_points})"
+            elif rgb is None:
+                try:
+                    rgb = read_image(query.path)
+                except ImageReadError as e:
+                    result.reason = str(e)
+            states.append({"query": query, "dbs": dbs, "rgb": rgb, "cache": {} if cache is None else cache,
+                           "result": result, "T": _pose(prior).float(), "active": not result.reason})
+        for k, image_scale in enumerate(self.reader.conf.image_scales):
+            active = [st for st in states if st["active"]]
             t0 = time.perf_counter()
-            p3d, refs_f = self.reference_features(dbs, k)
-            if k not in cache:
-                cache[k] = self.predict(rgb, k)
-            pred, (sx, sy) = cache[k]
-            result.timings[f"features_s{k}"] = time.perf_counter() - t0
+            for st in active:
+                st["refs"] = self.reference_features(st["dbs"], k)
+                if k not in st["cache"]:
+                    st["cache"][k] = self.predict(st["rgb"], k)
+            groups: Dict[Tuple, List[Dict]] = {}
+            for st in active:
+                pred = st["cache"][k][0]
+                key = (tuple(pred["features"][0].shape), st["query"].camera.to_pixloc().distortion)
+                groups.setdefault(key, []).append(st)
+            t_features = (time.perf_counter() - t0) / max(len(active), 1)
             t0 = time.perf_counter()
             for level in self.levels:
-                stride = self.net.strides[level]
-                F_q = normalize(pred["features"][level][0], dim=0)
-                W_q = pred["confidences"][level][0, 0]
-                cam = camera.scale((sx / stride, sy / stride)).float()
-                F_ref, W_ref = refs_f[level]
-                problem = FeaturemetricProblem.single(p3d.to(F_q), F_ref.to(F_q), F_q, cam.to(F_q.device),
-                                                      W_ref.to(F_q), W_q)
-                lm = self.solvers[level](problem, T.reshape(1).to(F_q), num_iters=self.conf.num_iters)
-                failed = bool(lm.failed[0])
-                result.per_level.append({"scale": int(image_scale), "level": level, "failed": failed,
-                                         "pose": _matrix(lm.pose[0].cpu()).tolist(),
-                                         "iterations": int(lm.iterations[0])})
-                result.iterations += int(lm.iterations[0])
-                result.cost = float(lm.cost[0, -1])
-                if failed:
-                    result.reason = (f"LM failed at image scale {image_scale}, level {level} "
-                                     f"({int(lm.num_valid[0])} valid points)")
-                    result.timings[f"optim_s{k}"] = time.perf_counter() - t0
-                    result.timings["total"] = time.perf_counter() - t_start
-                    return result
-                T = lm.pose[0].cpu()
-            result.timings[f"optim_s{k}"] = time.perf_counter() - t0
-        result.success, result.refined = True, _matrix(T)
-        result.timings["total"] = time.perf_counter() - t_start
-        return result
+                for group in groups.values():
+                    group = [st for st in group if st["active"]]
+                    if group:
+                        self._solve_level(group, k, image_scale, level)
+            t_optim = (time.perf_counter() - t0) / max(len(active), 1)
+            for st in active:
+                st["result"].timings[f"features_s{k}"] = t_features
+                st["result"].timings[f"optim_s{k}"] = t_optim
+        for st in states:
+            if st["active"]:
+                st["result"].success, st["result"].refined = True, _matrix(st["T"])
+            st["result"].timings["total"] = (time.perf_counter() - t_start) / len(states)
+        return [st["result"] for st in states]
+
+    def _solve_level(self, group: List[Dict], k: int, image_scale: int, level: int) -> None:
+        """One LM batch for ``group`` at one level; points are padded and masked to a common N."""
+        stride = self.net.strides[level]
+        n_max = max(len(st["refs"][0]) for st in group)
+        p3d, F_ref, W_ref, mask, F_q, W_q, cams = [], [], [], [], [], [], []
+        for st in group:
+            xyz, levels = st["refs"]
+            f, w = levels[level]
+            n = len(xyz)
+            pad = n_max - n
+            p3d.append(torch.cat([xyz, xyz.new_zeros(pad, 3)]))
+            F_ref.append(torch.cat([f, f.new_zeros(pad, f.shape[1])]))
+            W_ref.append(torch.cat([w, w.new_zeros(pad)]))
+            mask.append(torch.arange(n_max) < n)
+            pred, (sx, sy) = st["cache"][k]
+            F_q.append(normalize(pred["features"][level][0], dim=0))
+            W_q.append(pred["confidences"][level][0, 0])
+            cams.append(st["query"].camera.to_pixloc(torch.float64).scale((sx / stride, sy / stride)).float())
+        device = F_q[0].device
+        problem = FeaturemetricProblem(torch.stack(p3d).to(device), torch.stack(F_ref).to(device),
+                                       torch.stack(F_q), Camera.stack(cams).to(device),
+                                       torch.stack(W_ref).to(device), torch.stack(W_q),
+                                       torch.stack(mask).to(device))
+        T = Pose.stack([st["T"] for st in group]).to(device)
+        lm = self.solvers[level](problem, T, num_iters=self.conf.num_iters)
+        for b, st in enumerate(group):
+            failed = bool(lm.failed[b])
+            result = st["result"]
+            result.per_level.append({"scale": int(image_scale), "level": level, "failed": failed,
+                                     "pose": _matrix(lm.pose[b].cpu()).tolist(),
+                                     "iterations": int(lm.iterations[b])})
+            result.iterations += int(lm.iterations[b])
+            result.cost = float(lm.cost[b, int(lm.iterations[b]) - 1])
+            if failed:
+                result.reason = (f"LM failed at image scale {image_scale}, level {level} "
+                                 f"({int(lm.num_valid[b])} valid points)")
+                st["active"] = False
+            else:
+                st["T"] = lm.pose[b].cpu()

@@ -157,8 +157,9 @@ def _retrieve(job: LocalizationJob, reader: MapReader, localizer: Localizer, que
     return dbs, reader.global_descriptors[dbs] @ descriptor
 
 
-def localize_query(job: LocalizationJob, reader: MapReader, localizer: Localizer, query: QueryRecord
-                   ) -> QueryResult:
+def prepare_query(job: LocalizationJob, reader: MapReader, localizer: Localizer, query: QueryRecord):
+    """Retrieval and prior of one query: a failure (QueryResult), or the localize_batch item(s)
+    (several for ``hypotheses``)."""
     try:
         rgb = read_image(query.path)
     except ImageReadError as e:
@@ -177,21 +178,41 @@ def localize_query(job: LocalizationJob, reader: MapReader, localizer: Localizer
         sim = dict(zip(dbs, similarity))
         cluster = covisibility_clusters(dbs[:num], reader.obs_point, reader.row_start, reader.num_obs)[0]
         prior = pose_approximation([reader.cam_from_world[i] for i in cluster], [sim[i] for i in cluster])
-        return localizer.localize(query, cluster, prior, rgb, cache)
+        return [(query, cluster, prior, rgb, cache)]
     if job.prior == "hypotheses":
-        results = [localizer.localize(query, dbs[:num], reader.cam_from_world[i], rgb, cache)
-                   for i in dbs[:job.num_hypotheses]]
-        ok = [r for r in results if r.success]
-        return min(ok, key=lambda r: r.cost) if ok else results[0]
+        return [(query, dbs[:num], reader.cam_from_world[i], rgb, cache) for i in dbs[:job.num_hypotheses]]
     if job.prior == "poses":
-        priors = _prior_poses(job.prior_poses)
-        prior = _find_prior(priors, query.name)
+        prior = _find_prior(_prior_poses(job.prior_poses), query.name)
         if prior is None:
             return _failure(query, f"no prior pose for this query in {job.prior_poses}", refs=dbs[:num])
-        return localizer.localize(query, dbs[:num], prior, rgb, cache)
+        return [(query, dbs[:num], prior, rgb, cache)]
     if job.prior != "top1":
         raise ValueError(f"Unknown prior {job.prior!r}: use top1, average, hypotheses or poses.")
-    return localizer.localize(query, dbs[:num], reader.cam_from_world[dbs[0]], rgb, cache)
+    return [(query, dbs[:num], reader.cam_from_world[dbs[0]], rgb, cache)]
+
+
+def localize_queries(job: LocalizationJob, reader: MapReader, localizer: Localizer,
+                     queries: List[QueryRecord]) -> List[QueryResult]:
+    """Localize ``queries`` together: one LM batch per level and group of compatible queries.
+    For ``hypotheses``, each query keeps its successful hypothesis of lowest final cost."""
+    prepared = []
+    for q in queries:
+        try:
+            prepared.append(prepare_query(job, reader, localizer, q))
+        except (OSError, ValueError, RuntimeError) as e:  # recorded, never dropped
+            logger.warning("Query %s failed: %s", q.name, e)
+            prepared.append(_failure(q, f"{type(e).__name__}: {e}"))
+    items = [it for p in prepared if isinstance(p, list) for it in p]
+    solved = iter(localizer.localize_batch(items)) if items else iter(())
+    results = []
+    for p in prepared:
+        if isinstance(p, QueryResult):
+            results.append(p)
+            continue
+        candidates = [next(solved) for _ in p]
+        ok = [r for r in candidates if r.success]
+        results.append(min(ok, key=lambda r: r.cost) if ok else candidates[0])
+    return results
 
 
 def localize_shard(job: LocalizationJob, queries: List[QueryRecord], out_path) -> List[Dict]:
@@ -210,13 +231,7 @@ def localize_shard(job: LocalizationJob, queries: List[QueryRecord], out_path) -
         else:
             localizer = Localizer(refiner.extractor, refiner.solvers, reader, job.localizer, job.device,
                                   levels=job.levels)
-            results = []
-            for q in queries:
-                try:
-                    results.append(localize_query(job, reader, localizer, q))
-                except (OSError, ValueError, RuntimeError) as e:  # recorded, never dropped
-                    logger.warning("Query %s failed: %s", q.name, e)
-                    results.append(_failure(q, f"{type(e).__name__}: {e}"))
+            results = localize_queries(job, reader, localizer, queries)
     finally:
         torch.set_num_threads(threads)
     records = [result_to_record(r, q.tags) for r, q in zip(results, queries)]

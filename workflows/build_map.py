@@ -8,6 +8,7 @@ an interrupted build resumes with what is missing.
 """
 
 import logging
+import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, List, Optional
@@ -95,8 +96,10 @@ def run_dask(plan: BuildPlan, client, progress: bool = False) -> List[ImageResul
     write_structure(plan.scene, plan.store, plan.conf, chunk_rows=plan.chunk_rows, source=plan.source,
                     device=plan.device)
     resources = {"GPU": 1} if plan.device.startswith("cuda") else None
+    run = uuid.uuid4().hex[:8]  # keys unique per run: a key seen before would return its old result
     futures = [client.submit(extract_features, str(plan.store), plan.conf, batch, device=plan.device,
-                             key=f"features-{batch[0]}-{len(batch)}", pure=False, retries=3, resources=resources)
+                             key=f"features-{batch[0]}-{len(batch)}-{run}", pure=False, retries=3,
+                             resources=resources)
                for batch in pending_batches(plan)]
     if progress and futures:
         from distributed import progress as dask_progress

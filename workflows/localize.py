@@ -7,6 +7,7 @@ losing work. A shard whose worker dies is retried elsewhere by Dask.
 
 import json
 import logging
+import uuid
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Dict, List
@@ -67,8 +68,9 @@ def run_sync(plan: LocalizationPlan, progress: bool = False) -> List[Dict]:
 
 def run_dask(plan: LocalizationPlan, client, progress: bool = False) -> List[Dict]:
     resources = {"GPU": 1} if plan.job.device.startswith("cuda") else None
+    run = uuid.uuid4().hex[:8]  # keys unique per run: a key seen before would return its old result
     futures = [client.submit(localize_shard, plan.job, plan.shards[k], str(plan.shard_path(k)),
-                             key=f"localize-shard-{k}", pure=False, retries=3, resources=resources)
+                             key=f"localize-shard-{k}-{run}", pure=False, retries=3, resources=resources)
                for k in plan.pending()]
     if progress and futures:
         from distributed import progress as dask_progress

@@ -83,7 +83,7 @@ def test_outputs(seven_scenes, sync_records, tmp_path):
 def test_distributed_equals_sync_and_survives_a_killed_worker(seven_scenes, sync_records, cluster, tmp_path):  # noqa: F811
     client, workers = cluster
     job, queries = seven_scenes
-    records = run_dask(plan_localization(job, queries, tmp_path / "a", shard_size=1), client)
+    records = run_dask(plan_localization(job, queries, tmp_path / "a", shard_size=2), client)  # as sync_records
     assert without_timings(records) == without_timings(sync_records)
     plan = plan_localization(job, queries, tmp_path / "b", shard_size=1)
     outcome = {}
@@ -192,3 +192,23 @@ def test_hloc_descriptors_and_refinement_mode(seven_scenes, sync_records, tmp_pa
         assert [lvl["level"] for lvl in r["per_level"]] == [1, 0]
         np.testing.assert_allclose(np.asarray(r["prior"]), np.asarray(prev["refined"] if prev["success"]
                                                                       else prev["prior"]), atol=1e-7)
+
+
+def test_shard_batches_queries_like_one_at_a_time(seven_scenes, sync_records):
+    """A shard solves its queries as one LM batch per level; each result equals a solo run."""
+    from pipeline.localize import Localizer
+    from pipeline.map_reader import MapReader
+    from pipeline.shard import localization_model, localize_queries
+    job, queries = seven_scenes
+    refiner, digest = localization_model(job.model)
+    reader = MapReader(job.store, FCONF, digest)
+    localizer = Localizer(refiner.extractor, refiner.solvers, reader, LCONF)
+    calls = []
+    original = localizer.localize_batch
+    localizer.localize_batch = lambda items: calls.append(len(items)) or original(items)
+    batched = localize_queries(job, reader, localizer, queries)
+    assert calls == [6]  # one batch for the six 640x480 queries
+    solo = {r["name"]: r for r in sync_records}  # shards of 2
+    for r in batched:
+        np.testing.assert_allclose(r.refined, np.asarray(solo[r.name]["refined"]), atol=1e-4)
+        assert r.iterations == solo[r.name]["iterations"]
