@@ -7,15 +7,17 @@ of the previous one (Sarlin et al. 2021, Sec. 3.3; official
 """
 
 from dataclasses import dataclass
-from typing import Dict, List, Sequence
+from typing import TYPE_CHECKING, Dict, List, Sequence
 
 from torch import Tensor, nn
 from torch.nn.functional import normalize
 
 from .geometry import Camera, Pose
 from .losses import scaled_barron
-from .nets.unet import UNet
 from .optim import FeaturemetricProblem, LevenbergMarquardt
+
+if TYPE_CHECKING:  # importing pixloc.nets here would be circular (nets.checkpoint builds refiners)
+    from .nets.unet import UNet
 
 
 @dataclass
@@ -50,7 +52,7 @@ class TwoViewRefiner(nn.Module):
     times its stride. clamp_error: pixels.
     """
 
-    def __init__(self, extractor: UNet, solvers: Sequence[LevenbergMarquardt],
+    def __init__(self, extractor: "UNet", solvers: Sequence[LevenbergMarquardt],
                  normalize_features: bool = True, success_thresh: float = 3.0, clamp_error: float = 50.0):
         super().__init__()
         if len(solvers) != len(extractor.strides):
