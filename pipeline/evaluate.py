@@ -5,6 +5,10 @@ from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
+from pixloc.geometry import pose_error
+
+from .scene import pose_from_matrix
+
 DEFAULT_THRESHOLDS = ((0.25, 2.0), (0.5, 5.0), (5.0, 10.0))  # (metres, degrees), visuallocalization.net
 INDOOR_THRESHOLDS = ((0.05, 5.0),)  # 7-Scenes, Cambridge
 
@@ -15,12 +19,8 @@ def pose_errors(T: Optional[np.ndarray], T_gt: np.ndarray) -> Tuple[float, float
     A missing pose counts as an infinite error."""
     if T is None:
         return float("inf"), float("inf")
-    T, T_gt = np.asarray(T), np.asarray(T_gt)
-    c, c_gt = -T[:, :3].T @ T[:, 3], -T_gt[:, :3].T @ T_gt[:, 3]
-    R = T[:, :3] @ T_gt[:, :3].T
-    cos = np.clip((np.trace(R) - 1) / 2, -1, 1)
-    sin = np.linalg.norm([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]]) / 2
-    return float(np.linalg.norm(c - c_gt)), float(np.degrees(np.arctan2(sin, cos)))
+    dR, dt = pose_error(pose_from_matrix(T), pose_from_matrix(T_gt))
+    return float(dt), float(dR)
 
 
 def summarize(errors: Sequence[Tuple[float, float]], thresholds=DEFAULT_THRESHOLDS) -> Dict:

@@ -23,6 +23,7 @@ from pixloc.nets.unet import UNet
 from .images import ImageReadError, read_image, resize_max, to_tensor
 from .map_reader import MapReader
 from .queries import QueryRecord
+from .scene import pose_from_matrix
 
 
 @dataclass(frozen=True)
@@ -58,11 +59,6 @@ class QueryResult:
     def pose(self) -> Optional[np.ndarray]:
         """The pose to report: refined if successful, else the prior (official behaviour)."""
         return self.refined if self.success else self.prior
-
-
-def _pose(T: np.ndarray) -> Pose:
-    T = torch.as_tensor(np.asarray(T, dtype=np.float64))
-    return Pose.from_Rt(T[:, :3], T[:, 3])
 
 
 def _matrix(T: Pose) -> np.ndarray:
@@ -141,7 +137,7 @@ class Localizer:
                 except ImageReadError as e:
                     result.reason = str(e)
             states.append({"query": query, "dbs": dbs, "rgb": rgb, "cache": {} if cache is None else cache,
-                           "result": result, "T": _pose(prior).float(), "active": not result.reason})
+                           "result": result, "T": pose_from_matrix(prior).float(), "active": not result.reason})
         for k, image_scale in enumerate(self.reader.conf.image_scales):
             active = [st for st in states if st["active"]]
             t0 = time.perf_counter()

@@ -11,7 +11,7 @@ from typing import List, Sequence
 
 import numpy as np
 
-from .scene import qvec_to_rotmat
+from .scene import qvec_to_rotmat, rotmat_to_qvec
 
 
 def covisibility_clusters(dbs: Sequence[int], obs_point: np.ndarray, row_start: np.ndarray,
@@ -33,14 +33,6 @@ def covisibility_clusters(dbs: Sequence[int], obs_point: np.ndarray, row_start: 
             queue += [j for j in dbs if j not in visited and points[i] & points[j]]
         clusters.append(cluster)
     return sorted(clusters, key=len, reverse=True)
-
-
-def rotmat_to_qvec(R: np.ndarray) -> np.ndarray:
-    """(w, x, y, z), w >= 0."""
-    import torch
-
-    from pixloc.geometry.lie import rotmat_to_qvec as torch_q
-    return torch_q(torch.from_numpy(np.asarray(R, np.float64))).numpy()
 
 
 def average_poses(poses: Sequence[np.ndarray], weights: Sequence[float]) -> np.ndarray:

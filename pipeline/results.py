@@ -7,7 +7,7 @@ from typing import Dict, Iterable, List, Optional
 import numpy as np
 
 from .localize import QueryResult
-from .priors import rotmat_to_qvec
+from .scene import rotmat_to_qvec
 
 
 def result_to_record(r: QueryResult, tags: Optional[Dict[str, str]] = None) -> Dict:

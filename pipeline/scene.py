@@ -10,16 +10,23 @@ from typing import Dict, List, Optional, Sequence
 import numpy as np
 import torch
 
-from pixloc.geometry import COLMAP_MODELS, Camera, Pose
+from pixloc.geometry import COLMAP_MODELS, Camera, Pose, lie
 
 
 def qvec_to_rotmat(qvec) -> np.ndarray:
-    """(3, 3) rotation from a quaternion (w, x, y, z), normalised here."""
-    q = np.asarray(qvec, dtype=np.float64)
-    w, x, y, z = q / np.linalg.norm(q)
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+    """(3, 3) rotation from a quaternion (w, x, y, z), normalised here (pixloc's conversion)."""
+    return lie.qvec_to_rotmat(torch.as_tensor(np.asarray(qvec, np.float64))).numpy()
+
+
+def rotmat_to_qvec(R) -> np.ndarray:
+    """(w, x, y, z), w >= 0, of a (3, 3) rotation (pixloc's conversion)."""
+    return lie.rotmat_to_qvec(torch.as_tensor(np.asarray(R, np.float64))).numpy()
+
+
+def pose_from_matrix(T, dtype=torch.float64) -> Pose:
+    """A pixloc Pose from a (3, 4) [R | t] matrix."""
+    T = torch.as_tensor(np.asarray(T, np.float64)).to(dtype)
+    return Pose.from_Rt(T[:, :3], T[:, 3])
 
 
 class SceneError(ValueError):
@@ -87,8 +94,7 @@ class ImageRecord:
         return None
 
     def pose(self, dtype=torch.float32) -> Pose:
-        T = torch.from_numpy(np.asarray(self.cam_from_world, dtype=np.float64)).to(dtype)
-        return Pose.from_Rt(T[:, :3], T[:, 3])
+        return pose_from_matrix(self.cam_from_world, dtype)
 
 
 @dataclass

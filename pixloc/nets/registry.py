@@ -40,13 +40,8 @@ def load_refiner(spec: str) -> TwoViewRefiner:
 
 
 def load_extractor(spec: str) -> UNet:
-    """The feature network named ``spec`` (see ``MODELS``), or the extractor of an
-    official PixLoc checkpoint at path ``spec``; in eval mode."""
-    if spec in MODELS:
-        return MODELS[spec]().eval()
-    if Path(spec).is_file():
-        return load_official_checkpoint(spec).extractor.eval()
-    raise ValueError(f"Unknown feature model {spec!r}: give one of {sorted(MODELS)} or a checkpoint file.")
+    """The feature network of ``load_refiner(spec)``, in eval mode."""
+    return load_refiner(spec).extractor.eval()
 
 
 def state_digest(module: nn.Module) -> str:
