@@ -31,6 +31,9 @@ class FeatureConfig:
     pad: interpolation margin in feature-map pixels (official ``pad``).
     dtype: storage type of features and confidences, ``float16`` (default, half
         the size) or ``float32`` (bit-exact with extraction, for parity studies).
+    descriptor: global descriptor for retrieval, from the coarsest feature map: ``gem``
+        (generalised mean) or ``grid`` (mean-centred features averaged over a 2 x 3 grid:
+        keeps the layout, more robust to changes of light in our synthetic tests).
     """
 
     model: str = "lite0-imagenet"
@@ -38,6 +41,11 @@ class FeatureConfig:
     image_scales: Tuple[int, ...] = (4, 1)
     pad: int = 2
     dtype: str = "float16"
+    descriptor: str = "gem"
+
+    def __post_init__(self):
+        if self.descriptor not in DESCRIPTORS:
+            raise ValueError(f"Unknown global descriptor {self.descriptor!r}; known: {', '.join(DESCRIPTORS)}.")
 
     def to_dict(self) -> Dict:
         d = asdict(self)
@@ -58,6 +66,21 @@ def gem(features: torch.Tensor, p: float = 3.0) -> torch.Tensor:
     """Generalised-mean pooling (Radenovic et al. 2018) of (C, H, W) -> L2-normalised (C,)."""
     pooled = features.clamp(min=1e-6).pow(p).mean((-2, -1)).pow(1 / p)
     return torch.nn.functional.normalize(pooled, dim=0)
+
+
+def grid_descriptor(features: torch.Tensor, grid=(2, 3)) -> torch.Tensor:
+    """(C, H, W) -> L2-normalised (C * 6,): per-cell means of the features less their image mean."""
+    cells = torch.nn.functional.adaptive_avg_pool2d(features[None], grid)[0]
+    cells = torch.nn.functional.normalize(cells - cells.mean((1, 2), keepdim=True), dim=0)
+    return torch.nn.functional.normalize(cells.reshape(-1), dim=0)
+
+
+DESCRIPTORS = {"gem": gem, "grid": grid_descriptor}
+
+
+def global_descriptor(features: torch.Tensor, kind: str = "gem") -> torch.Tensor:
+    """The global descriptor ``kind`` of a (C, H, W) feature map."""
+    return DESCRIPTORS[kind](features)
 
 
 @torch.no_grad()
@@ -82,6 +105,6 @@ def extract_image_features(net: UNet, conf: FeatureConfig, image: ImageRecord, p
             samples[(k, level)] = (values.cpu().numpy(), confidence[:, 0].cpu().numpy(),
                                    (inside & visible.to(inside.device)).cpu().numpy())
         if image_scale == 1 or k == len(conf.image_scales) - 1:
-            descriptor = gem(pred["features"][-1][0]).cpu().numpy()
+            descriptor = global_descriptor(pred["features"][-1][0], conf.descriptor).cpu().numpy()
     return ImageFeatures(samples, descriptor)
 

@@ -16,7 +16,7 @@ import torch
 
 from pixloc.nets.registry import load_refiner, state_digest
 
-from .features import FeatureConfig, gem
+from .features import FeatureConfig, global_descriptor
 from .images import ImageReadError, read_image
 from .localize import Localizer, LocalizerConfig, QueryResult
 from .map_reader import MapReader, by_name, global_descriptor_ranking
@@ -152,7 +152,7 @@ def _retrieve(job: LocalizationJob, reader: MapReader, localizer: Localizer, que
     k_last = len(reader.conf.image_scales) - 1
     if k_last not in cache:
         cache[k_last] = localizer.predict(rgb, k_last)
-    descriptor = gem(cache[k_last][0]["features"][-1][0]).cpu().numpy()
+    descriptor = global_descriptor(cache[k_last][0]["features"][-1][0], reader.conf.descriptor).cpu().numpy()
     dbs = global_descriptor_ranking(reader, descriptor, job.retrieval.k, candidates)
     return dbs, reader.global_descriptors[dbs] @ descriptor
 

@@ -114,7 +114,13 @@ def feature_key(conf: FeatureConfig) -> str:
     name = Path(conf.model).stem if Path(conf.model).suffix else conf.model
     scales = "-".join(str(s) for s in conf.image_scales)
     dtype = "" if conf.dtype == "float16" else f"_{conf.dtype}"
-    return f"{name}_r{conf.resize}_s{scales}_p{conf.pad}{dtype}"
+    descriptor = "" if conf.descriptor == "gem" else f"_{conf.descriptor}"
+    return f"{name}_r{conf.resize}_s{scales}_p{conf.pad}{dtype}{descriptor}"
+
+
+def descriptor_dim(kind: str, channels: int) -> int:
+    """Length of the global descriptor ``kind`` of a ``channels``-channel feature map."""
+    return channels * 6 if kind == "grid" else channels
 
 
 def init_features(root: zarr.Group, conf: FeatureConfig, digest: str, dims: List[int]) -> zarr.Group:
@@ -135,7 +141,8 @@ def init_features(root: zarr.Group, conf: FeatureConfig, digest: str, dims: List
     group.attrs.update(expected)
     group.create_array("status", shape=(I,), chunks=(1,), dtype="int8", fill_value=PENDING)
     group.create_array("reason", shape=(I,), chunks=(1,), dtype=str)
-    group.create_array("global", shape=(I, dims[-1]), chunks=(1, dims[-1]), dtype="float32", fill_value=0)
+    D = descriptor_dim(conf.descriptor, dims[-1])
+    group.create_array("global", shape=(I, D), chunks=(1, D), dtype="float32", fill_value=0)
     for k in range(len(conf.image_scales)):
         for level, dim in enumerate(dims):
             g = f"s{k}/l{level}"

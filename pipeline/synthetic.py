@@ -229,10 +229,11 @@ def _light(albedo, X, n, ok, condition, lamps, dirs, rng) -> np.ndarray:
 
 def generate(root, conf: SyntheticConfig = SyntheticConfig(), num_references: int = 12,
              queries_per_condition: int = 2, camera: CameraRecord = CameraRecord(
-                 "PINHOLE", 640, 480, (500.0, 500.0, 320.0, 240.0))) -> Path:
+                 "PINHOLE", 640, 480, (500.0, 500.0, 320.0, 240.0)), query_depth: bool = False) -> Path:
     """Write a dataset: ``mapping/NNNN.png`` + ``.depth.png`` (uint16 millimetres) along the
-    reference path, ``query/<condition>/NNNN.png`` from other viewpoints, and ``cameras.json``
-    (name, COLMAP camera, cam_from_world, tags) for all of them."""
+    reference path, ``query/<condition>/NNNN.png`` from other viewpoints (with depth too if
+    ``query_depth``, for training), and ``cameras.json`` (name, COLMAP camera,
+    cam_from_world, tags) for all of them."""
     import json
 
     import cv2
@@ -250,9 +251,12 @@ def generate(root, conf: SyntheticConfig = SyntheticConfig(), num_references: in
     for c, condition in enumerate(CONDITIONS):
         (root / "query" / condition).mkdir(parents=True, exist_ok=True)
         for j, T in enumerate(scene.query_poses(queries_per_condition, seed=conf.seed * 100 + c)):
-            rgb, _ = scene.render(camera, T, condition, seed=conf.seed * 1000 + 500 + 10 * c + j)
+            rgb, depth = scene.render(camera, T, condition, seed=conf.seed * 1000 + 500 + 10 * c + j)
             name = f"query/{condition}/{j:04d}.png"
             cv2.imwrite(str(root / name), rgb[..., ::-1])
+            if query_depth:
+                cv2.imwrite(str(root / name.replace(".png", ".depth.png")),
+                            np.clip(depth * 1000, 0, 65534).astype(np.uint16))
             entries.append({"name": name, "camera": [camera.model, camera.width, camera.height,
                                                      list(camera.params)],
                             "cam_from_world": T.tolist(), "tags": {"condition": condition, "split": "query"}})

@@ -12,18 +12,35 @@ from typing import Dict
 
 import torch
 
-from .refiner import PairBatch, TwoViewRefiner
+from .geometry import Pose
+from .refiner import PairBatch, TwoViewRefiner, masked_mean
 
 
 @dataclass(frozen=True)
 class TrainConfig:
     """lr: base learning rate (official MegaDepth 5e-6, CMU 1e-5). damping_lr_scale: official 100.
-    clip_grad: max gradient norm (official 1.0). num_iters: LM iterations per level (official 15)."""
+    clip_grad: max gradient norm (official 1.0). num_iters: LM iterations per level (official 15).
+    freeze_batchnorm: keep BatchNorm statistics fixed (batches of one or two pairs are too small
+    to estimate them). grad_checkpointing: recompute the network's activations in backward."""
 
     lr: float = 1e-5
     damping_lr_scale: float = 100.0
     clip_grad: float = 1.0
     num_iters: int = 15
+    freeze_batchnorm: bool = True
+    grad_checkpointing: bool = False
+
+
+def reprojection_px(T: Pose, batch: PairBatch) -> torch.Tensor:
+    """(B,) mean distance in pixels between the points projected into the query at ``T``
+    and at the true pose (points valid at the truth and in the mask)."""
+    cam = batch.camera_query
+    p_gt, valid = cam.cam2image(batch.query_from_ref_gt.transform(batch.p3d_ref))
+    p, _ = cam.cam2image(T.transform(batch.p3d_ref))
+    if batch.mask_points is not None:
+        valid = valid & batch.mask_points
+    err = (p - p_gt).norm(dim=-1)
+    return masked_mean(err, valid, -1)
 
 
 class Trainer:
@@ -36,15 +53,27 @@ class Trainer:
             {"params": damping, "lr": conf.lr * conf.damping_lr_scale}])
         for s in model.solvers:
             s.num_iters = conf.num_iters
+        if hasattr(model.extractor, "grad_checkpointing"):
+            model.extractor.grad_checkpointing = conf.grad_checkpointing
         self.step_count = 0
+
+    def train_mode(self) -> None:
+        self.model.train()
+        if self.conf.freeze_batchnorm:
+            for m in self.model.modules():
+                if isinstance(m, torch.nn.modules.batchnorm._BatchNorm):
+                    m.eval()
 
     def step(self, batch: PairBatch) -> Dict[str, float]:
         """One optimisation step; returns the batch's metrics (losses in pixels)."""
-        self.model.train()
+        self.train_mode()
         pred = self.model(batch)
         losses = self.model.loss(pred, batch)
         loss = losses["total"].mean()
         metrics = {k: float(v.detach().mean()) for k, v in losses.items()}
+        with torch.no_grad():
+            metrics["error_px/init"] = float(reprojection_px(batch.query_from_ref_init, batch).mean())
+            metrics["error_px"] = float(reprojection_px(pred["query_from_ref"][-1], batch).mean())
         self.optimizer.zero_grad()
         if torch.isfinite(loss) and loss.requires_grad:
             loss.backward()

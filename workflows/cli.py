@@ -29,6 +29,20 @@ def build_parser() -> argparse.ArgumentParser:
     from .cli_localize import add_report_arguments
     add_report_arguments(sub.add_parser("report", help="HTML report of a localize output (plots, examples)"))
 
+    from .demo import add_arguments as demo_arguments
+    demo_arguments(sub.add_parser("demo", help="the whole system on a generated synthetic scene (offline)",
+                                  description="Generate a scene, build its map, localize queries in four "
+                                              "conditions, evaluate, report."))
+
+    from .train import add_arguments as train_arguments
+    train_arguments(sub.add_parser("train", help="train the network end to end (resumable)",
+                                   description="End-to-end training from a YAML config; see workflows/train.py."))
+
+    from .evaluate_model import add_arguments as evaluate_model_arguments
+    evaluate_model_arguments(sub.add_parser(
+        "evaluate-model", help="compare feature models on held-out pairs (same initial poses)",
+        description="Pose errors and recall of feature models on the training config's held-out data."))
+
     bench = sub.add_parser("benchmark", help="run a benchmark and print figures against its baseline")
     bench_sub = bench.add_subparsers(dest="benchmark", metavar="NAME", required=True)
     from .benchmarks import build_map as bench_build_map

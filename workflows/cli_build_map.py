@@ -30,6 +30,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--resize", type=int, default=1024, help="longer image side at image scale 1")
     p.add_argument("--image-scales", type=int, nargs="+", default=[4, 1])
     p.add_argument("--pad", type=int, default=2, help="interpolation margin in feature pixels")
+    p.add_argument("--descriptor", choices=["gem", "grid"], default="gem",
+                   help="global descriptor for retrieval (gem pooling, or a 2x3 grid of mean-centred features)")
     p.add_argument("--chunk-rows", type=int, default=256)
     p.add_argument("--batch-size", type=int, default=1, help="images per task")
     p.add_argument("--device", default="cpu")
@@ -49,7 +51,7 @@ def main(args: argparse.Namespace) -> int:
         presets.apply(args, presets.load(args.preset), args._parser_defaults)
     source = MapSource(args.kind, args.path, args.images, tuple(args.sequences), args.rgbd_points, args.densify,
                        tuple(args.intrinsics), args.depth_scale, args.depth_ext)
-    conf = FeatureConfig(args.model, args.resize, tuple(args.image_scales), args.pad)
+    conf = FeatureConfig(args.model, args.resize, tuple(args.image_scales), args.pad, descriptor=args.descriptor)
     work_dir = args.work_dir or args.store.with_suffix(".work")
     t0 = time.time()
     scene = load_scene(source, work_dir)

@@ -11,6 +11,7 @@ dicts load strictly.
 from typing import Dict, List, Sequence
 
 import torch
+import torch.utils.checkpoint
 from torch import Tensor, nn
 
 # torchvision's VGG configurations: conv widths, "M" = 2x2 max-pool.
@@ -62,6 +63,14 @@ class DecoderBlock(nn.Module):
         return self.layers(torch.cat([up, skip[..., :h, :w]], 1))
 
 
+def _direct(block: nn.Module, *args: Tensor) -> Tensor:
+    return block(*args)
+
+
+def _checkpointed(block: nn.Module, *args: Tensor) -> Tensor:
+    return torch.utils.checkpoint.checkpoint(block, *args, use_reentrant=False)
+
+
 class UNet(nn.Module):
     """Feature pyramid network of PixLoc.
 
@@ -108,6 +117,7 @@ class UNet(nn.Module):
         self.output_scales = tuple(output_scales)
         self.strides = tuple(2 ** s for s in output_scales)
         self.output_dims = tuple(output_dims)
+        self.grad_checkpointing = False  # recompute block activations in backward (less memory)
         self.register_buffer("mean", torch.tensor(mean).view(3, 1, 1), persistent=False)
         self.register_buffer("std", torch.tensor(std).view(3, 1, 1), persistent=False)
 
@@ -125,13 +135,14 @@ class UNet(nn.Module):
             h, w = (s - s % min_size for s in image.shape[-2:])
             image = image[..., :h, :w]
         x = (image - self.mean) / self.std
+        run = _checkpointed if self.grad_checkpointing and torch.is_grad_enabled() else _direct
         skips = []
         for block in self.encoder:
-            x = block(x)
+            x = run(block, x)
             skips.append(x)
         pre = [skips[-1]]
         for block, skip in zip(self.decoder, skips[:-1][::-1]):
-            pre.append(block(pre[-1], skip))
+            pre.append(run(block, pre[-1], skip))
         pre = pre[::-1]  # fine to coarse, index = log2 stride
         out = {"features": [adapt(pre[i]) for adapt, i in zip(self.adaptation, self.output_scales)]}
         if self.compute_confidence:

@@ -1,0 +1,61 @@
+import csv
+
+import pytest
+import torch
+import yaml
+
+from pixloc.nets.registry import load_refiner
+from workflows.cli import main
+
+CONFIG = {
+    "model": "lite0-imagenet", "lr": 1e-3, "num_iters": 4, "max_size": 128, "num_points": 96,
+    "val_every": 2, "val_pairs": 2, "checkpoint_every": 2,
+    "synthetic_camera": ["PINHOLE", 128, 96, [100.0, 100.0, 64.0, 48.0]],
+    "data": [{"kind": "synthetic", "seed": 11}],
+    "validation": [{"kind": "synthetic", "seed": 12}],
+}
+
+
+@pytest.fixture(scope="module")
+def config(tmp_path_factory):
+    path = tmp_path_factory.mktemp("cfg") / "tiny.yaml"
+    path.write_text(yaml.safe_dump(CONFIG))
+    return path
+
+
+def rows(path):
+    with open(path) as f:
+        return list(csv.DictReader(f))
+
+
+def test_interrupted_training_resumes_to_the_same_state(config, tmp_path):
+    """4 steps in one go, and 2 steps then a resume to 4: the same weights and the same metrics."""
+    assert main(["train", "--config", str(config), "--output", str(tmp_path / "a"), "--steps", "4"]) == 0
+    assert main(["train", "--config", str(config), "--output", str(tmp_path / "b"), "--steps", "2"]) == 0
+    assert main(["train", "--config", str(config), "--output", str(tmp_path / "b"), "--steps", "4"]) == 0
+    ca, cb = (torch.load(tmp_path / k / "checkpoint.pt", weights_only=True)["trainer"] for k in "ab")
+    assert ca["step"] == cb["step"] == 4
+    for name, x in ca["model"].items():
+        assert torch.equal(x, cb["model"][name]), name
+    for x, y in zip(ca["optimizer"]["state"].values(), cb["optimizer"]["state"].values()):
+        assert torch.equal(x["exp_avg"], y["exp_avg"])
+    b = load_refiner(str(tmp_path / "b" / "model.pt"))
+    ra, rb = rows(tmp_path / "a" / "metrics.csv"), rows(tmp_path / "b" / "metrics.csv")
+    assert [r["step"] for r in rb] == ["1", "2", "3", "4"]
+    assert [r["total"] for r in ra] == [r["total"] for r in rb]
+    assert [r["step"] for r in rows(tmp_path / "b" / "validation.csv")] == ["0", "2", "4"]
+    assert (tmp_path / "b" / "curves.png").stat().st_size > 10_000
+    trained = torch.load(tmp_path / "b" / "model.pt", weights_only=True)
+    assert trained["info"]["steps"] == 4 and trained["info"]["data"] == ["synthetic-11"]
+    untrained = load_refiner("lite0-imagenet")
+    changed = [n for n, p in untrained.named_parameters() if not torch.allclose(p, b.state_dict()[n], atol=1e-3)]
+    assert any(n.startswith("extractor.") for n in changed) and any(n.startswith("solvers.") for n in changed)
+
+
+def test_missing_training_data_is_reported(tmp_path, capsys):
+    cfg = dict(CONFIG, data=[{"kind": "colmap", "path": "nowhere/sparse"}], validation=[])
+    path = tmp_path / "c.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    assert main(["train", "--config", str(path), "--output", str(tmp_path / "o"), "--data-root",
+                 str(tmp_path)]) == 2
+    assert "No training data" in capsys.readouterr().err

@@ -1,0 +1,276 @@
+"""``pixloc train``: end-to-end training from a YAML config (data sources, schedule), with
+per-step metrics in CSV, validation, curves, checkpoints, exact resume and model export.
+
+Output folder::
+
+    config.yaml        the resolved configuration
+    metrics.csv        one row per step: losses, reprojection errors in pixels, gradient norm, time
+    validation.csv     one row per validation: median reprojection error and recall of fixed pairs
+    curves.png         training loss and validation error against steps
+    checkpoint.pt      the last checkpoint (model, optimiser, step, random states, wall time)
+    model.pt           the model in the project's format, loadable with --model PATH
+    data/              generated synthetic scenes and triangulations
+"""
+
+import argparse
+import csv
+import logging
+import os
+import platform
+import time
+from importlib import resources
+from pathlib import Path
+from typing import Dict, List, Tuple
+
+import numpy as np
+import torch
+import yaml
+
+from pipeline.scene import CameraRecord, Scene
+from pipeline.training_data import PairConfig, PairDataset, synthetic_scene
+from pixloc.nets.registry import load_refiner, save_model
+from pixloc.training import Trainer, TrainConfig, reprojection_px
+
+from .sources import MapSource, load_scene
+
+logger = logging.getLogger(__name__)
+TRAIN_KEYS = ("error_px/init", "error_px", "total", "reprojection_error/init", "reprojection_error/0",
+              "reprojection_error/1", "reprojection_error/2", "grad_norm")
+VAL_KEYS = ("error_px_init_median", "error_px_median", "recall_1px", "recall_5px", "loss")
+
+
+def default_data_root() -> Path:
+    shared = os.environ.get("PIXLOC_SHARED")
+    return Path(shared) / "data" if shared else Path("../shared/data")
+
+
+def load_config(spec: str) -> Dict:
+    """A config file, or the name of a packaged one (workflows/presets/training/NAME.yaml)."""
+    path = Path(spec)
+    if not path.is_file():
+        packaged = resources.files(__package__) / "presets" / "training" / f"{spec}.yaml"
+        if not packaged.is_file():
+            raise ValueError(f"Training config {spec!r} is neither a file nor a packaged config.")
+        path = Path(str(packaged))
+    return yaml.safe_load(path.read_text())
+
+
+def load_sources(entries: List[Dict], data_root: Path, work_dir: Path, camera: CameraRecord
+                 ) -> Tuple[List[Tuple[str, Scene]], List[float], List[str]]:
+    """(name, Scene) and weight of each source; sources whose data is absent are skipped
+    with a warning and listed in the third return value."""
+    scenes, weights, skipped = [], [], []
+    for entry in entries:
+        entry = dict(entry)
+        kind, weight = entry.pop("kind"), float(entry.pop("weight", 1.0))
+        if kind == "synthetic":
+            seed = int(entry.pop("seed"))
+            name = f"synthetic-{seed}"
+            scene = synthetic_scene(work_dir / name, seed, camera)
+        else:
+            path = data_root / entry.pop("path")
+            name = str(path.relative_to(data_root))
+            if not path.exists():
+                logger.warning("Training source %s is missing (%s): skipped.", name, path)
+                skipped.append(name)
+                continue
+            if "images" in entry:
+                entry["images"] = data_root / entry["images"]
+            for key in ("intrinsics", "sequences"):
+                if key in entry:
+                    entry[key] = tuple(entry[key])
+            scene = load_scene(MapSource(kind, path, **entry), work_dir / name.replace("/", "_"))
+        scenes.append((name, scene))
+        weights.append(weight)
+    return scenes, weights, skipped
+
+
+def validate(trainer: Trainer, pairs) -> Dict[str, float]:
+    """Median reprojection errors (pixels) and recall at 1 and 5 px of fixed pairs."""
+    model = trainer.model.eval()
+    init, final, losses = [], [], []
+    with torch.no_grad():
+        for batch in pairs:
+            pred = model(batch)
+            losses.append(float(model.loss(pred, batch)["total"].mean()))
+            init.append(float(reprojection_px(batch.query_from_ref_init, batch).mean()))
+            final.append(float(reprojection_px(pred["query_from_ref"][-1], batch).mean()))
+    final_a = np.array(final)
+    return {"error_px_init_median": float(np.median(init)), "error_px_median": float(np.median(final_a)),
+            "recall_1px": float((final_a < 1).mean()), "recall_5px": float((final_a < 5).mean()),
+            "loss": float(np.mean(losses))}
+
+
+class CsvLog:
+    """Rows appended to a CSV file; on resume, rows after the checkpoint's step are dropped."""
+
+    def __init__(self, path: Path, keys, resume_step: int):
+        self.path, self.keys = path, ("step", "time") + tuple(keys)
+        rows = []
+        if resume_step and path.is_file():
+            with open(path) as f:
+                rows = [r for r in csv.DictReader(f) if int(r["step"]) <= resume_step]
+        with open(path, "w", newline="") as f:
+            w = csv.DictWriter(f, self.keys)
+            w.writeheader()
+            w.writerows(rows)
+
+    def write(self, row: Dict) -> None:
+        with open(self.path, "a", newline="") as f:
+            csv.DictWriter(f, self.keys, extrasaction="ignore").writerow(row)
+
+
+def read_csv(path: Path) -> Dict[str, np.ndarray]:
+    with open(path) as f:
+        rows = list(csv.DictReader(f))
+    def number(v):
+        try:
+            return float(v)
+        except (TypeError, ValueError):
+            return np.nan
+    return {k: np.array([number(r[k]) for r in rows]) for k in (rows[0].keys() if rows else []) if k != "source"}
+
+
+def plot_curves(out: Path) -> Path:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    train, val = read_csv(out / "metrics.csv"), read_csv(out / "validation.csv")
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    if len(train.get("step", [])):
+        k = max(1, min(50, len(train["step"]) // 10))
+        smooth = np.convolve(train["total"], np.ones(k) / k, mode="valid")
+        axes[0].plot(train["step"], train["total"], color="0.8", lw=0.5, label="loss (per step)")
+        axes[0].plot(train["step"][k - 1:], smooth, color="C0", label=f"loss (mean of {k})")
+        axes[0].set_yscale("log")
+    axes[0].set_xlabel("step")
+    axes[0].set_title("training loss")
+    axes[0].legend()
+    if len(val.get("step", [])):
+        axes[1].plot(val["step"], val["error_px_median"], "o-", label="refined")
+        axes[1].plot(val["step"], val["error_px_init_median"], "--", color="0.5", label="initial pose")
+        axes[1].set_yscale("log")
+    axes[1].set_xlabel("step")
+    axes[1].set_title("validation: median reprojection error (px)")
+    axes[1].legend()
+    fig.tight_layout()
+    fig.savefig(out / "curves.png", dpi=100)
+    plt.close(fig)
+    return out / "curves.png"
+
+
+def train(config: Dict, out: Path, data_root: Path, resume: bool = True, threads: int = 0) -> Dict:
+    """Train (or resume) as ``config`` says; returns the final validation metrics."""
+    out.mkdir(parents=True, exist_ok=True)
+    if threads:
+        torch.set_num_threads(threads)
+    (out / "config.yaml").write_text(yaml.safe_dump(config, sort_keys=False))
+    model, arch = config.get("model", "lite0-imagenet"), config.get("architecture", "lite0")
+    pconf = PairConfig(max_size=int(config.get("max_size", 320)), num_points=int(config.get("num_points", 512)),
+                       min_covisible=int(config.get("min_covisible", 50)),
+                       init_range=tuple(config.get("init_range", (0.75, 1.0))))
+    m, w, h, params = config.get("synthetic_camera", ["PINHOLE", 320, 240, [250.0, 250.0, 160.0, 120.0]])
+    camera = CameraRecord(m, int(w), int(h), tuple(params))
+    scenes, weights, skipped = load_sources(config["data"], data_root, out / "data", camera)
+    if not scenes:
+        raise ValueError("No training data: every source of the config is missing.")
+    datasets = [PairDataset([s], pconf) for s in scenes]
+    p = np.array(weights) / np.sum(weights)
+    val_scenes, _, _ = load_sources(config.get("validation", []), data_root, out / "data", camera)
+    val_pairs = (PairDataset(val_scenes, pconf).fixed(int(config.get("val_pairs", 24)), seed=0)
+                 if val_scenes else [])
+
+    refiner = load_refiner(model)
+    tconf = TrainConfig(lr=float(config.get("lr", 1e-4)), clip_grad=float(config.get("clip_grad", 1.0)),
+                        num_iters=int(config.get("num_iters", 15)),
+                        grad_checkpointing=bool(config.get("grad_checkpointing", False)))
+    trainer = Trainer(refiner, tconf)
+    rng = np.random.default_rng(int(config.get("seed", 0)))
+    torch.manual_seed(int(config.get("seed", 0)))
+    wall = 0.0
+    ckpt_path = out / "checkpoint.pt"
+    if resume and ckpt_path.is_file():
+        state = torch.load(ckpt_path, map_location="cpu", weights_only=True)
+        trainer.load_state_dict(state["trainer"])
+        rng.bit_generator.state = state["numpy_rng"]
+        wall = float(state["wall_time"])
+        logger.info("Resumed from %s at step %d.", ckpt_path, trainer.step_count)
+    start = trainer.step_count
+    train_log = CsvLog(out / "metrics.csv", TRAIN_KEYS + ("source",), start)
+    val_log = CsvLog(out / "validation.csv", VAL_KEYS, start)
+    steps = int(config.get("steps", 1000))
+    val_every, ckpt_every = int(config.get("val_every", 100)), int(config.get("checkpoint_every", 100))
+    info = {"architecture": arch, "init": model, "data": [n for n, _ in scenes], "skipped_data": skipped,
+            "held_out": config.get("held_out", []), "max_size": pconf.max_size, "lr": tconf.lr,
+            "hardware": f"{platform.processor() or platform.machine()}, {torch.get_num_threads()} threads"}
+
+    def checkpoint():
+        tmp = ckpt_path.with_suffix(".tmp")
+        torch.save({"trainer": trainer.state_dict(), "numpy_rng": rng.bit_generator.state,
+                    "wall_time": wall}, tmp)
+        tmp.replace(ckpt_path)
+        save_model(trainer.model, arch, out / "model.pt",
+                   {**info, "steps": trainer.step_count, "wall_time_s": round(wall, 1), "validation": last_val})
+
+    last_val: Dict[str, float] = {}
+    if start == 0 and val_pairs:
+        last_val = validate(trainer, val_pairs)
+        val_log.write({"step": 0, "time": 0.0, **last_val})
+    from tqdm import tqdm
+    progress = tqdm(range(start, steps), initial=start, total=steps, desc="training", unit="step",
+                    disable=None)
+    for _ in progress:
+        t0 = time.perf_counter()
+        k = int(rng.choice(len(datasets), p=p))
+        metrics = trainer.step(datasets[k].sample(rng))
+        wall += time.perf_counter() - t0
+        train_log.write({**metrics, "time": round(wall, 2), "source": scenes[k][0]})
+        progress.set_postfix(loss=f"{metrics['total']:.3g}", px=f"{metrics['error_px']:.2f}")
+        step = trainer.step_count
+        if val_pairs and (step % val_every == 0 or step == steps):
+            t0 = time.perf_counter()
+            last_val = validate(trainer, val_pairs)
+            wall += time.perf_counter() - t0
+            val_log.write({"step": step, "time": round(wall, 2), **last_val})
+            logger.info("step %d: validation median error %.2f px (initial %.2f px), recall@1px %.2f",
+                        step, last_val["error_px_median"], last_val["error_px_init_median"],
+                        last_val["recall_1px"])
+        if step % ckpt_every == 0 or step == steps:
+            checkpoint()
+    if trainer.step_count == start:  # nothing to do: keep the outputs consistent anyway
+        checkpoint()
+    plot_curves(out)
+    return last_val
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--config", default="lite0", help="YAML config file, or a packaged one's name (default lite0)")
+    p.add_argument("--output", type=Path, required=True, help="run folder (resumed if it has a checkpoint)")
+    p.add_argument("--data-root", type=Path, default=None,
+                   help="folder of the real data sources (default $PIXLOC_SHARED/data or ../shared/data)")
+    p.add_argument("--steps", type=int, help="total steps (overrides the config)")
+    p.add_argument("--lr", type=float, help="learning rate (overrides the config)")
+    p.add_argument("--max-size", type=int, help="longer image side (overrides the config)")
+    p.add_argument("--synthetic-only", action="store_true", help="use only the config's synthetic sources")
+    p.add_argument("--grad-checkpointing", action="store_true", help="trade compute for memory")
+    p.add_argument("--restart", action="store_true", help="ignore an existing checkpoint")
+    p.add_argument("--threads", type=int, default=0, help="torch threads (default: torch's choice)")
+    p.set_defaults(func=main)
+
+
+def main(args: argparse.Namespace) -> int:
+    config = load_config(args.config)
+    for key in ("steps", "lr", "max_size"):
+        if getattr(args, key) is not None:
+            config[key] = getattr(args, key)
+    if args.grad_checkpointing:
+        config["grad_checkpointing"] = True
+    if args.synthetic_only:
+        config["data"] = [d for d in config["data"] if d["kind"] == "synthetic"]
+    val = train(config, args.output, args.data_root or default_data_root(), resume=not args.restart,
+                threads=args.threads)
+    print(f"model: {args.output / 'model.pt'}  curves: {args.output / 'curves.png'}")
+    if val:
+        print(f"validation: median error {val['error_px_median']:.2f} px (initial {val['error_px_init_median']:.2f}"
+              f" px), recall@1px {val['recall_1px']:.2f}, recall@5px {val['recall_5px']:.2f}")
+    return 0
