@@ -53,12 +53,16 @@ def value_noise(x: np.ndarray, y: np.ndarray, octaves: int = 3) -> np.ndarray:
 
 @dataclass(frozen=True)
 class SyntheticConfig:
-    """seed: everything random derives from it. size: courtyard side in metres."""
+    """seed: everything random derives from it. size: courtyard side in metres.
+    textures: photos (paths) whose crops cover some facades instead of procedural plaster;
+    ``texture_scale``: metres per texture image width."""
 
     seed: int = 0
     size: float = 30.0
     num_poles: int = 6
     num_trees: int = 5
+    textures: Tuple[str, ...] = ()
+    texture_scale: float = 8.0
 
 
 class SyntheticScene:
@@ -94,6 +98,7 @@ class SyntheticScene:
             parts.append((*_box((*p, 4.0), (2.5, 2.5, 2.5)), FOLIAGE))
         self.parts = parts
         self.lamps = np.array([[*rng.uniform(-half + 3, half - 3, 2), 4.5] for _ in range(6)])
+        self.textures = [_load_texture(p) for p in conf.textures]
 
     def _raycaster(self, extra: List = ()):
         import open3d as o3d
@@ -110,15 +115,16 @@ class SyntheticScene:
         return [look_at(np.array([4 * np.cos(a), 4 * np.sin(a), height]),
                         np.array([20 * np.cos(a), 20 * np.sin(a), height + 2])) for a in angles]
 
-    def query_poses(self, n: int, seed: int) -> List[np.ndarray]:
-        """Other viewpoints: off the reference circle, other heights and headings."""
+    def query_poses(self, n: int, seed: int, spread: float = 1.0) -> List[np.ndarray]:
+        """Other viewpoints: off the reference circle (radius 4 m + spread x [-1.5, 2.5] m),
+        other heights and headings (spread x [-0.4, 0.4] rad off the radial direction)."""
         rng = np.random.default_rng(seed)
         poses = []
         for _ in range(n):
             a = rng.uniform(0, 2 * np.pi)
-            r = rng.uniform(2.5, 6.5)
+            r = 4 + spread * rng.uniform(-1.5, 2.5)
             eye = np.array([r * np.cos(a), r * np.sin(a), rng.uniform(1.3, 2.2)])
-            heading = a + rng.uniform(-0.4, 0.4)
+            heading = a + spread * rng.uniform(-0.4, 0.4)
             poses.append(look_at(eye, eye + np.array([np.cos(heading), np.sin(heading), rng.uniform(0.05, 0.2)])))
         return poses
 
@@ -154,12 +160,16 @@ class SyntheticScene:
         oid = np.where(ok, geom, -1)
         mat = np.where(ok, material[np.where(ok, geom, 0)], -1)
         color = _albedo(X, normal, mat, oid)
+        if self.textures:
+            color = _photo_facades(color, X, normal, mat, oid, self.textures, self.conf.texture_scale)
         color = _light(color, X, normal, ok, condition, self.lamps, dirs, rng)
         image = color.reshape(camera.height, camera.width, 3)
         if condition in ("dusk", "night"):
             import cv2
             image = cv2.GaussianBlur(image.astype(np.float32), (0, 0), 0.8 if condition == "dusk" else 1.2)
             image = image + rng.normal(0, 0.02 if condition == "dusk" else 0.04, image.shape)
+        if condition == "night":  # auto-exposure, as a camera at night: brighter, and noisier
+            image = image * np.clip(0.16 / max(float(image.mean()), 1e-3), 1.0, 3.0)
         return (np.clip(image, 0, 1) * 255).round().astype(np.uint8), depth.reshape(
             camera.height, camera.width).astype(np.float32)
 
@@ -173,6 +183,26 @@ def look_at(eye: np.ndarray, target: np.ndarray, up=(0.0, 0.0, 1.0)) -> np.ndarr
     y = np.cross(z, x)
     R = np.stack([x, y, z])
     return np.concatenate([R, (-R @ eye)[:, None]], 1)
+
+
+def _load_texture(path) -> np.ndarray:
+    from .images import read_image
+    return read_image(path).astype(np.float64) / 255.0
+
+
+def _photo_facades(color, X, n, mat, oid, textures, scale) -> np.ndarray:
+    """Half of the plaster buildings (by object id) take a photo as facade texture, tiled
+    along the wall (u) and the height (z), ``scale`` metres per texture width."""
+    tangent = np.stack([-n[:, 1], n[:, 0], np.zeros(len(n))], 1)
+    u, z = (X * tangent).sum(1), X[:, 2]
+    out = color.copy()
+    for k, tex in enumerate(textures):
+        h, w = tex.shape[:2]
+        sel = (mat == PLASTER) & (oid % 2 == 0) & ((oid // 2) % len(textures) == k)
+        px = (np.mod(u[sel] / scale, 1.0) * (w - 1)).astype(np.int64)
+        py = ((1 - np.mod(z[sel] / (scale * h / w), 1.0)) * (h - 1)).astype(np.int64)
+        out[sel] = tex[py, px]
+    return out
 
 
 def _albedo(X, n, mat, oid) -> np.ndarray:
@@ -208,8 +238,10 @@ def _albedo(X, n, mat, oid) -> np.ndarray:
 
 
 def _light(albedo, X, n, ok, condition, lamps, dirs, rng) -> np.ndarray:
+    # (direction, strength and colour of the sun or moon, ambient light); at night, lamps too
     sun = {"day": ([0.4, 0.3, 0.85], 1.0, 0.45, [1, 1, 1]), "occluded": ([0.4, 0.3, 0.85], 1.0, 0.45, [1, 1, 1]),
-           "dusk": ([-0.7, 0.5, 0.25], 0.7, 0.25, [1.0, 0.7, 0.45]), "night": ([0, 0, 1], 0.0, 0.06, [0.6, 0.7, 1.0])}
+           "dusk": ([-0.7, 0.5, 0.25], 0.7, 0.25, [1.0, 0.7, 0.45]),
+           "night": ([0.3, -0.2, 0.9], 0.12, 0.1, [0.6, 0.7, 1.0])}
     direction, strength, ambient, tint = sun[condition]
     d = np.asarray(direction, float) / np.linalg.norm(direction)
     facing = np.where((n * dirs).sum(1, keepdims=True) > 0, -n, n)  # normals towards the camera
@@ -227,13 +259,23 @@ def _light(albedo, X, n, ok, condition, lamps, dirs, rng) -> np.ndarray:
     return np.where(ok[:, None], color, np.asarray(sky) * (0.9 + 0.1 * dirs[:, 2:3].clip(0, 1)))
 
 
+def area(cam_from_world: np.ndarray, num_areas: int = 8) -> str:
+    """The coarse location group of a camera: the sector of the courtyard (by the azimuth of
+    its centre) it stands in, as a GPS tag would give (retrieval can be restricted to it)."""
+    T = np.asarray(cam_from_world, float)
+    c = -T[:, :3].T @ T[:, 3]
+    return str(int((np.arctan2(c[1], c[0]) % (2 * np.pi)) // (2 * np.pi / num_areas)) % num_areas)
+
+
 def generate(root, conf: SyntheticConfig = SyntheticConfig(), num_references: int = 12,
              queries_per_condition: int = 2, camera: CameraRecord = CameraRecord(
-                 "PINHOLE", 640, 480, (500.0, 500.0, 320.0, 240.0)), query_depth: bool = False) -> Path:
+                 "PINHOLE", 640, 480, (500.0, 500.0, 320.0, 240.0)), query_depth: bool = False,
+             query_spread: float = 1.0) -> Path:
     """Write a dataset: ``mapping/NNNN.png`` + ``.depth.png`` (uint16 millimetres) along the
     reference path, ``query/<condition>/NNNN.png`` from other viewpoints (with depth too if
-    ``query_depth``, for training), and ``cameras.json`` (name, COLMAP camera,
-    cam_from_world, tags) for all of them."""
+    ``query_depth``, for training; ``query_spread`` scales how far they are from the
+    references), and ``cameras.json`` (name, COLMAP camera,
+    cam_from_world, tags: condition, split, area) for all of them."""
     import json
 
     import cv2
@@ -247,10 +289,12 @@ def generate(root, conf: SyntheticConfig = SyntheticConfig(), num_references: in
         cv2.imwrite(str(root / name), rgb[..., ::-1])
         cv2.imwrite(str(root / f"mapping/{i:04d}.depth.png"), np.clip(depth * 1000, 0, 65534).astype(np.uint16))
         entries.append({"name": name, "camera": [camera.model, camera.width, camera.height, list(camera.params)],
-                        "cam_from_world": T.tolist(), "tags": {"condition": "day", "split": "mapping"}})
+                        "cam_from_world": T.tolist(),
+                        "tags": {"condition": "day", "split": "mapping", "area": area(T)}})
     for c, condition in enumerate(CONDITIONS):
         (root / "query" / condition).mkdir(parents=True, exist_ok=True)
-        for j, T in enumerate(scene.query_poses(queries_per_condition, seed=conf.seed * 100 + c)):
+        for j, T in enumerate(scene.query_poses(queries_per_condition, seed=conf.seed * 100 + c,
+                                                      spread=query_spread)):
             rgb, depth = scene.render(camera, T, condition, seed=conf.seed * 1000 + 500 + 10 * c + j)
             name = f"query/{condition}/{j:04d}.png"
             cv2.imwrite(str(root / name), rgb[..., ::-1])
@@ -259,7 +303,8 @@ def generate(root, conf: SyntheticConfig = SyntheticConfig(), num_references: in
                             np.clip(depth * 1000, 0, 65534).astype(np.uint16))
             entries.append({"name": name, "camera": [camera.model, camera.width, camera.height,
                                                      list(camera.params)],
-                            "cam_from_world": T.tolist(), "tags": {"condition": condition, "split": "query"}})
+                            "cam_from_world": T.tolist(),
+                            "tags": {"condition": condition, "split": "query", "area": area(T)}})
     (root / "cameras.json").write_text(json.dumps({"config": conf.__dict__, "images": entries}, indent=1))
     return root
 

@@ -117,13 +117,14 @@ class PairDataset:
 
 
 def synthetic_scene(root, seed: int, camera: CameraRecord, num_references: int = 24,
-                    queries_per_condition: int = 8) -> Scene:
+                    queries_per_condition: int = 8, textures: Sequence[str] = ()) -> Scene:
     """A generated synthetic dataset under ``root`` (reused if present) as a Scene of all its
-    views, references and queries in every condition, with points from their depth."""
+    views, references and queries in every condition, with points from their depth.
+    ``textures``: photos to cover some facades with (see ``SyntheticConfig``)."""
     root = Path(root)
     if not (root / "cameras.json").is_file():
-        generate(root, SyntheticConfig(seed=seed), num_references, queries_per_condition, camera,
-                 query_depth=True)
+        generate(root, SyntheticConfig(seed=seed, textures=tuple(str(t) for t in textures)), num_references,
+                 queries_per_condition, camera, query_depth=True)
     images = synthetic_images(root)
     return rgbd_scene(images, method="frames", stride=8, min_track_length=2)
 

@@ -4,7 +4,8 @@
    along a path, queries from other viewpoints by day, at dusk, at night and with occluders;
 2. build a map store from the depth and the known poses (points and the shipped model's
    features at their observations);
-3. retrieve references per query by global descriptor and take the top-1 pose as prior;
+3. retrieve references per query by global descriptor among those of its area (a coarse
+   location tag, as GPS gives; RobotCar practice) and take the top-1 pose as prior;
 4. localize every query (Dask workers, or in-process with ``--sync``);
 5. evaluate per condition, write ``report.html`` and print the summary.
 """
@@ -38,16 +39,17 @@ def _stage(k: int, text: str) -> float:
     return time.perf_counter()
 
 
-def run_demo(output: Path, model: str = "pixloc-lite0", num_references: int = 24, queries_per_condition: int = 5,
+def run_demo(output: Path, model: str = "pixloc-lite0", num_references: int = 30, queries_per_condition: int = 5,
              workers: int = 2, sync: bool = False, num_iters: int = 50, seed: int = DEMO_SEED,
-             client=None) -> Dict[str, Dict]:
+             query_spread: float = 0.5, prior: str = "top1", client=None) -> Dict[str, Dict]:
     """Run the demo into ``output``; returns the evaluation summary (per condition)."""
     output = Path(output)
     t_start = _stage(1, f"generating the synthetic scene (seed {seed}): {num_references} references, "
                         f"{queries_per_condition} queries per condition")
     root = output / "scene"
     if not (root / "cameras.json").is_file():
-        generate(root, SyntheticConfig(seed=seed), num_references, queries_per_condition, DEMO_CAMERA)
+        generate(root, SyntheticConfig(seed=seed), num_references, queries_per_condition, DEMO_CAMERA,
+                 query_spread=query_spread)
     mapping, queries = read_synthetic(root)
 
     t = _stage(2, f"building the map store from depth and known poses, features of {model}")
@@ -60,7 +62,7 @@ def run_demo(output: Path, model: str = "pixloc-lite0", num_references: int = 24
     print(f"      {len(scene.images)} images, {len(scene.points)} points in {time.perf_counter() - t:.1f} s")
 
     job = LocalizationJob(str(store), fconf, model, LocalizerConfig(num_dbs=3, num_iters=num_iters),
-                          RetrievalConfig("global", k=5), prior="top1")
+                          RetrievalConfig("global", k=5, same_tag="area"), prior=prior)
     t = _stage(3, f"retrieval and localization of {len(queries)} queries "
                   f"({'in-process' if sync else f'{workers} Dask workers'})")
     plan = localize.plan_localization(job, queries, output / "localization", shard_size=5)
@@ -107,13 +109,15 @@ def format_table(summary: Dict[str, Dict]) -> str:
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--output", type=Path, default=Path("outputs/demo"), help="output folder (default outputs/demo)")
     p.add_argument("--model", default="pixloc-lite0", help="feature model (default: the shipped pixloc-lite0)")
-    p.add_argument("--references", type=int, default=24)
+    p.add_argument("--references", type=int, default=30)
     p.add_argument("--queries-per-condition", type=int, default=5)
     p.add_argument("--workers", type=int, default=2, help="Dask workers (processes)")
     p.add_argument("--sync", action="store_true", help="localize in this process, without Dask")
+    p.add_argument("--prior", choices=["top1", "average", "hypotheses"], default="top1")
     p.set_defaults(func=main)
 
 
 def main(args: argparse.Namespace, client: Optional[object] = None) -> int:
-    run_demo(args.output, args.model, args.references, args.queries_per_condition, args.workers, args.sync)
+    run_demo(args.output, args.model, args.references, args.queries_per_condition, args.workers, args.sync,
+             prior=args.prior)
     return 0

@@ -65,8 +65,14 @@ def load_sources(entries: List[Dict], data_root: Path, work_dir: Path, camera: C
         kind, weight = entry.pop("kind"), float(entry.pop("weight", 1.0))
         if kind == "synthetic":
             seed = int(entry.pop("seed"))
-            name = f"synthetic-{seed}"
-            scene = synthetic_scene(work_dir / name, seed, camera)
+            textures = [data_root / t for t in entry.pop("textures", [])]
+            name = f"synthetic-{seed}" + ("-photos" if textures else "")
+            missing = [str(t) for t in textures if not t.is_file()]
+            if missing:
+                logger.warning("Textures of %s are missing (%s): skipped.", name, ", ".join(missing))
+                skipped.append(name)
+                continue
+            scene = synthetic_scene(work_dir / name, seed, camera, textures=textures)
         else:
             path = data_root / entry.pop("path")
             name = str(path.relative_to(data_root))
