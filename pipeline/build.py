@@ -16,6 +16,7 @@ import torch
 from pixloc.nets.registry import load_extractor, state_digest
 
 from .features import FeatureConfig, extract_image_features
+from .runtime import torch_threads
 from .scene import Scene
 from .store import (DONE, FAILED, PENDING, create_store, feature_key, image_records, init_features, mark_failed,
                     open_store, write_image_features)
@@ -65,17 +66,11 @@ def extract_features(store_path, conf: FeatureConfig, indices: Sequence[int], *,
                      overwrite: bool = False) -> List[ImageResult]:
     """Extract and write the features of images ``indices``; one task of the map-building graph.
 
-    Runs with one torch thread: convolution results depend on the thread
-    count, and one thread makes stores bitwise identical whatever executor
-    built them (parallelism comes from running several tasks).
+    Runs with one torch thread (``torch_threads``): stores are then bitwise
+    identical whatever executor built them.
     """
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        with torch.inference_mode():
-            return _extract_features(store_path, conf, indices, device, overwrite)
-    finally:
-        torch.set_num_threads(threads)
+    with torch_threads(1), torch.inference_mode():
+        return _extract_features(store_path, conf, indices, device, overwrite)
 
 
 def _extract_features(store_path, conf, indices, device, overwrite) -> List[ImageResult]:

@@ -12,7 +12,6 @@ from pathlib import Path
 from typing import Dict, List, Optional, Tuple
 
 import numpy as np
-import torch
 
 from pixloc.nets.registry import load_refiner, state_digest
 
@@ -23,6 +22,7 @@ from .map_reader import MapReader, by_name, global_descriptor_ranking
 from .priors import covisibility_clusters, pose_approximation
 from .queries import QueryRecord
 from .results import read_records, result_to_record, write_records
+from .runtime import torch_threads
 from .store import StoreError
 
 logger = logging.getLogger(__name__)
@@ -220,9 +220,7 @@ def localize_shard(job: LocalizationJob, queries: List[QueryRecord], out_path) -
     out_path = Path(out_path)
     if out_path.exists():
         return read_records(out_path)
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)  # one thread per task: parallelism comes from workers
-    try:
+    with torch_threads(1):  # one thread per task: parallelism comes from workers
         refiner, digest = localization_model(job.model, job.device)
         try:
             reader = MapReader(job.store, job.features, digest)
@@ -232,8 +230,6 @@ def localize_shard(job: LocalizationJob, queries: List[QueryRecord], out_path) -
             localizer = Localizer(refiner.extractor, refiner.solvers, reader, job.localizer, job.device,
                                   levels=job.levels)
             results = localize_queries(job, reader, localizer, queries)
-    finally:
-        torch.set_num_threads(threads)
     records = [result_to_record(r, q.tags) for r, q in zip(results, queries)]
     write_records(records, out_path)
     return records

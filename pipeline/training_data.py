@@ -17,7 +17,7 @@ from typing import Dict, List, Sequence, Tuple
 import numpy as np
 import torch
 
-from pixloc.geometry import Camera, Pose
+from pixloc.geometry import Camera
 from pixloc.refiner import PairBatch
 
 from .depth import rgbd_scene

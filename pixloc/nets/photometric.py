@@ -3,7 +3,6 @@ ablation row, Table 6), with the same levels as the learned networks and no conf
 
 from typing import Dict, List, Sequence
 
-import torch
 from torch import Tensor, nn
 from torch.nn.functional import avg_pool2d
 

@@ -49,3 +49,17 @@ def test_damping_learns_at_100x():
     lrs = [g["lr"] for g in trainer.optimizer.param_groups]
     assert lrs == [pytest.approx(1e-4), pytest.approx(1e-2)]
     assert all(p.requires_grad for p in trainer.optimizer.param_groups[1]["params"])
+
+
+def test_gradient_checkpointing_gives_the_same_gradients(pairs):
+    grads = []
+    for checkpointing in (False, True):
+        trainer = Trainer(load_refiner("lite0-imagenet"), TrainConfig(num_iters=3, grad_checkpointing=checkpointing))
+        trainer.train_mode()
+        losses = trainer.model.loss(trainer.model(pairs[0]), pairs[0])
+        trainer.model.zero_grad()
+        losses["total"].mean().backward()
+        grads.append({n: p.grad.clone() for n, p in trainer.model.named_parameters() if p.grad is not None})
+    assert grads[0].keys() == grads[1].keys() and len(grads[0]) > 50
+    for name, g in grads[0].items():
+        assert torch.allclose(g, grads[1][name], rtol=1e-4, atol=1e-6), name
