@@ -12,7 +12,7 @@ the points of a pair are the ones observed in both images.
 import logging
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Dict, List, Sequence, Tuple
+from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 import torch
@@ -54,22 +54,26 @@ def covisible_pairs(scene: Scene, min_covisible: int) -> List[Tuple[int, int]]:
 class PairDataset:
     """Pairs of one or more scenes; images are read and resized once, on first use."""
 
-    def __init__(self, scenes: Sequence[Tuple[str, Scene]], conf: PairConfig = PairConfig()):
+    def __init__(self, scenes: Sequence[Tuple[str, Scene]], conf: PairConfig = PairConfig(),
+                 pairs: Optional[Dict[str, List[Tuple[int, int]]]] = None):
+        """pairs: (reference, query) image pairs of some scenes, by name (e.g. the official
+        overlap-based pairs of MegaDepth); the other scenes get their covisible pairs."""
         self.conf = conf
         self.scenes = [s for _, s in scenes]
         self.names = [n for n, _ in scenes]
         self.pairs: List[Tuple[int, int, int]] = []
         self._observed: List[List[np.ndarray]] = []
         for k, (name, scene) in enumerate(scenes):
-            pairs = covisible_pairs(scene, conf.min_covisible)
-            if not pairs:
-                raise ValueError(f"Training scene {name!r} has no image pairs with >= {conf.min_covisible} "
-                                 f"common points.")
-            self.pairs += [(k, i, j) for i, j in pairs]
+            given = (pairs or {}).get(name)
+            pairs_k = list(given) if given is not None else covisible_pairs(scene, conf.min_covisible)
+            if not pairs_k:
+                raise ValueError(f"Training scene {name!r} has no image pairs" + (
+                    "." if given is not None else f" with >= {conf.min_covisible} common points."))
+            self.pairs += [(k, i, j) for i, j in pairs_k]
             self._observed.append([np.unique(scene.obs_point[scene.obs_image == i])
                                    for i in range(len(scene.images))])
             logger.info("Training scene %s: %d images, %d points, %d pairs.", name, len(scene.images),
-                        len(scene.points), len(pairs))
+                        len(scene.points), len(pairs_k))
         self._cache: Dict[Tuple[int, int], Tuple[torch.Tensor, Camera]] = {}
 
     def __len__(self) -> int:
@@ -89,6 +93,8 @@ class PairDataset:
         k, i, j = self.pairs[index]
         scene = self.scenes[k]
         common = np.intersect1d(self._observed[k][i], self._observed[k][j])
+        if len(common) == 0:
+            raise ValueError(f"Pair ({i}, {j}) of {self.names[k]!r} has no common points.")
         pick = rng.choice(len(common), size=min(len(common), self.conf.num_points), replace=False)
         T_ref = pose_from_matrix(scene.images[i].cam_from_world)
         T_q = pose_from_matrix(scene.images[j].cam_from_world)

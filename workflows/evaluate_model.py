@@ -97,14 +97,14 @@ def main(args: argparse.Namespace) -> int:
         raise ValueError(f"Config {args.config!r} names no held-out sources (held_out_sources).")
     data_root = args.data_root or default_data_root()
     m, w, h, params = config.get("synthetic_camera", ["PINHOLE", 320, 240, [250.0, 250.0, 160.0, 120.0]])
-    scenes, _, skipped = load_sources(held_out, data_root, args.output / "data", CameraRecord(m, w, h, tuple(params)))
+    sources, skipped = load_sources(held_out, data_root, args.output / "data", CameraRecord(m, w, h, tuple(params)))
     if skipped:
         raise ValueError(f"Held-out data missing under {data_root}: {', '.join(skipped)}.")
     pconf = PairConfig(max_size=args.max_size or int(config.get("max_size", 320)),
                        num_points=int(config.get("num_points", 512)),
                        min_covisible=int(config.get("min_covisible", 50)),
                        init_range=tuple(config.get("init_range", (0.75, 1.0))))
-    datasets = [(name, PairDataset([(name, scene)], pconf)) for name, scene in scenes]
+    datasets = [(s.name, s.dataset(pconf)) for s in sources]
     results = evaluate_models(args.models, datasets, args.max_pairs, args.iters, args.seed)
     args.output.mkdir(parents=True, exist_ok=True)
     (args.output / "model_eval.json").write_text(json.dumps(results, indent=1))

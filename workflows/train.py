@@ -18,14 +18,16 @@ import logging
 import os
 import platform
 import time
+from dataclasses import dataclass, replace
 from importlib import resources
 from pathlib import Path
-from typing import Dict, List, Tuple
+from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 import torch
 import yaml
 
+from pipeline.readers.pixloc_training import read_cmu_slice, read_megadepth
 from pipeline.scene import CameraRecord, Scene
 from pipeline.training_data import PairConfig, PairDataset, synthetic_scene
 from pixloc.nets.registry import load_refiner, save_model
@@ -55,14 +57,37 @@ def load_config(spec: str) -> Dict:
     return yaml.safe_load(path.read_text())
 
 
+@dataclass
+class Source:
+    """A training or evaluation source: its Scene, sampling weight, and optionally its own
+    pairs (official MegaDepth/CMU overlaps) and initial-pose range (CMU: the reference pose)."""
+
+    name: str
+    scene: Scene
+    weight: float = 1.0
+    pairs: Optional[List[Tuple[int, int]]] = None
+    init_range: Optional[Tuple[float, float]] = None
+
+    def dataset(self, conf: PairConfig) -> PairDataset:
+        if self.init_range is not None:
+            conf = replace(conf, init_range=tuple(self.init_range))
+        return PairDataset([(self.name, self.scene)], conf, {self.name: self.pairs} if self.pairs else None)
+
+
 def load_sources(entries: List[Dict], data_root: Path, work_dir: Path, camera: CameraRecord
-                 ) -> Tuple[List[Tuple[str, Scene]], List[float], List[str]]:
-    """(name, Scene) and weight of each source; sources whose data is absent are skipped
-    with a warning and listed in the third return value."""
-    scenes, weights, skipped = [], [], []
+                 ) -> Tuple[List[Source], List[str]]:
+    """The sources of a config's entries; sources whose data is absent are skipped with a
+    warning and their names returned second.
+
+    Kinds: ``synthetic`` (seed, optional textures), ``megadepth`` (scene), ``cmu`` (slice),
+    and the map sources of ``pixloc build-map`` (colmap, sfm, strecha, kapture, 7scenes,
+    posetxt). Keys ``weight`` and ``init_range`` apply to any kind."""
+    sources, skipped = [], []
     for entry in entries:
         entry = dict(entry)
         kind, weight = entry.pop("kind"), float(entry.pop("weight", 1.0))
+        init_range = entry.pop("init_range", None)
+        pairs = None
         if kind == "synthetic":
             seed = int(entry.pop("seed"))
             textures = [data_root / t for t in entry.pop("textures", [])]
@@ -80,15 +105,23 @@ def load_sources(entries: List[Dict], data_root: Path, work_dir: Path, camera: C
                 logger.warning("Training source %s is missing (%s): skipped.", name, path)
                 skipped.append(name)
                 continue
-            if "images" in entry:
-                entry["images"] = data_root / entry["images"]
-            for key in ("intrinsics", "sequences"):
-                if key in entry:
-                    entry[key] = tuple(entry[key])
-            scene = load_scene(MapSource(kind, path, **entry), work_dir / name.replace("/", "_"))
-        scenes.append((name, scene))
-        weights.append(weight)
-    return scenes, weights, skipped
+            if kind == "megadepth":
+                name = f"megadepth/{entry['scene']}"
+                scene, pairs = read_megadepth(path, entry["scene"], float(entry.get("min_overlap", 0.3)))
+            elif kind == "cmu":
+                name = f"cmu/slice{entry['slice']}"
+                scene, pairs = read_cmu_slice(path, int(entry["slice"]), float(entry.get("min_overlap", 0.3)))
+                if init_range is None:
+                    init_range = (0.0, 0.0)  # official CMU training starts from the reference pose
+            else:
+                if "images" in entry:
+                    entry["images"] = data_root / entry["images"]
+                for key in ("intrinsics", "sequences"):
+                    if key in entry:
+                        entry[key] = tuple(entry[key])
+                scene = load_scene(MapSource(kind, path, **entry), work_dir / name.replace("/", "_"))
+        sources.append(Source(name, scene, weight, pairs, tuple(init_range) if init_range is not None else None))
+    return sources, skipped
 
 
 def validate(trainer: Trainer, pairs) -> Dict[str, float]:
@@ -177,14 +210,13 @@ def train(config: Dict, out: Path, data_root: Path, resume: bool = True, threads
                        init_range=tuple(config.get("init_range", (0.75, 1.0))))
     m, w, h, params = config.get("synthetic_camera", ["PINHOLE", 320, 240, [250.0, 250.0, 160.0, 120.0]])
     camera = CameraRecord(m, int(w), int(h), tuple(params))
-    scenes, weights, skipped = load_sources(config["data"], data_root, out / "data", camera)
-    if not scenes:
+    sources, skipped = load_sources(config["data"], data_root, out / "data", camera)
+    if not sources:
         raise ValueError("No training data: every source of the config is missing.")
-    datasets = [PairDataset([s], pconf) for s in scenes]
-    p = np.array(weights) / np.sum(weights)
-    val_scenes, _, _ = load_sources(config.get("validation", []), data_root, out / "data", camera)
-    val_pairs = (PairDataset(val_scenes, pconf).fixed(int(config.get("val_pairs", 24)), seed=0)
-                 if val_scenes else [])
+    datasets = [s.dataset(pconf) for s in sources]
+    p = np.array([s.weight for s in sources]) / np.sum([s.weight for s in sources])
+    val_sources, _ = load_sources(config.get("validation", []), data_root, out / "data", camera)
+    val_pairs = [b for s in val_sources for b in s.dataset(pconf).fixed(int(config.get("val_pairs", 24)), seed=0)]
 
     refiner = load_refiner(model)
     tconf = TrainConfig(lr=float(config.get("lr", 1e-4)), clip_grad=float(config.get("clip_grad", 1.0)),
@@ -206,7 +238,7 @@ def train(config: Dict, out: Path, data_root: Path, resume: bool = True, threads
     val_log = CsvLog(out / "validation.csv", VAL_KEYS, start)
     steps = int(config.get("steps", 1000))
     val_every, ckpt_every = int(config.get("val_every", 100)), int(config.get("checkpoint_every", 100))
-    info = {"architecture": arch, "init": model, "data": [n for n, _ in scenes], "skipped_data": skipped,
+    info = {"architecture": arch, "init": model, "data": [s.name for s in sources], "skipped_data": skipped,
             "held_out": config.get("held_out", []), "max_size": pconf.max_size, "lr": tconf.lr,
             "hardware": f"{platform.processor() or platform.machine()}, {torch.get_num_threads()} threads"}
 
@@ -230,7 +262,7 @@ def train(config: Dict, out: Path, data_root: Path, resume: bool = True, threads
         k = int(rng.choice(len(datasets), p=p))
         metrics = trainer.step(datasets[k].sample(rng))
         wall += time.perf_counter() - t0
-        train_log.write({**metrics, "time": round(wall, 2), "source": scenes[k][0]})
+        train_log.write({**metrics, "time": round(wall, 2), "source": sources[k].name})
         progress.set_postfix(loss=f"{metrics['total']:.3g}", px=f"{metrics['error_px']:.2f}")
         step = trainer.step_count
         if val_pairs and (step % val_every == 0 or step == steps):
