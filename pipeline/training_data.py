@@ -17,12 +17,11 @@ from typing import Dict, List, Optional, Sequence, Tuple
 import numpy as np
 import torch
 
-from pixloc.geometry import Camera
+from pixloc.geometry import Camera, Pose, lie
 from pixloc.refiner import PairBatch
 
 from .depth import rgbd_scene
 from .images import read_image, resize_max, to_tensor
-from .pairs import initial_pose
 from .scene import CameraRecord, ImageRecord, Scene, pose_from_matrix
 from .synthetic import SyntheticConfig, generate
 
@@ -39,6 +38,13 @@ class PairConfig:
     num_points: int = 512
     min_covisible: int = 50
     init_range: Tuple[float, float] = (0.75, 1.0)
+
+
+def initial_pose(query_from_ref: Pose, fraction: float) -> Pose:
+    """The pose ``fraction`` of the way from the identity (the reference pose) to
+    ``query_from_ref``: axis-angle and translation scaled, as official PixLoc."""
+    w = lie.so3_log(query_from_ref.R) * fraction
+    return Pose.from_Rt(lie.so3_exp(w), query_from_ref.t * fraction)
 
 
 def covisible_pairs(scene: Scene, min_covisible: int) -> List[Tuple[int, int]]:

@@ -15,9 +15,9 @@ import time
 from pathlib import Path
 from typing import Dict, List, Sequence, Tuple
 
-import numpy as np
 import torch
 
+from pipeline.evaluate import summarize
 from pipeline.scene import CameraRecord
 from pipeline.training_data import PairConfig, PairDataset
 from pixloc.geometry import pose_error
@@ -27,13 +27,6 @@ from .train import default_data_root, load_config, load_sources
 
 logger = logging.getLogger(__name__)
 THRESHOLDS = ((0.05, 2.0), (0.25, 2.0))
-
-
-def summarize(dt: np.ndarray, dR: np.ndarray, thresholds=THRESHOLDS) -> Dict[str, float]:
-    out = {"pairs": int(len(dt)), "median_t_cm": float(np.median(dt) * 100), "median_R_deg": float(np.median(dR))}
-    for t, r in thresholds:
-        out[f"recall_{round(t * 100)}cm_{r:g}deg"] = float(((dt < t) & (dR < r)).mean())
-    return out
 
 
 def evaluate_models(models: Sequence[str], datasets: Sequence[Tuple[str, PairDataset]], max_pairs: int,
@@ -47,9 +40,12 @@ def evaluate_models(models: Sequence[str], datasets: Sequence[Tuple[str, PairDat
         dR, dt = pose_error(T_est.double(), batch.query_from_ref_gt.double())
         return float(dt[0]), float(dR[0])
 
-    prior = {name: [errors(b.query_from_ref_init, b) for b in ps] for name, ps in pairs.items()}
-    results["prior"] = {name: summarize(*np.array(e).T) for name, e in prior.items()}
-    results["prior"]["all"] = summarize(*np.concatenate([np.array(e) for e in prior.values()]).T)
+    def summaries(per: Dict[str, List[Tuple[float, float]]]) -> Dict[str, Dict[str, float]]:
+        out = {name: summarize(e, THRESHOLDS) for name, e in per.items()}
+        out["all"] = summarize([x for e in per.values() for x in e], THRESHOLDS)
+        return out
+
+    results["prior"] = summaries({name: [errors(b.query_from_ref_init, b) for b in ps] for name, ps in pairs.items()})
     for model in models:
         refiner = load_refiner(model).eval()
         for s in refiner.solvers:
@@ -58,21 +54,19 @@ def evaluate_models(models: Sequence[str], datasets: Sequence[Tuple[str, PairDat
         with torch.no_grad():
             for name, ps in pairs.items():
                 per[name] = [errors(refiner(b)["query_from_ref"][-1], b) for b in ps]
-        results[model] = {name: summarize(*np.array(e).T) for name, e in per.items()}
-        results[model]["all"] = summarize(*np.concatenate([np.array(e) for e in per.values()]).T)
+        results[model] = summaries(per)
         results[model]["all"]["seconds_per_pair"] = (time.perf_counter() - t0) / sum(map(len, pairs.values()))
         logger.info("%s: %s", model, results[model]["all"])
     return results
 
 
 def markdown(results: Dict[str, Dict[str, Dict[str, float]]]) -> str:
-    keys = [k for k in next(iter(results.values()))["all"] if k.startswith("recall")]
-    lines = ["| model | data | pairs | median t (cm) | median R (deg) | " + " | ".join(
-        k.replace("recall_", "recall ").replace("_", ", ") for k in keys) + " |",
+    keys = [k for k in next(iter(results.values()))["all"] if k.startswith("recall@")]
+    lines = ["| model | data | pairs | median t (cm) | median R (deg) | " + " | ".join(keys) + " |",
         "| --- | --- | ---: | ---: | ---: | " + " | ".join("---:" for _ in keys) + " |"]
     for model, per in results.items():
         for data, s in per.items():
-            lines.append(f"| {model} | {data} | {s['pairs']} | {s['median_t_cm']:.1f} | {s['median_R_deg']:.2f} | "
+            lines.append(f"| {model} | {data} | {s['count']} | {100 * s['median_t']:.1f} | {s['median_R']:.2f} | "
                          + " | ".join(f"{s[k]:.3f}" for k in keys) + " |")
     return "\n".join(lines) + "\n"
 

@@ -1,9 +1,8 @@
 import pytest
 import torch
 
-from pipeline.pairs import synthetic_pairs
 from pipeline.scene import CameraRecord
-from pipeline.synthetic import SyntheticConfig
+from pipeline.training_data import PairConfig, PairDataset, synthetic_scene
 from pixloc.nets.registry import load_refiner
 from pixloc.training import TrainConfig, Trainer
 
@@ -11,8 +10,9 @@ CAMERA = CameraRecord("PINHOLE", 160, 128, (125.0, 125.0, 80.0, 64.0))
 
 
 @pytest.fixture(scope="module")
-def pairs():
-    return synthetic_pairs(SyntheticConfig(seed=4), 3, CAMERA, num_points=128, seed=1)
+def pairs(tmp_path_factory):
+    scene = synthetic_scene(tmp_path_factory.mktemp("syn"), 4, CAMERA, num_references=12, queries_per_condition=2)
+    return PairDataset([("syn", scene)], PairConfig(max_size=160, num_points=128)).fixed(3, seed=1)
 
 
 def fresh_trainer(lr=1e-3):
@@ -21,9 +21,9 @@ def fresh_trainer(lr=1e-3):
 
 
 def test_loss_falls_on_a_tiny_synthetic_set(pairs):
-    trainer = fresh_trainer()
+    trainer = fresh_trainer(lr=3e-4)
     first = [trainer.step(p)["total"] for p in pairs]
-    for _ in range(4):
+    for _ in range(9):
         for p in pairs:
             trainer.step(p)
     last = [trainer.step(p)["total"] for p in pairs]
