@@ -15,7 +15,7 @@ import json
 import logging
 import time
 from pathlib import Path
-from typing import Dict, Optional
+from typing import Dict
 
 from pipeline.depth import rgbd_scene
 from pipeline.evaluate import evaluate
@@ -117,7 +117,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.set_defaults(func=main)
 
 
-def main(args: argparse.Namespace, client: Optional[object] = None) -> int:
+def main(args: argparse.Namespace) -> int:
     run_demo(args.output, args.model, args.references, args.queries_per_condition, args.workers, args.sync,
              prior=args.prior)
     return 0
