@@ -24,13 +24,16 @@ def test_official_unet_outputs(official, oracle, name, device):
 
 
 def test_lite0_unet_levels():
+    torch.manual_seed(1)
     net = lite0_unet().eval()
     with torch.no_grad():
         out = net(torch.rand(2, 3, 130, 200))
     # Official layout: strides 1, 4, 16 with 32, 128, 128 channels, cropped to multiples of 16.
     assert [tuple(f.shape) for f in out["features"]] == [(2, 32, 128, 192), (2, 128, 32, 48), (2, 128, 8, 12)]
     assert [tuple(c.shape) for c in out["confidences"]] == [(2, 1, 128, 192), (2, 1, 32, 48), (2, 1, 8, 12)]
-    assert all(((c > 0) & (c < 1)).all() for c in out["confidences"])
+    # a sigmoid: in (0, 1), though float32 rounds the random decoder's largest logits to 1.0
+    assert all(((c >= 0) & (c <= 1)).all() for c in out["confidences"])
+    assert all(((c > 0) & (c < 1)).float().mean() > 0.99 for c in out["confidences"])
     assert net.strides == (1, 4, 16)
     assert sum(p.numel() for p in net.parameters()) < 2_000_000
 
