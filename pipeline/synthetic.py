@@ -14,7 +14,7 @@ from typing import List, Tuple
 import numpy as np
 import torch
 
-from .scene import CameraRecord
+from .scene import CameraRecord, ImageRecord
 
 CONDITIONS = ("day", "dusk", "night", "occluded")
 GROUND, PLASTER, BRICK, POLE, TRUNK, FOLIAGE, OCCLUDER = range(7)
@@ -309,21 +309,26 @@ def generate(root, conf: SyntheticConfig = SyntheticConfig(), num_references: in
     return root
 
 
-def read_synthetic(root):
-    """(mapping ImageRecords with depth, QueryRecords with ground truth) of a generated dataset."""
+def read_views(root) -> List[ImageRecord]:
+    """Every view of a generated dataset as an ImageRecord (tags: condition, split, area),
+    with its depth map where one was written."""
     import json
-
-    from .queries import QueryRecord
-    from .scene import ImageRecord
     root = Path(root)
-    mapping, queries = [], []
+    views = []
     for e in json.loads((root / "cameras.json").read_text())["images"]:
         model, w, h, params = e["camera"]
-        camera = CameraRecord(model, int(w), int(h), tuple(params))
-        T = np.asarray(e["cam_from_world"], float)
-        if e["tags"]["split"] == "mapping":
-            mapping.append(ImageRecord(e["name"], root / e["name"], camera, T, dict(e["tags"]),
-                                       depth_path=root / e["name"].replace(".png", ".depth.png"), depth_scale=1e-3))
-        else:
-            queries.append(QueryRecord(e["name"], root / e["name"], camera, dict(e["tags"]), T))
+        depth = root / e["name"].replace(".png", ".depth.png")
+        views.append(ImageRecord(e["name"], root / e["name"], CameraRecord(model, int(w), int(h), tuple(params)),
+                                 np.asarray(e["cam_from_world"], float), dict(e["tags"]),
+                                 depth_path=depth if depth.is_file() else None, depth_scale=1e-3))
+    return views
+
+
+def read_synthetic(root):
+    """(mapping ImageRecords with depth, QueryRecords with ground truth) of a generated dataset."""
+    from .queries import QueryRecord
+    views = read_views(root)
+    mapping = [v for v in views if v.tags["split"] == "mapping"]
+    queries = [QueryRecord(v.name, v.path, v.camera, dict(v.tags), v.cam_from_world)
+               for v in views if v.tags["split"] != "mapping"]
     return mapping, queries

@@ -23,7 +23,7 @@ from pixloc.refiner import PairBatch
 from .depth import rgbd_scene
 from .images import read_image, resize_max, to_tensor
 from .scene import CameraRecord, ImageRecord, Scene, pose_from_matrix
-from .synthetic import SyntheticConfig, generate
+from .synthetic import SyntheticConfig, generate, read_views
 
 logger = logging.getLogger(__name__)
 
@@ -142,16 +142,8 @@ def synthetic_scene(root, seed: int, camera: CameraRecord, num_references: int =
 
 
 def synthetic_images(root) -> List[ImageRecord]:
-    """All views of a generated dataset, with depth, as ImageRecords."""
-    import json
-    root = Path(root)
-    images = []
-    for e in json.loads((root / "cameras.json").read_text())["images"]:
-        model, w, h, params = e["camera"]
-        depth = root / e["name"].replace(".png", ".depth.png")
-        images.append(ImageRecord(e["name"], root / e["name"], CameraRecord(model, int(w), int(h), tuple(params)),
-                                  np.asarray(e["cam_from_world"], float), dict(e["tags"]),
-                                  depth_path=depth if depth.is_file() else None, depth_scale=1e-3))
+    """All views of a generated dataset, each with its depth, as ImageRecords."""
+    images = read_views(root)
     missing = [im.name for im in images if im.depth_path is None]
     if missing:
         raise ValueError(f"Synthetic views without depth in {root}: {missing[:3]}... (generate with query_depth).")
