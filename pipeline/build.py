@@ -16,7 +16,7 @@ import torch
 from pixloc.nets.registry import load_extractor, state_digest
 
 from .features import FeatureConfig, extract_image_features
-from .runtime import torch_threads
+from .runtime import restore_malloc_thresholds, torch_threads
 from .scene import Scene
 from .store import (DONE, FAILED, PENDING, create_store, feature_key, image_records, init_features, mark_failed,
                     open_store, write_image_features)
@@ -69,6 +69,7 @@ def extract_features(store_path, conf: FeatureConfig, indices: Sequence[int], *,
     Runs with one torch thread (``torch_threads``): stores are then bitwise
     identical whatever executor built them.
     """
+    restore_malloc_thresholds()
     with torch_threads(1), torch.inference_mode():
         return _extract_features(store_path, conf, indices, device, overwrite)
 

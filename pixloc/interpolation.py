@@ -33,7 +33,8 @@ def _bilinear(maps: Tensor, p2d: Tensor, gradients: bool) -> Tuple[Tensor, Optio
     if not gradients:
         return values, None
     x0, x1, y0, y1 = out[:, n:].chunk(4, dim=1)
-    return values, torch.stack([(x1 - x0) / 2, (y1 - y0) / 2], -1)
+    # laid out (B, N, 2, C) in memory: the solver contracts over C with contiguous rows
+    return values, torch.stack([(x1 - x0) / 2, (y1 - y0) / 2], -2).transpose(-1, -2)
 
 
 # Keys' cubic convolution kernel (a = -0.5) as a polynomial basis, the same

@@ -95,9 +95,11 @@ class LevenbergMarquardt(nn.Module):
     feature-map pixels. min_points: fewer valid points at any iteration fails
     the problem (official: 10).
 
-    chunk_points: the batch is linearized in chunks of problems holding at
-    most this many points in all (at least one problem per chunk), so that
-    the working set of large batches stays in cache and memory stays bounded.
+    chunk_points: on CPU, the batch is linearized in chunks of problems holding
+    at most this many points in all (at least one problem per chunk), so that
+    the working set of large batches stays in cache. On a GPU the limit is
+    ``gpu_chunk_points``, which only bounds memory: there, chunks run one after
+    the other and would undo the batching.
 
     Unlike official PixLoc, which stops a batch only when all of it has
     converged, each problem is frozen at the check where it converges, so a
@@ -107,7 +109,7 @@ class LevenbergMarquardt(nn.Module):
     def __init__(self, damping: Optional[nn.Module] = None, loss: str = "scaled_barron(0, 0.1)",
                  num_iters: int = 100, pad: int = 2, interpolation: str = "linear",
                  min_points: int = 10, stopping: StoppingRule = StoppingRule(),
-                 chunk_points: int = 16384):
+                 chunk_points: int = 16384, gpu_chunk_points: int = 1 << 21):
         super().__init__()
         self.damping = damping if damping is not None else ConstantDamping(0.0)
         self.loss_spec = loss
@@ -117,10 +119,12 @@ class LevenbergMarquardt(nn.Module):
         self.min_points = min_points
         self.stopping = stopping
         self.chunk_points = chunk_points
+        self.gpu_chunk_points = gpu_chunk_points
 
     def _chunks(self, problem: FeaturemetricProblem):
         B, N = problem.p3d_world.shape[:2]
-        size = max(1, self.chunk_points // max(N, 1))
+        limit = self.chunk_points if problem.F_ref.device.type == "cpu" else self.gpu_chunk_points
+        size = max(1, limit // max(N, 1))
         if size >= B:
             return [(slice(None), problem)]
         return [(slice(i, i + size), problem.index(slice(i, i + size))) for i in range(0, B, size)]
