@@ -53,3 +53,12 @@ def oracle(shared) -> Path:
     if not path.is_dir():
         pytest.skip("oracle fixtures not found in the shared data")
     return path
+
+
+@pytest.fixture(scope="session")
+def official_checkpoint(oracle) -> Path:
+    """The official-format checkpoint of the oracle (84 MB: absent where only part of it was copied)."""
+    path = oracle / "official_megadepth_random" / "checkpoint_best.tar"
+    if not path.is_file():
+        pytest.skip("the oracle's official checkpoint is not there")
+    return path

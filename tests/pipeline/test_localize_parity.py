@@ -31,9 +31,9 @@ def matrix_to_pose(T) -> Pose:
 
 
 @pytest.fixture(scope="module")
-def setup(oracle, shared):
+def setup(oracle, shared, official_checkpoint):
     cases = json.loads((oracle / "localization_cases.json").read_text())
-    ckpt = str(oracle / "official_megadepth_random" / "checkpoint_best.tar")
+    ckpt = str(official_checkpoint)
     images = shared / "data" / "sacre_coeur" / "mapping"
     scene = read_colmap(oracle / "sacre_coeur_sfm", images)
     queries = {q.name: q for q in read_queries_with_intrinsics(oracle / "queries_with_intrinsics.txt", images)}

@@ -16,9 +16,9 @@ def case(oracle):
     return d, batch
 
 
-def test_official_refiner_forward_and_loss(oracle, case):
+def test_official_refiner_forward_and_loss(oracle, official_checkpoint, case):
     d, batch = case
-    model = load_official_checkpoint(oracle / "official_megadepth_random" / "checkpoint_best.tar")
+    model = load_official_checkpoint(official_checkpoint)
     with torch.no_grad():
         pred = model(batch)
         losses = model.loss(pred, batch)

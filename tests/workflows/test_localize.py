@@ -123,9 +123,9 @@ def test_bad_input_gives_per_query_failures(seven_scenes, tmp_path):
         plan_localization(job, [], tmp_path / "e")
 
 
-def test_store_of_another_model_fails_each_query(seven_scenes, oracle, tmp_path):
+def test_store_of_another_model_fails_each_query(seven_scenes, official_checkpoint, tmp_path):
     job, queries = seven_scenes
-    ckpt = str(oracle / "official_megadepth_random" / "checkpoint_best.tar")
+    ckpt = str(official_checkpoint)
     ojob = dataclasses.replace(job, model=ckpt)
     records = run_sync(plan_localization(ojob, queries[:2], tmp_path))
     assert [r["success"] for r in records] == [False, False]

@@ -6,11 +6,9 @@ import torch
 
 from pixloc.nets import CheckpointError, load_official_checkpoint
 
-OFFICIAL = "official_megadepth_random/checkpoint_best.tar"
 
-
-def test_loads_strictly_with_its_damping(oracle):
-    model = load_official_checkpoint(oracle / OFFICIAL)
+def test_loads_strictly_with_its_damping(oracle, official_checkpoint):
+    model = load_official_checkpoint(official_checkpoint)
     assert not model.training
     for k in range(5):
         d = np.load(oracle / f"lm_case_{k}.npz")
@@ -33,9 +31,9 @@ def test_refuses_arbitrary_code(tmp_path):
         load_official_checkpoint(path)
 
 
-def test_refuses_corrupt_and_foreign_files(tmp_path, oracle):
+def test_refuses_corrupt_and_foreign_files(tmp_path, official_checkpoint):
     corrupt = tmp_path / "corrupt.tar"
-    corrupt.write_bytes((oracle / OFFICIAL).read_bytes()[:5000])
+    corrupt.write_bytes(official_checkpoint.read_bytes()[:5000])
     with pytest.raises(CheckpointError, match="corrupt or not a PyTorch checkpoint"):
         load_official_checkpoint(corrupt)
     plain = tmp_path / "plain.pkl"
@@ -50,8 +48,8 @@ def test_refuses_corrupt_and_foreign_files(tmp_path, oracle):
         load_official_checkpoint(tmp_path / "missing.tar")
 
 
-def test_refuses_a_state_dict_that_does_not_match_its_conf(tmp_path, oracle):
-    ckpt = torch.load(oracle / OFFICIAL, weights_only=False)  # trusted fixture
+def test_refuses_a_state_dict_that_does_not_match_its_conf(tmp_path, official_checkpoint):
+    ckpt = torch.load(official_checkpoint, weights_only=False)  # trusted fixture
     ckpt["conf"]["model"]["extractor"]["encoder"] = "vgg16"
     path = tmp_path / "mismatch.tar"
     torch.save(ckpt, path)

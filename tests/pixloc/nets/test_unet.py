@@ -6,8 +6,8 @@ from pixloc.nets import lite0_unet, load_official_checkpoint
 
 
 @pytest.fixture(scope="module")
-def official(oracle):
-    return load_official_checkpoint(oracle / "official_megadepth_random" / "checkpoint_best.tar")
+def official(official_checkpoint):
+    return load_official_checkpoint(official_checkpoint)
 
 
 @pytest.mark.parametrize("name", ["a", "b"])
