@@ -173,4 +173,4 @@ def densify(scene: Scene, min_depth: float = 1e-3) -> Scene:
         points[scene.obs_point[sel[ok]]] = _to_world(im, rays[ok] * d[ok][:, None])
         moved[scene.obs_point[sel[ok]]] = True
     logger.info("Densification moved %d of %d points.", int(moved.sum()), len(points))
-    return Scene(scene.images, points, scene.obs_point, scene.obs_image, scene.obs_xy)
+    return Scene(scene.images, points, scene.obs_point, scene.obs_image, scene.obs_xy, scene.point_ids)

@@ -21,7 +21,7 @@ from pixloc.optim import FeaturemetricProblem, LevenbergMarquardt
 from pixloc.nets.unet import UNet
 
 from .images import ImageReadError, read_image, resize_max, to_tensor
-from .map_reader import MapReader
+from .map_reader import MapReader, Observations
 from .queries import QueryRecord
 from .scene import pose_from_matrix
 
@@ -73,33 +73,43 @@ class Localizer:
     """Localizes queries against one map with one network and its per-level solvers."""
 
     def __init__(self, net: UNet, solvers: Sequence[LevenbergMarquardt], reader: MapReader,
-                 conf: LocalizerConfig, device: str = "cpu", levels: Optional[Sequence[int]] = None):
-        """levels: the levels to optimise, e.g. (0, 1) for the paper's refinement mode; default all."""
+                 conf: LocalizerConfig, device: str = "cpu", levels: Optional[Sequence[int]] = None,
+                 scales: Optional[Sequence[int]] = None):
+        """levels: the levels to optimise, e.g. (0, 1) for the paper's refinement mode; default all.
+        scales: the image scales of the store to run (e.g. (1,)); default all, coarse to fine."""
         self.net, self.solvers, self.reader, self.conf, self.device = net, list(solvers), reader, conf, device
         self.levels = sorted(set(levels if levels is not None else range(len(net.strides))), reverse=True)
+        stored = list(reader.conf.image_scales)
+        missing = sorted(set(scales or ()) - set(stored))
+        if missing:
+            raise ValueError(f"Image scales {missing} are not in the store (it has {stored}).")
+        self.scales = [k for k, s in enumerate(stored) if scales is None or s in scales]
         for s in self.solvers:
             s.eval()
 
-    def reference_features(self, dbs: List[int], scale: int):
-        """Points (K, 3) and per level (features (K, C) normalised, confidences (K,))."""
-        obs = self.reader.observations(dbs, self.conf.min_track_length)
+    def reference_features(self, obs: Observations, scale: int):
+        """Points (K, 3) and per level (features (K, C) normalised, confidences (K,)) of the
+        observations ``obs``; as the official localizer, an observation invalid at any of the
+        optimised levels is dropped."""
         feats = self.reader.features(obs, scale)
-        valid = np.logical_and.reduce([v for _, _, v in feats])
+        valid = np.logical_and.reduce([feats[level][2] for level in self.levels])
         point = obs.point[valid]
         levels = [(f[valid], w[valid]) for f, w, _ in feats]
-        if self.conf.average_observations:
+        levels = [(torch.from_numpy(f), torch.from_numpy(w)) for f, w in levels]
+        if self.conf.average_observations:  # confidence-weighted mean, in float64 as the sums are long
             uniq, inverse = np.unique(point, return_inverse=True)
+            index = torch.from_numpy(inverse.reshape(-1))
+            count = torch.from_numpy(np.bincount(inverse, minlength=len(uniq))).double()
             averaged = []
             for f, w in levels:
-                wsum = np.bincount(inverse, weights=w, minlength=len(uniq))
-                fsum = np.zeros((len(uniq), f.shape[1]))
-                np.add.at(fsum, inverse, f * w[:, None])
-                count = np.bincount(inverse, minlength=len(uniq))
-                averaged.append((fsum / wsum[:, None], wsum / count))
+                w = w.double()
+                wsum = torch.zeros(len(uniq), dtype=torch.float64).index_add_(0, index, w)
+                fsum = torch.zeros(len(uniq), f.shape[1], dtype=torch.float64).index_add_(
+                    0, index, f.double() * w[:, None])
+                averaged.append(((fsum / wsum[:, None]).float(), (wsum / count).float()))
             point, levels = uniq, averaged
         xyz = torch.from_numpy(self.reader.xyz[point]).float()
-        return xyz, [(normalize(torch.from_numpy(np.asarray(f, np.float32)), dim=-1),
-                      torch.from_numpy(np.asarray(w, np.float32))) for f, w in levels]
+        return xyz, [(normalize(f.float(), dim=-1), w.float()) for f, w in levels]
 
     @torch.no_grad()
     def predict(self, rgb: np.ndarray, k: int):
@@ -109,25 +119,29 @@ class Localizer:
 
     @torch.no_grad()
     def localize(self, query: QueryRecord, dbs: List[int], prior: np.ndarray,
-                 rgb: Optional[np.ndarray] = None, cache: Optional[Dict] = None) -> QueryResult:
+                 rgb: Optional[np.ndarray] = None, cache: Optional[Dict] = None,
+                 selected: Optional[np.ndarray] = None) -> QueryResult:
         """Refine ``prior`` against references ``dbs``; ``rgb`` and ``cache`` (k -> prediction)
-        let callers reuse the query image and predictions across hypotheses."""
-        return self.localize_batch([(query, dbs, prior, rgb, cache)])[0]
+        let callers reuse the query image and predictions across hypotheses; ``selected``
+        (K, 2) (point, reference) pairs restricts the observations (hloc PnP inliers)."""
+        return self.localize_batch([(query, dbs, prior, rgb, cache, selected)])[0]
 
     @torch.no_grad()
     def localize_batch(self, items: List[Tuple]) -> List[QueryResult]:
         """Localize several queries, solving each level as one LM batch per group of queries
         whose feature maps have the same shape and whose cameras the same model.
 
-        items: (query, dbs, prior, rgb or None, cache or None). The per-problem stopping rule of
-        the solver makes the result of each query the same as localizing it alone.
+        items: (query, dbs, prior, rgb or None, cache or None[, selected or None]). The
+        per-problem stopping rule of the solver makes the result of each query the same as
+        localizing it alone.
         """
         t_start = time.perf_counter()
         states = []
-        for query, dbs, prior, rgb, cache in items:
+        for item in items:
+            query, dbs, prior, rgb, cache, selected = (*item, None)[:6]
             result = QueryResult(query.name, False, np.asarray(prior, np.float64), None,
                                  [self.reader.names[i] for i in dbs])
-            obs = self.reader.observations(dbs, self.conf.min_track_length)
+            obs = self.reader.observations(dbs, self.conf.min_track_length, selected)
             result.num_points = int(len(np.unique(obs.point)))
             if result.num_points < self.conf.min_points:
                 result.reason = f"references see {result.num_points} points (< {self.conf.min_points})"
@@ -136,13 +150,14 @@ class Localizer:
                     rgb = read_image(query.path)
                 except ImageReadError as e:
                     result.reason = str(e)
-            states.append({"query": query, "dbs": dbs, "rgb": rgb, "cache": {} if cache is None else cache,
+            states.append({"query": query, "obs": obs, "rgb": rgb, "cache": {} if cache is None else cache,
                            "result": result, "T": pose_from_matrix(prior).float(), "active": not result.reason})
-        for k, image_scale in enumerate(self.reader.conf.image_scales):
+        for k in self.scales:
+            image_scale = self.reader.conf.image_scales[k]
             active = [st for st in states if st["active"]]
             t0 = time.perf_counter()
             for st in active:
-                st["refs"] = self.reference_features(st["dbs"], k)
+                st["refs"] = self.reference_features(st["obs"], k)
                 if k not in st["cache"]:
                     st["cache"][k] = self.predict(st["rgb"], k)
             groups: Dict[Tuple, List[Dict]] = {}

@@ -4,7 +4,7 @@ import functools
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import List, Optional, Tuple
+from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
@@ -55,24 +55,45 @@ class MapReader:
         self.cam_from_world = np.concatenate([T[:, :9].reshape(-1, 3, 3), T[:, 9:, None]], 2)
         self.row_start = root["images/row_start"][:]
         self.num_obs = root["images/num_obs"][:]
+        self.key = key
         self.status = self.group["status"][:]
         self.xyz = root["points/xyz"][:]
         self.track_length = root["points/track_length"][:]
         self.obs_point = root["observations/point"][:]
+        # ids in the source model (COLMAP); stores written before they were recorded have none
+        self.image_source_id = (root["images/source_id"][:] if "images/source_id" in root
+                                else np.full(len(self.names), -1, dtype=np.int64))
+        self.point_source_id = (root["points/source_id"][:] if "points/source_id" in root
+                                else np.full(len(self.xyz), -1, dtype=np.int64))
         self.global_descriptors = self.group["global"][:]
         self._block = functools.lru_cache(maxsize=cache_images)(self._read_block)
+
+    def refresh(self) -> None:
+        """Re-read which images are usable (a build may have finished more since)."""
+        self.status = self.group["status"][:]
 
     def usable(self, i: int) -> bool:
         return int(self.status[i]) == DONE
 
-    def observations(self, dbs: List[int], min_track_length: int) -> Observations:
-        """Every observation, in ``dbs``, of the points they see with track length >= min."""
+    def observations(self, dbs: List[int], min_track_length: int,
+                     selected: Optional[np.ndarray] = None) -> Observations:
+        """Every observation, in ``dbs``, of the points they see with track length >= min;
+        only the (point, image) pairs of ``selected`` (K, 2) when given (hloc PnP inliers)."""
         rows = [np.arange(self.row_start[i], self.row_start[i] + self.num_obs[i]) for i in dbs]
         db = np.concatenate([np.full(len(r), i) for r, i in zip(rows, dbs)]) if rows else np.zeros(0, int)
         rows = np.concatenate(rows) if rows else np.zeros(0, int)
         point = self.obs_point[rows]
         keep = self.track_length[point] >= min_track_length
+        if selected is not None:
+            n = len(self.names)
+            keep &= np.isin(point * n + db, np.asarray(selected, np.int64).reshape(-1, 2) @ np.array([n, 1]))
         return Observations(point[keep], db[keep], rows[keep])
+
+    def source_ids(self) -> Tuple[Dict[int, int], Dict[int, int]]:
+        """Maps from the source model's image and point ids to the store's indices."""
+        images = {int(s): i for i, s in enumerate(self.image_source_id) if s >= 0}
+        points = {int(s): i for i, s in enumerate(self.point_source_id) if s >= 0}
+        return images, points
 
     def _read_block(self, i: int, scale: int, level: int) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
         s = slice(int(self.row_start[i]), int(self.row_start[i] + self.num_obs[i]))
@@ -93,6 +114,36 @@ class MapReader:
                 F[sel], W[sel], V[sel] = f[local], w[local], v[local]
             out.append((F, W, V))
         return out
+
+
+_OPEN: Dict[Tuple, Tuple[Tuple, MapReader]] = {}
+
+
+def _stamp(path: Path, key: str) -> Tuple:
+    """Changes when the store or the feature group is rewritten."""
+    files = (path / "zarr.json", path / key / "zarr.json")
+    return tuple(f.stat().st_mtime_ns if f.exists() else None for f in files)
+
+
+def open_reader(path, conf: FeatureConfig, digest: Optional[str] = None) -> MapReader:
+    """A MapReader shared by the tasks of this process (Dask worker or sync run).
+
+    Opening a store reads its structure (every observation's point, all points), and the
+    reader caches the reference blocks it has read: shards of the same map reuse both.
+    A store or feature group rewritten since is reopened; which images are usable is
+    re-read on every call.
+    """
+    path = Path(path).resolve()
+    name = (str(path), json.dumps(conf.to_dict(), sort_keys=True), digest)
+    stamp = _stamp(path, f"features/{feature_key(conf)}")
+    cached = _OPEN.get(name)
+    if cached is not None and cached[0] == stamp:
+        cached[1].refresh()
+        return cached[1]
+    reader = MapReader(path, conf, digest)
+    _OPEN.clear()  # one map per process at a time: the block cache can be large
+    _OPEN[name] = (stamp, reader)
+    return reader
 
 
 def global_descriptor_ranking(reader: MapReader, descriptor: np.ndarray, k: int,

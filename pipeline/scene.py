@@ -80,6 +80,7 @@ class ImageRecord:
     depth_path: Optional[Path] = None
     depth_scale: float = 1.0
     depth_camera: Optional[CameraRecord] = None
+    source_id: int = -1  # the image's id in its source model (COLMAP image_id), -1 if none
 
     def check(self) -> Optional[str]:
         reason = self.camera.check()
@@ -104,6 +105,8 @@ class Scene:
     Observation k says that point ``obs_point[k]`` is seen in image
     ``obs_image[k]`` at ``obs_xy[k]`` (COLMAP pixel coordinates, origin at
     the top-left corner; NaN where unknown, e.g. points sampled from depth).
+    ``point_ids``: each point's id in its source model (COLMAP point3D_id), -1 if none;
+    they let another pipeline's logs (hloc PnP inliers) name the map's points.
     """
 
     images: List[ImageRecord]
@@ -111,9 +114,14 @@ class Scene:
     obs_point: np.ndarray
     obs_image: np.ndarray
     obs_xy: np.ndarray
+    point_ids: Optional[np.ndarray] = None
 
     def __post_init__(self):
         self.points = np.asarray(self.points, dtype=np.float64).reshape(-1, 3)
+        self.point_ids = (np.full(len(self.points), -1, dtype=np.int64) if self.point_ids is None
+                          else np.asarray(self.point_ids, dtype=np.int64).reshape(-1))
+        if len(self.point_ids) != len(self.points):
+            raise SceneError("point_ids and points have different lengths.")
         self.obs_point = np.asarray(self.obs_point, dtype=np.int64).reshape(-1)
         self.obs_image = np.asarray(self.obs_image, dtype=np.int64).reshape(-1)
         self.obs_xy = np.asarray(self.obs_xy, dtype=np.float64).reshape(-1, 2)
@@ -149,7 +157,8 @@ class Scene:
         (same files and points): a larger map for benchmarks and parallel tests."""
         images = [dataclasses.replace(im, name=f"{k}/{im.name}") for k in range(times) for im in self.images]
         obs_image = np.concatenate([self.obs_image + k * len(self.images) for k in range(times)])
-        return Scene(images, self.points, np.tile(self.obs_point, times), obs_image, np.tile(self.obs_xy, (times, 1)))
+        return Scene(images, self.points, np.tile(self.obs_point, times), obs_image, np.tile(self.obs_xy, (times, 1)),
+                     self.point_ids)
 
     def subset(self, keep: Sequence[int]) -> "Scene":
         """The scene restricted to images ``keep`` (their observations, all points)."""
@@ -158,4 +167,4 @@ class Scene:
         remap[keep] = np.arange(len(keep))
         sel = remap[self.obs_image] >= 0
         return Scene([self.images[i] for i in keep], self.points, self.obs_point[sel],
-                     remap[self.obs_image[sel]], self.obs_xy[sel])
+                     remap[self.obs_image[sel]], self.obs_xy[sel], self.point_ids)

@@ -18,11 +18,12 @@ from pixloc.nets.registry import load_refiner, state_digest
 from .features import FeatureConfig, global_descriptor
 from .images import ImageReadError, read_image
 from .localize import Localizer, LocalizerConfig, QueryResult
-from .map_reader import MapReader, by_name, global_descriptor_ranking
+from .map_reader import MapReader, by_name, global_descriptor_ranking, open_reader
 from .priors import covisibility_clusters, pose_approximation
 from .queries import QueryRecord
+from .readers.hloc import PnPLog, read_hloc_logs
 from .results import read_records, result_to_record, write_records
-from .runtime import torch_threads
+from .runtime import restore_malloc_thresholds, torch_threads
 from .store import StoreError
 
 logger = logging.getLogger(__name__)
@@ -50,9 +51,16 @@ class LocalizationJob:
     prior: ``top1``, ``average`` (covisibility cluster, similarity-weighted), or
     ``hypotheses`` (each of the top ``num_hypotheses`` reference poses refined; the
     lowest final featuremetric cost wins), or ``poses`` (refinement mode: the poses of
-    another pipeline, file ``prior_poses`` in the visuallocalization.net format).
+    another pipeline, file ``prior_poses`` in the visuallocalization.net format), or
+    ``hloc`` (refinement mode as the paper's: the PnP poses of an hloc ``_logs.pkl``,
+    file ``hloc_logs``; its references reranked by PnP inliers, those with more than
+    ``min_matches_db`` kept; queries with fewer than ``min_inliers`` inliers fail).
+    point_selection (``hloc`` prior): ``all`` points of the kept references, ``inliers``
+    (the PnP inliers only, observed by the references that matched them) or ``matched``
+    (all 2D-3D matches). The store must be built from the SfM model hloc used.
     levels: optimise only these levels (the paper's refinement mode uses the two
-    finest, (0, 1)); default all.
+    finest, (0, 1)); default all. scales: run only these of the store's image scales
+    (e.g. (1,) of a [4, 1] store: refinement mode runs the full resolution only).
     """
 
     store: str
@@ -65,6 +73,11 @@ class LocalizationJob:
     device: str = "cpu"
     prior_poses: Optional[str] = None
     levels: Optional[Tuple[int, ...]] = None
+    hloc_logs: Optional[str] = None
+    point_selection: str = "all"
+    min_matches_db: int = 10
+    min_inliers: int = 10
+    scales: Optional[Tuple[int, ...]] = None
 
     def to_dict(self) -> Dict:
         return asdict(self)
@@ -112,7 +125,12 @@ def _prior_poses(path: str) -> Dict[str, np.ndarray]:
     return out
 
 
-def _find_prior(priors: Dict[str, np.ndarray], name: str) -> Optional[np.ndarray]:
+@functools.lru_cache(maxsize=2)
+def _hloc_logs(path: str) -> Dict[str, PnPLog]:
+    return read_hloc_logs(path)
+
+
+def _find_prior(priors: Dict, name: str):
     """The prior of query ``name``: exact, then ``parentdir/basename``, then a unique basename."""
     p = Path(name)
     for key in (name, f"{p.parent.name}/{p.name}"):
@@ -168,6 +186,8 @@ def prepare_query(job: LocalizationJob, reader: MapReader, localizer: Localizer,
     if reason:
         return _failure(query, reason)
     cache: Dict = {}
+    if job.prior == "hloc":
+        return _prepare_hloc(job, reader, query, rgb, cache)
     dbs, similarity = _retrieve(job, reader, localizer, query, rgb, cache)
     if not dbs:
         return _failure(query, "no retrieval match among the map's usable reference images")
@@ -187,8 +207,43 @@ def prepare_query(job: LocalizationJob, reader: MapReader, localizer: Localizer,
             return _failure(query, f"no prior pose for this query in {job.prior_poses}", refs=dbs[:num])
         return [(query, dbs[:num], prior, rgb, cache)]
     if job.prior != "top1":
-        raise ValueError(f"Unknown prior {job.prior!r}: use top1, average, hypotheses or poses.")
+        raise ValueError(f"Unknown prior {job.prior!r}: use top1, average, hypotheses, poses or hloc.")
     return [(query, dbs[:num], reader.cam_from_world[dbs[0]], rgb, cache)]
+
+
+def _prepare_hloc(job: LocalizationJob, reader: MapReader, query: QueryRecord, rgb, cache):
+    """Refinement mode from hloc's logs (official PoseRefiner): start from the PnP pose, use the
+    references that gave the most inliers, optionally only the inlier points."""
+    if job.point_selection not in ("all", "inliers", "matched"):
+        raise ValueError(f"Unknown point selection {job.point_selection!r}: use all, inliers or matched.")
+    log = _find_prior(_hloc_logs(job.hloc_logs), query.name)
+    if log is None:
+        return _failure(query, f"no hloc log for this query in {job.hloc_logs}")
+    if not log.success:
+        return _failure(query, "hloc PnP failed: no initial pose")
+    prior = log.cam_from_world
+    if log.num_inliers < job.min_inliers:
+        return _failure(query, f"hloc PnP has {log.num_inliers} inliers (< {job.min_inliers})", prior)
+    images, points = reader.source_ids()
+    inliers = log.inliers_per_db()
+    ranked = [log.db_ids[i] for i in np.argsort(-inliers, kind="stable") if inliers[i] > job.min_matches_db]
+    ranked = [i for i in ranked if i in images and reader.usable(images[i])][:job.localizer.num_dbs]
+    if not ranked:
+        unknown = [i for i in log.db_ids if i not in images]
+        reason = (f"none of the log's references (COLMAP image ids {unknown[:5]}) is in the map: build the "
+                  "store from the SfM model hloc localized against" if len(unknown) == len(log.db_ids) else
+                  f"no usable reference with more than {job.min_matches_db} PnP inliers")
+        return _failure(query, reason, prior)
+    dbs = [images[i] for i in ranked]
+    selected = None
+    if job.point_selection != "all":
+        pairs = log.inlier_observations(ranked, inliers_only=job.point_selection == "inliers")
+        known = [(points[p], images[i]) for p, i in pairs if p in points]
+        if len(known) < len(pairs):
+            logger.warning("%s: %d of %d hloc matches name points that are not in the map.", query.name,
+                           len(pairs) - len(known), len(pairs))
+        selected = np.array(known, dtype=np.int64).reshape(-1, 2)
+    return [(query, dbs, prior, rgb, cache, selected)]
 
 
 def localize_queries(job: LocalizationJob, reader: MapReader, localizer: Localizer,
@@ -220,15 +275,16 @@ def localize_shard(job: LocalizationJob, queries: List[QueryRecord], out_path) -
     out_path = Path(out_path)
     if out_path.exists():
         return read_records(out_path)
+    restore_malloc_thresholds()
     with torch_threads(1):  # one thread per task: parallelism comes from workers
         refiner, digest = localization_model(job.model, job.device)
         try:
-            reader = MapReader(job.store, job.features, digest)
-        except StoreError as e:
+            reader = open_reader(job.store, job.features, digest)
+            localizer = Localizer(refiner.extractor, refiner.solvers, reader, job.localizer, job.device,
+                                  levels=job.levels, scales=job.scales)
+        except (StoreError, ValueError) as e:  # every query gets a record with the reason
             results = [_failure(q, f"map store unusable: {e}") for q in queries]
         else:
-            localizer = Localizer(refiner.extractor, refiner.solvers, reader, job.localizer, job.device,
-                                  levels=job.levels)
             results = localize_queries(job, reader, localizer, queries)
     records = [result_to_record(r, q.tags) for r, q in zip(results, queries)]
     write_records(records, out_path)

@@ -6,8 +6,10 @@ Layout (version 1, documented in docs/map_store.md):
       images/name, camera, tags   (I,) str (camera and tags as JSON)
       images/cam_from_world       (I, 12) float64, [R row-major | t]
       images/row_start, num_obs   (I,) int64: image i owns rows [row_start, row_start + padded)
+      images/source_id            (I,) int64: id in the source model (COLMAP image_id), -1 if none
       points/xyz                  (P, 3) float64
       points/track_length         (P,) int32
+      points/source_id            (P,) int64: id in the source model (COLMAP point3D_id), -1 if none
       observations/point          (R,) int64, -1 on padding rows
       observations/xy             (R, 2) float32, COLMAP pixel coordinates (NaN if unknown)
       features/<key>/             attrs: config, model digest, level dims
@@ -83,9 +85,12 @@ def create_store(path, scene: Scene, chunk_rows: int = 256, overwrite: bool = Fa
          for im in scene.images])
     root.create_array("images/row_start", shape=(I,), chunks=(I,), dtype="int64")[:] = row_start
     root.create_array("images/num_obs", shape=(I,), chunks=(I,), dtype="int64")[:] = num_obs
+    root.create_array("images/source_id", shape=(I,), chunks=(I,), dtype="int64")[:] = np.array(
+        [im.source_id for im in scene.images], dtype=np.int64)
     P = len(scene.points)
     root.create_array("points/xyz", shape=(P, 3), chunks=(max(P, 1), 3), dtype="float64")[:] = scene.points
     root.create_array("points/track_length", shape=(P,), chunks=(max(P, 1),), dtype="int32")[:] = scene.track_length
+    root.create_array("points/source_id", shape=(P,), chunks=(max(P, 1),), dtype="int64")[:] = scene.point_ids
     point = np.full(rows, -1, dtype=np.int64)
     point[row] = obs_point
     xy = np.full((rows, 2), np.nan, dtype=np.float32)

@@ -34,9 +34,18 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--retrieval-k", type=int, default=10)
     p.add_argument("--same-tag", help="restrict references to those sharing this tag with the query")
     p.add_argument("--descriptors", type=Path, help="hloc HDF5 global descriptors for retrieval (e.g. NetVLAD)")
-    p.add_argument("--prior", choices=["top1", "average", "hypotheses", "poses"], default="top1")
+    p.add_argument("--prior", choices=["top1", "average", "hypotheses", "poses", "hloc"], default="top1",
+                   help="hloc: refinement mode from an hloc _logs.pkl (its PnP poses and inliers)")
     p.add_argument("--prior-poses", type=Path, help="refinement mode: poses file of another pipeline")
+    p.add_argument("--hloc-logs", type=Path, help="refinement mode: hloc localization logs (_logs.pkl); "
+                   "the store must be built from the SfM model hloc localized against")
+    p.add_argument("--point-selection", choices=["all", "inliers", "matched"], default="all",
+                   help="with --prior hloc: all points of the references, or hloc's PnP inliers (paper) or matches")
+    p.add_argument("--min-points", type=int, default=10, help="fewer 3D points fails a query (official: 10, "
+                   "100 in refinement mode)")
     p.add_argument("--levels", type=int, nargs="+", help="optimise only these levels (refinement mode: 0 1)")
+    p.add_argument("--scales", type=int, nargs="+", help="run only these of the store's image scales "
+                   "(refinement mode: 1)")
     p.add_argument("--num-dbs", type=int, default=5, help="reference images per query")
     p.add_argument("--average-observations", action="store_true")
     p.add_argument("--iters", type=int, default=100, help="LM iterations per level")
@@ -70,16 +79,24 @@ def main(args: argparse.Namespace) -> int:
         from . import presets
         presets.apply(args, presets.load(args.preset), args._parser_defaults)
     fconf = store_feature_config(args.store, args.features)
+    if args.scales and not set(args.scales) <= set(fconf.image_scales):
+        raise ValueError(f"--scales {args.scales}: the store's features have image scales {list(fconf.image_scales)}.")
     job = LocalizationJob(
         str(args.store), fconf, fconf.model,
-        LocalizerConfig(num_dbs=args.num_dbs, average_observations=args.average_observations, num_iters=args.iters),
+        LocalizerConfig(num_dbs=args.num_dbs, average_observations=args.average_observations, num_iters=args.iters,
+                        min_points=args.min_points),
         RetrievalConfig("pairs" if args.pairs else "hloc" if args.descriptors else "global",
                         str(args.pairs) if args.pairs else None, args.retrieval_k, args.same_tag,
                         str(args.descriptors) if args.descriptors else None),
         prior=args.prior, device=args.device, prior_poses=str(args.prior_poses) if args.prior_poses else None,
-        levels=tuple(args.levels) if args.levels else None)
+        levels=tuple(args.levels) if args.levels else None, hloc_logs=str(args.hloc_logs) if args.hloc_logs else None,
+        point_selection=args.point_selection, scales=tuple(args.scales) if args.scales else None)
     if args.prior == "poses" and not args.prior_poses:
         raise ValueError("--prior poses needs --prior-poses FILE.")
+    if args.prior == "hloc" and not args.hloc_logs:
+        raise ValueError("--prior hloc needs --hloc-logs FILE (hloc's <results>_logs.pkl).")
+    if args.point_selection != "all" and args.prior != "hloc":
+        raise ValueError("--point-selection inliers/matched needs --prior hloc (the inliers come from its logs).")
     queries = load_queries(args.query_kind, args.query_path, args.query_images, tuple(args.query_sequences),
                            args.query_names)
     plan = plan_localization(job, queries, args.output, args.shard_size)

@@ -25,7 +25,7 @@ def scene_from_reconstruction(rec: pycolmap.Reconstruction, image_dir: Path,
     index = {im.image_id: i for i, im in enumerate(images)}
     records = [ImageRecord(im.name, image_dir / im.name, camera_record(rec.cameras[im.camera_id]),
                            np.asarray(im.cam_from_world().matrix(), dtype=np.float64),
-                           dict((tags or {}).get(im.name, {})))
+                           dict((tags or {}).get(im.name, {})), source_id=int(im.image_id))
                for im in images]
     point_ids = sorted(rec.points3D)
     xyz = np.array([rec.points3D[p].xyz for p in point_ids], dtype=np.float64).reshape(-1, 3)
@@ -36,7 +36,7 @@ def scene_from_reconstruction(rec: pycolmap.Reconstruction, image_dir: Path,
                 obs_point.append(k)
                 obs_image.append(index[el.image_id])
                 obs_xy.append(rec.images[el.image_id].points2D[el.point2D_idx].xy)
-    return Scene(records, xyz, obs_point, obs_image, np.array(obs_xy).reshape(-1, 2))
+    return Scene(records, xyz, obs_point, obs_image, np.array(obs_xy).reshape(-1, 2), point_ids)
 
 
 def read_colmap(model_dir, image_dir, tags=None) -> Scene:

@@ -20,13 +20,13 @@ The info files are pickles: they are read with an unpickler that accepts numpy a
 plain containers only, never code.
 """
 
-import pickle
 from pathlib import Path
 from typing import Dict, List, Tuple
 
 import numpy as np
 
 from ..scene import CameraRecord, ImageRecord, Scene, SceneError
+from .safe_pickle import load_data_pickle
 
 # The two cameras of Extended CMU Seasons (official pixloc/pixlib/datasets/cmu.py).
 CMU_CAMERAS = {
@@ -35,27 +35,8 @@ CMU_CAMERAS = {
     "c1": CameraRecord("OPENCV", 1024, 768, (873.382641, 876.489513, 529.324138, 397.272397,
                                              -0.397066, 0.181925, 0.000176, -0.000579)),
 }
-_ALLOWED = {("numpy.core.multiarray", "_reconstruct"), ("numpy._core.multiarray", "_reconstruct"),
-            ("numpy", "ndarray"), ("numpy", "dtype"), ("numpy.core.multiarray", "scalar"),
-            ("numpy._core.multiarray", "scalar"), ("collections", "OrderedDict")}
-
-
-class _DataUnpickler(pickle.Unpickler):
-    def find_class(self, module, name):
-        if (module, name) in _ALLOWED or (module == "numpy.dtypes" and name.endswith("DType")):
-            return super().find_class(module, name)
-        raise SceneError(f"Refusing to load {module}.{name} from an info file: only numpy data is allowed.")
-
-
 def read_info(path) -> Dict:
-    path = Path(path)
-    if not path.is_file():
-        raise SceneError(f"Info file {path} does not exist.")
-    with open(path, "rb") as f:
-        try:
-            return _DataUnpickler(f).load()
-        except (pickle.UnpicklingError, EOFError, AttributeError, ImportError) as e:
-            raise SceneError(f"{path} is not a PixLoc training info file: {e}") from None
+    return load_data_pickle(path, "PixLoc training info file")
 
 
 def _matrix(R, t) -> np.ndarray:

@@ -37,3 +37,8 @@ def test_presets_set_the_paper_settings(tmp_path):
     assert args.iters == 7  # an explicit option wins over the preset
     assert presets.load("robotcar")["retrieval"]["same_tag"] == "camera"
     assert presets.load("cambridge")["localizer"]["average_observations"] is True
+    # refinement mode from hloc logs takes the preset's from_poses settings (official run_Aachen.py)
+    args = p.parse_args(["list", "q.txt", "--store", "m.zarr", "--output", "o", "--prior", "hloc"])
+    presets.apply(args, presets.load("aachen"), args._parser_defaults)
+    assert (args.num_dbs, args.iters, args.min_points, args.point_selection, args.levels, args.scales,
+            args.average_observations, args.prior) == (5, 50, 100, "inliers", [0, 1], [1], True, "hloc")
