@@ -18,6 +18,7 @@ from torch.nn.functional import normalize
 
 from pixloc.geometry import Camera, Pose
 from pixloc.optim import FeaturemetricProblem, LevenbergMarquardt
+from pixloc.optim.cost import new_query_maps
 from pixloc.nets.unet import UNet
 
 from .images import ImageReadError, read_image, resize_max, to_tensor
@@ -186,7 +187,9 @@ class Localizer:
         """One LM batch for ``group`` at one level; points are padded and masked to a common N."""
         stride = self.net.strides[level]
         n_max = max(len(st["refs"][0]) for st in group)
-        p3d, F_ref, W_ref, mask, F_q, W_q, cams = [], [], [], [], [], [], []
+        p3d, F_ref, W_ref, mask, cams = [], [], [], [], []
+        first = group[0]["cache"][k][0]["features"][level]
+        maps = new_query_maps((len(group),) + tuple(first.shape[1:]), first)  # normalised features + confidence
         for st in group:
             xyz, levels = st["refs"]
             f, w = levels[level]
@@ -197,14 +200,15 @@ class Localizer:
             W_ref.append(torch.cat([w, w.new_zeros(pad)]))
             mask.append(torch.arange(n_max) < n)
             pred, (sx, sy) = st["cache"][k]
-            F_q.append(normalize(pred["features"][level][0], dim=0))
-            W_q.append(pred["confidences"][level][0, 0])
+            f = pred["features"][level][0]  # official: the dense map is L2-normalised (as F.normalize)
+            torch.div(f, torch.linalg.vector_norm(f, dim=0, keepdim=True).clamp_min(1e-12), out=maps[len(cams), :-1])
+            maps[len(cams), -1] = pred["confidences"][level][0, 0]
             cams.append(st["query"].camera.to_pixloc(torch.float64).scale((sx / stride, sy / stride)).float())
-        device = F_q[0].device
+        device = maps.device
         problem = FeaturemetricProblem(torch.stack(p3d).to(device), torch.stack(F_ref).to(device),
-                                       torch.stack(F_q), Camera.stack(cams).to(device),
-                                       torch.stack(W_ref).to(device), torch.stack(W_q),
-                                       torch.stack(mask).to(device))
+                                       maps[:, :-1], Camera.stack(cams).to(device),
+                                       torch.stack(W_ref).to(device), maps[:, -1],
+                                       torch.stack(mask).to(device), maps=maps)
         T = Pose.stack([st["T"] for st in group]).to(device)
         lm = self.solvers[level](problem, T, num_iters=self.conf.num_iters)
         for b, st in enumerate(group):

@@ -23,6 +23,9 @@ class FeaturemetricProblem:
     W_ref: (B, N) reference confidences, or None.
     W_query: (B, H, W) dense query confidences, or None. Both or neither.
     mask: (B, N) bool, observations to use (padding of ragged batches), or None.
+    maps: (B, C + 1, H, W), F_query and W_query stacked, when the caller has built them so
+        (``new_query_maps``): F_query and W_query are then views of it, and the largest
+        tensor of the problem is not copied again.
     """
 
     p3d_world: Tensor
@@ -32,6 +35,7 @@ class FeaturemetricProblem:
     W_ref: Optional[Tensor] = None
     W_query: Optional[Tensor] = None
     mask: Optional[Tensor] = None
+    maps: Optional[Tensor] = None
 
     def __post_init__(self):
         p, F, Fq = self.p3d_world, self.F_ref, self.F_query
@@ -52,6 +56,9 @@ class FeaturemetricProblem:
             if tuple(self.W_query.shape) != (B,) + tuple(Fq.shape[-2:]):
                 raise ValueError(f"W_query must be (B, H, W) = ({B}, {Fq.shape[-2]}, {Fq.shape[-1]}), "
                                  f"got {tuple(self.W_query.shape)}.")
+        if self.maps is not None and not (self.W_query is not None and self.maps.shape[1] == Fq.shape[1] + 1
+                                          and torch.equal(self.maps[:, -1], self.W_query)):
+            raise ValueError("maps must be F_query and W_query stacked, (B, C + 1, H, W).")
         if self.mask is not None and tuple(self.mask.shape) != (B, N):
             raise ValueError(f"mask must be (B, N) = ({B}, {N}), got {tuple(self.mask.shape)}.")
         if not torch.isfinite(p).all():
@@ -70,19 +77,13 @@ class FeaturemetricProblem:
         """(B, C[+1], H, W) query features with the confidence appended as a channel,
         so that one sampling call serves both (official inference does the same).
 
-        On CPU, maps of 64 channels or more are laid out channels-last: bilinear sampling
-        then reads each tap's channels contiguously, which made it 2.3x faster on the
-        129 x 175 x 256 maps of a 1024 px query (bitwise the same samples). Thinner maps
-        are left as they are: their layout change costs more than it saves."""
-        maps = self.F_query if self.W_query is None else None
-        channels = self.F_query.shape[1] + (self.W_query is not None)
-        if self.F_query.device.type != "cpu" or channels < 64:
-            return maps if maps is not None else torch.cat([self.F_query, self.W_query[:, None]], 1)
-        if maps is not None:
-            return maps.contiguous(memory_format=torch.channels_last)
-        B, C, H, W = self.F_query.shape
-        out = torch.empty((B, C + 1, H, W), dtype=self.F_query.dtype, device=self.F_query.device,
-                          memory_format=torch.channels_last)
+        Laid out as ``query_maps_layout`` says."""
+        if self.maps is not None:
+            return self.maps
+        if self.W_query is None:
+            return self.F_query.contiguous(memory_format=query_maps_layout(self.F_query))
+        out = new_query_maps(self.F_query.shape, self.F_query, with_confidence=True)
+        C = self.F_query.shape[1]
         out[:, :C] = self.F_query
         out[:, C] = self.W_query
         return out
@@ -99,7 +100,26 @@ class FeaturemetricProblem:
             return None if x is None else x[i]
         return replace(self, p3d_world=self.p3d_world[i], F_ref=self.F_ref[i], F_query=self.F_query[i],
                        camera=self.camera[i], W_ref=sel(self.W_ref), W_query=sel(self.W_query),
-                       mask=sel(self.mask))
+                       mask=sel(self.mask), maps=sel(self.maps))
+
+
+def query_maps_layout(like: Tensor, channels: Optional[int] = None) -> torch.memory_format:
+    """Memory layout of query maps for sampling. On CPU, maps of 64 channels or more are
+    channels-last: bilinear sampling then reads each tap's channels contiguously, which made
+    it 2.3x faster on the 129 x 175 x 256 maps of a 1024 px query (bitwise the same samples).
+    Thinner maps stay as they are: there the layout change costs more than it saves."""
+    channels = like.shape[1] if channels is None else channels
+    if like.device.type == "cpu" and channels >= 64:
+        return torch.channels_last
+    return torch.contiguous_format
+
+
+def new_query_maps(shape, like: Tensor, with_confidence: bool = True) -> Tensor:
+    """An empty (B, C [+ 1], H, W) buffer for query maps, in ``query_maps_layout``."""
+    B, C, H, W = shape
+    C = C + int(with_confidence)
+    return torch.empty((B, C, H, W), dtype=like.dtype, device=like.device,
+                       memory_format=query_maps_layout(like, C))
 
 
 class Linearization(NamedTuple):
