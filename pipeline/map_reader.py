@@ -89,8 +89,9 @@ class MapReader:
             keep &= np.isin(point * n + db, np.asarray(selected, np.int64).reshape(-1, 2) @ np.array([n, 1]))
         return Observations(point[keep], db[keep], rows[keep])
 
+    @functools.cached_property
     def source_ids(self) -> Tuple[Dict[int, int], Dict[int, int]]:
-        """Maps from the source model's image and point ids to the store's indices."""
+        """Maps from the source model's image and point ids to the store's indices (built once)."""
         images = {int(s): i for i, s in enumerate(self.image_source_id) if s >= 0}
         points = {int(s): i for i, s in enumerate(self.point_source_id) if s >= 0}
         return images, points

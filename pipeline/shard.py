@@ -224,7 +224,7 @@ def _prepare_hloc(job: LocalizationJob, reader: MapReader, query: QueryRecord, r
     prior = log.cam_from_world
     if log.num_inliers < job.min_inliers:
         return _failure(query, f"hloc PnP has {log.num_inliers} inliers (< {job.min_inliers})", prior)
-    images, points = reader.source_ids()
+    images, points = reader.source_ids
     inliers = log.inliers_per_db()
     ranked = [log.db_ids[i] for i in np.argsort(-inliers, kind="stable") if inliers[i] > job.min_matches_db]
     ranked = [i for i in ranked if i in images and reader.usable(images[i])][:job.localizer.num_dbs]
@@ -282,8 +282,10 @@ def localize_shard(job: LocalizationJob, queries: List[QueryRecord], out_path) -
             reader = open_reader(job.store, job.features, digest)
             localizer = Localizer(refiner.extractor, refiner.solvers, reader, job.localizer, job.device,
                                   levels=job.levels, scales=job.scales)
-        except (StoreError, ValueError) as e:  # every query gets a record with the reason
+        except StoreError as e:  # every query gets a record with the reason
             results = [_failure(q, f"map store unusable: {e}") for q in queries]
+        except ValueError as e:  # a job setting the store cannot serve (image scales)
+            results = [_failure(q, f"job does not fit the map store: {e}") for q in queries]
         else:
             results = localize_queries(job, reader, localizer, queries)
     records = [result_to_record(r, q.tags) for r, q in zip(results, queries)]
