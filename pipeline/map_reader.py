@@ -55,7 +55,6 @@ class MapReader:
         self.cam_from_world = np.concatenate([T[:, :9].reshape(-1, 3, 3), T[:, 9:, None]], 2)
         self.row_start = root["images/row_start"][:]
         self.num_obs = root["images/num_obs"][:]
-        self.key = key
         self.status = self.group["status"][:]
         self.xyz = root["points/xyz"][:]
         self.track_length = root["points/track_length"][:]

@@ -44,7 +44,7 @@ class PnPLog:
         count = np.zeros(len(self.db_ids), dtype=np.int64)
         for dbs, inlier in zip(self.match_dbs, self.inliers):
             if inlier:
-                count[list(dbs)] += 1
+                np.add.at(count, list(dbs), 1)  # a reference listed twice counts twice, as official
         return count
 
     def inlier_observations(self, db_ids: List[int], inliers_only: bool = True) -> np.ndarray:
