@@ -62,7 +62,7 @@ def write_structure(scene: Scene, store_path, conf: FeatureConfig, *, chunk_rows
     return problems
 
 
-def extract_features(store_path, conf: FeatureConfig, indices: Sequence[int], *, device: str = "cpu",
+def extract_features(store_path, conf: FeatureConfig, indices: Sequence[int], device: str = "cpu", *,
                      overwrite: bool = False) -> List[ImageResult]:
     """Extract and write the features of images ``indices``; one task of the map-building graph.
 

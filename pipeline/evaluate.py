@@ -1,5 +1,15 @@
-"""Accuracy against ground truth: pose errors, medians and recall per condition tag."""
+"""Accuracy against ground truth: pose errors, medians and recall per condition tag.
 
+Queries whose ground truth is missing or not finite are not evaluated: they are counted
+(``no_ground_truth``) and named in a warning, never turned into NaN medians. A query
+without any pose (no record, or no prior) counts as an infinite error in the recalls and is
+counted (``no_pose``); medians are over the queries that have a pose. Summaries hold no NaN or
+infinity (``None`` where a value is undefined), so that they are valid JSON.
+"""
+
+import json
+import logging
+import math
 from collections import defaultdict
 from typing import Dict, List, Optional, Sequence, Tuple
 
@@ -9,8 +19,24 @@ from pixloc.geometry import pose_error
 
 from .scene import pose_from_matrix
 
+logger = logging.getLogger(__name__)
 DEFAULT_THRESHOLDS = ((0.25, 2.0), (0.5, 5.0), (5.0, 10.0))  # (metres, degrees), visuallocalization.net
 INDOOR_THRESHOLDS = ((0.05, 5.0),)  # 7-Scenes, Cambridge
+
+
+def parse_thresholds(values: Sequence[str]) -> Tuple[Tuple[float, float], ...]:
+    """``["0.05,1", "0.25,2"]`` -> ((0.05, 1.0), (0.25, 2.0)): (scene units, degrees) pairs."""
+    out = []
+    for v in values:
+        parts = v.split(",")
+        try:
+            t, r = (float(p) for p in parts)
+        except ValueError:
+            raise ValueError(f"Threshold {v!r}: write DISTANCE,DEGREES, e.g. 0.25,2.") from None
+        if not (t > 0 and r > 0):
+            raise ValueError(f"Threshold {v!r}: both values must be positive.")
+        out.append((t, r))
+    return tuple(out)
 
 
 def pose_errors(T: Optional[np.ndarray], T_gt: np.ndarray) -> Tuple[float, float]:
@@ -23,28 +49,52 @@ def pose_errors(T: Optional[np.ndarray], T_gt: np.ndarray) -> Tuple[float, float
     return float(dt), float(dR)
 
 
+def _median(x: np.ndarray) -> Optional[float]:
+    return float(np.median(x)) if len(x) else None
+
+
 def summarize(errors: Sequence[Tuple[float, float]], thresholds=DEFAULT_THRESHOLDS) -> Dict:
-    """Median errors and recall (fraction of queries within each (metres, degrees) pair)."""
+    """Median errors over the queries with a pose, and recall (fraction of all queries within each
+    (distance, degrees) pair; a query without a pose is never within). None where undefined."""
     e = np.asarray(errors, np.float64).reshape(-1, 2)
-    out = {"count": int(len(e)),
-           "median_t": float(np.median(e[:, 0])) if len(e) else float("nan"),
-           "median_R": float(np.median(e[:, 1])) if len(e) else float("nan")}
+    posed = e[np.isfinite(e).all(1)]
+    out = {"count": int(len(e)), "no_pose": int(len(e) - len(posed)),
+           "median_t": _median(posed[:, 0]), "median_R": _median(posed[:, 1])}
     for t, r in thresholds:
-        out[f"recall@{t}m,{r}deg"] = float(np.mean((e[:, 0] <= t) & (e[:, 1] <= r))) if len(e) else float("nan")
+        out[f"recall@{t}m,{r}deg"] = float(np.mean((e[:, 0] <= t) & (e[:, 1] <= r))) if len(e) else None
     return out
 
 
-def evaluate(records: List[Dict], ground_truth: Dict[str, np.ndarray], thresholds=DEFAULT_THRESHOLDS,
+def usable_ground_truth(ground_truth: Dict[str, Optional[np.ndarray]]) -> Tuple[Dict[str, np.ndarray], List[str]]:
+    """The finite (3, 4) ground-truth poses, and the names of queries without one."""
+    good, missing = {}, []
+    for name, T in ground_truth.items():
+        T = None if T is None else np.asarray(T, np.float64)
+        if T is None or T.shape != (3, 4) or not np.isfinite(T).all():
+            missing.append(name)
+        else:
+            good[name] = T
+    return good, missing
+
+
+def evaluate(records: List[Dict], ground_truth: Dict[str, Optional[np.ndarray]], thresholds=DEFAULT_THRESHOLDS,
              tag_keys: Optional[Sequence[str]] = None) -> Dict[str, Dict]:
     """Summaries of refined and prior poses: overall (``all``) and per ``key=value`` condition tag.
 
-    Queries in ``ground_truth`` without a record count as failures (infinite error).
+    ``ground_truth`` may name queries without a usable pose (None, NaN): they are excluded,
+    counted in ``no_ground_truth`` of ``all`` and logged. Queries in ``ground_truth`` without a
+    record count as queries without a pose.
     """
     from .results import record_pose
 
+    gt, missing = usable_ground_truth(ground_truth)
+    if missing:
+        logger.warning("%d queries have no ground truth and are not evaluated: %s%s", len(missing),
+                       ", ".join(missing[:5]), " ..." if len(missing) > 5 else "")
     by_name = {r["name"]: r for r in records}
     groups: Dict[str, Dict[str, List]] = defaultdict(lambda: {"refined": [], "prior": []})
-    for name, T_gt in ground_truth.items():
+    groups["all"]  # always present, first
+    for name, T_gt in gt.items():
         rec = by_name.get(name)
         refined = pose_errors(record_pose(rec) if rec else None, T_gt)
         prior = pose_errors(np.asarray(rec["prior"]) if rec and rec["prior"] is not None else None, T_gt)
@@ -53,5 +103,25 @@ def evaluate(records: List[Dict], ground_truth: Dict[str, np.ndarray], threshold
         for key in keys:
             groups[key]["refined"].append(refined)
             groups[key]["prior"].append(prior)
-    return {key: {"refined": summarize(g["refined"], thresholds), "prior": summarize(g["prior"], thresholds),
-                  "errors": g["refined"], "prior_errors": g["prior"]} for key, g in groups.items()}
+    out = {key: {"refined": summarize(g["refined"], thresholds), "prior": summarize(g["prior"], thresholds),
+                 "errors": g["refined"], "prior_errors": g["prior"]} for key, g in groups.items()}
+    out["all"]["no_ground_truth"] = len(missing)
+    return out
+
+
+def to_json(summary) -> str:
+    """JSON without NaN or infinity: those become null (strict JSON readers refuse them)."""
+    def clean(x):
+        if isinstance(x, float):
+            return x if math.isfinite(x) else None
+        if isinstance(x, dict):
+            return {k: clean(v) for k, v in x.items()}
+        if isinstance(x, (list, tuple)):
+            return [clean(v) for v in x]
+        return x
+    return json.dumps(clean(summary), indent=1, allow_nan=False)
+
+
+def fmt(value: Optional[float], spec: str, none: str = "-") -> str:
+    """``format(value, spec)``, or ``none`` for an undefined value (never 'nan')."""
+    return none if value is None or not math.isfinite(value) else format(value, spec)

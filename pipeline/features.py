@@ -15,6 +15,7 @@ import numpy as np
 import torch
 
 from pixloc.interpolation import Interpolator
+from pixloc.nets.registry import DEFAULT_MODEL
 from pixloc.nets.unet import UNet
 
 from .images import read_image, resize_max, to_tensor
@@ -25,7 +26,8 @@ from .scene import ImageRecord
 class FeatureConfig:
     """How reference features are extracted; stored with them and checked on reuse.
 
-    model: network name or checkpoint path (see ``pixloc.nets.registry``).
+    model: network name or checkpoint path (see ``pixloc.nets.registry``; default the
+        shipped ``pixloc-lite0``).
     resize: longer image side in pixels at image scale 1 (images are only downscaled).
     image_scales: official ``multiscale`` factors, coarse first (e.g. (4, 1)).
     pad: interpolation margin in feature-map pixels (official ``pad``).
@@ -36,7 +38,7 @@ class FeatureConfig:
         keeps the layout, more robust to changes of light in our synthetic tests).
     """
 
-    model: str = "lite0-imagenet"
+    model: str = DEFAULT_MODEL
     resize: int = 1024
     image_scales: Tuple[int, ...] = (4, 1)
     pad: int = 2

@@ -1,5 +1,9 @@
 """Image reading and resizing, as official PixLoc does them (OpenCV)."""
 
+import os
+import sys
+import tempfile
+import threading
 from pathlib import Path
 from typing import Optional, Tuple
 
@@ -12,14 +16,45 @@ class ImageReadError(IOError):
     """An image file that is missing or cannot be decoded."""
 
 
+# What libjpeg and libpng print (they do not fail) when a file is truncated or corrupt: OpenCV
+# then returns a partly grey image as if nothing happened.
+_DECODER_ERRORS = ("Corrupt JPEG data", "Premature end of JPEG file", "JPEG datastream contains no image",
+                   "libpng error", "Invalid SOS parameters", "Bogus marker length", "Huffman")
+_STDERR_LOCK = threading.Lock()
+
+
+def _decode_checked(data: bytes) -> Tuple[Optional[np.ndarray], str]:
+    """cv2.imdecode with the decoder's messages on the C stderr captured: (image, messages)."""
+    buffer = np.frombuffer(data, np.uint8)
+    with _STDERR_LOCK, tempfile.TemporaryFile() as capture:
+        sys.stderr.flush()
+        saved = os.dup(2)
+        os.dup2(capture.fileno(), 2)
+        try:
+            image = cv2.imdecode(buffer, cv2.IMREAD_COLOR)
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+        capture.seek(0)
+        messages = capture.read().decode(errors="replace")
+    return image, messages
+
+
 def read_image(path) -> np.ndarray:
-    """(H, W, 3) uint8 RGB."""
+    """(H, W, 3) uint8 RGB, fully decoded; a missing, truncated or corrupt file raises
+    ImageReadError with the decoder's words."""
     path = Path(path)
     if not path.is_file():
         raise ImageReadError(f"image file {path} is missing")
-    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    image, messages = _decode_checked(path.read_bytes())
+    problems = [line.strip() for line in messages.splitlines() if any(e in line for e in _DECODER_ERRORS)]
+    other = "".join(line + "\n" for line in messages.splitlines() if line.strip() and line.strip() not in problems)
+    if other:
+        sys.stderr.write(other)  # not ours to swallow
     if image is None:
-        raise ImageReadError(f"image file {path} cannot be decoded")
+        raise ImageReadError(f"image file {path} cannot be decoded" + (f": {problems[0]}" if problems else ""))
+    if problems:
+        raise ImageReadError(f"image file {path} is truncated or corrupt: {'; '.join(dict.fromkeys(problems))}")
     return image[..., ::-1]
 
 

@@ -8,6 +8,7 @@ then per image scale the query's dense features and LM from the coarsest to
 the finest level. A failure at any level keeps the prior, marked failed.
 """
 
+import logging
 import time
 from dataclasses import dataclass, field
 from typing import Dict, List, Optional, Sequence, Tuple
@@ -17,27 +18,35 @@ import torch
 from torch.nn.functional import normalize
 
 from pixloc.geometry import Camera, Pose
-from pixloc.optim import FeaturemetricProblem, LevenbergMarquardt
+from pixloc.optim import FeaturemetricProblem, LevenbergMarquardt, alignment_contrast, alignment_evidence
 from pixloc.optim.cost import new_query_maps
 from pixloc.nets.unet import UNet
 
 from .images import ImageReadError, read_image, resize_max, to_tensor
-from .map_reader import MapReader, Observations
+from .map_reader import MapReader, Observations, StoreReadError
 from .queries import QueryRecord
 from .scene import pose_from_matrix
+from .verify import VerificationConfig, verify
+
+logger = logging.getLogger(__name__)
+CONTRAST_SHIFTS = (1.0, 3.0, 10.0)  # pixels at the finest level (pixloc.optim.evidence.alignment_contrast)
 
 
 @dataclass(frozen=True)
 class LocalizerConfig:
     """num_dbs: reference images used. average_observations: one residual per point
     (confidence-weighted mean over references) instead of one per observation.
-    num_iters: LM iterations per level. min_track_length, min_points: official filters."""
+    num_iters: LM iterations per level. min_track_length, min_points: official filters
+    (points seen by fewer images of the whole map than ``min_track_length`` are left out;
+    fewer than ``min_points`` points fails the query). verification: when a refined pose is
+    accepted (``pipeline.verify``)."""
 
     num_dbs: int = 5
     average_observations: bool = False
     num_iters: int = 100
     min_track_length: int = 3
     min_points: int = 10
+    verification: VerificationConfig = field(default_factory=VerificationConfig)
 
 
 @dataclass
@@ -55,10 +64,14 @@ class QueryResult:
     reason: str = ""
     timings: Dict[str, float] = field(default_factory=dict)
     per_level: List[Dict] = field(default_factory=list)
+    confidence: float = 0.0
+    evidence: Dict[str, float] = field(default_factory=dict)
+    notes: List[str] = field(default_factory=list)
+    filters: Dict[str, int] = field(default_factory=dict)  # what the point filters left out
 
     @property
     def pose(self) -> Optional[np.ndarray]:
-        """The pose to report: refined if successful, else the prior (official behaviour)."""
+        """The pose to report: refined if successful (verified), else the prior."""
         return self.refined if self.success else self.prior
 
 
@@ -88,12 +101,14 @@ class Localizer:
         for s in self.solvers:
             s.eval()
 
-    def reference_features(self, obs: Observations, scale: int):
+    def reference_features(self, obs: Observations, scale: int, stats: Optional[Dict] = None):
         """Points (K, 3) and per level (features (K, C) normalised, confidences (K,)) of the
         observations ``obs``; as the official localizer, an observation invalid at any of the
         optimised levels is dropped."""
         feats = self.reader.features(obs, scale)
         valid = np.logical_and.reduce([feats[level][2] for level in self.levels])
+        if stats is not None:  # observations (not points) dropped as invalid at an optimised level
+            stats[f"invalid_observations_s{scale}"] = int((~valid).sum())
         point = obs.point[valid]
         levels = [(f[valid], w[valid]) for f, w, _ in feats]
         levels = [(torch.from_numpy(f), torch.from_numpy(w)) for f, w in levels]
@@ -134,57 +149,89 @@ class Localizer:
 
         items: (query, dbs, prior, rgb or None, cache or None[, selected or None]). The
         per-problem stopping rule of the solver makes the result of each query the same as
-        localizing it alone.
+        localizing it alone. An error in one query (a bad reference block, a network error)
+        fails that query with its reason, not the batch; an error in a group's solve fails
+        that group's queries.
         """
         t_start = time.perf_counter()
         states = []
         for item in items:
             query, dbs, prior, rgb, cache, selected = (*item, None)[:6]
             result = QueryResult(query.name, False, np.asarray(prior, np.float64), None,
-                                 [self.reader.names[i] for i in dbs])
-            obs = self.reader.observations(dbs, self.conf.min_track_length, selected)
-            result.num_points = int(len(np.unique(obs.point)))
-            if result.num_points < self.conf.min_points:
-                result.reason = f"references see {result.num_points} points (< {self.conf.min_points})"
-            elif rgb is None:
-                try:
-                    rgb = read_image(query.path)
-                except ImageReadError as e:
-                    result.reason = str(e)
-            states.append({"query": query, "obs": obs, "rgb": rgb, "cache": {} if cache is None else cache,
-                           "result": result, "T": pose_from_matrix(prior).float(), "active": not result.reason})
+                                 [self.reader.names[i] for i in dbs], notes=list(query.notes))
+            st = {"query": query, "rgb": rgb, "cache": {} if cache is None else cache, "result": result,
+                  "active": False}
+            states.append(st)
+            try:
+                seen = self.reader.observations(dbs, 1, selected)
+                keep = self.reader.track_length[seen.point] >= self.conf.min_track_length
+                st["obs"] = Observations(seen.point[keep], seen.db[keep], seen.rows[keep])
+                result.num_points = int(len(np.unique(st["obs"].point)))
+                result.filters["short_tracks"] = int(len(np.unique(seen.point))) - result.num_points
+                if result.num_points < self.conf.min_points:
+                    result.reason = f"references see {result.num_points} points (< {self.conf.min_points})"
+                    continue
+                if st["rgb"] is None:
+                    st["rgb"] = read_image(query.path)
+                st["T"] = st["prior_T"] = pose_from_matrix(prior).float()
+                st["active"] = True
+            except (ImageReadError, StoreReadError, ValueError) as e:
+                result.reason = str(e)
         for k in self.scales:
             image_scale = self.reader.conf.image_scales[k]
             active = [st for st in states if st["active"]]
             t0 = time.perf_counter()
             for st in active:
-                st["refs"] = self.reference_features(st["obs"], k)
-                if k not in st["cache"]:
-                    st["cache"][k] = self.predict(st["rgb"], k)
+                try:
+                    st["refs"] = self.reference_features(st["obs"], k, st["result"].filters)
+                    if k not in st["cache"]:
+                        st["cache"][k] = self.predict(st["rgb"], k)
+                except (StoreReadError, ValueError, RuntimeError) as e:
+                    self._fail(st, f"{type(e).__name__}: {e}" if not isinstance(e, StoreReadError) else str(e))
             groups: Dict[Tuple, List[Dict]] = {}
             for st in active:
-                pred = st["cache"][k][0]
-                key = (tuple(pred["features"][0].shape), st["query"].camera.to_pixloc().distortion)
-                groups.setdefault(key, []).append(st)
+                if st["active"]:
+                    pred = st["cache"][k][0]
+                    key = (tuple(pred["features"][0].shape), st["query"].camera.to_pixloc().distortion)
+                    groups.setdefault(key, []).append(st)
             t_features = (time.perf_counter() - t0) / max(len(active), 1)
             t0 = time.perf_counter()
             for level in self.levels:
+                final = k == self.scales[-1] and level == self.levels[-1]
                 for group in groups.values():
                     group = [st for st in group if st["active"]]
-                    if group:
-                        self._solve_level(group, k, image_scale, level)
+                    if not group:
+                        continue
+                    try:
+                        self._solve_level(group, k, image_scale, level, final)
+                    except (ValueError, RuntimeError) as e:  # recorded per query, never dropped
+                        logger.warning("LM batch of %d queries failed: %s", len(group), e)
+                        for st in group:
+                            self._fail(st, f"LM failed at image scale {image_scale}, level {level}: "
+                                           f"{type(e).__name__}: {e}")
             t_optim = (time.perf_counter() - t0) / max(len(active), 1)
             for st in active:
                 st["result"].timings[f"features_s{k}"] = t_features
                 st["result"].timings[f"optim_s{k}"] = t_optim
         for st in states:
+            result = st["result"]
             if st["active"]:
-                st["result"].success, st["result"].refined = True, _matrix(st["T"])
-            st["result"].timings["total"] = (time.perf_counter() - t_start) / len(states)
+                result.refined = _matrix(st["T"])
+                result.confidence, reason = verify(result.evidence, self.conf.verification)
+                result.success = reason is None
+                result.reason = reason or ""
+            result.timings["total"] = (time.perf_counter() - t_start) / len(states)
         return [st["result"] for st in states]
 
-    def _solve_level(self, group: List[Dict], k: int, image_scale: int, level: int) -> None:
-        """One LM batch for ``group`` at one level; points are padded and masked to a common N."""
+    @staticmethod
+    def _fail(st: Dict, reason: str) -> None:
+        st["active"] = False
+        st["result"].reason = reason
+
+    def _solve_level(self, group: List[Dict], k: int, image_scale: int, level: int, final: bool) -> None:
+        """One LM batch for ``group`` at one level; points are padded and masked to a common N.
+        Records the evidence of the level's start and end poses (``pixloc.optim.evidence``) and,
+        at the ``final`` level, of the prior, for verification."""
         stride = self.net.strides[level]
         n_max = max(len(st["refs"][0]) for st in group)
         p3d, F_ref, W_ref, mask, cams = [], [], [], [], []
@@ -202,7 +249,8 @@ class Localizer:
             pred, (sx, sy) = st["cache"][k]
             f = pred["features"][level][0]  # official: the dense map is L2-normalised (as F.normalize)
             torch.div(f, torch.linalg.vector_norm(f, dim=0, keepdim=True).clamp_min(1e-12), out=maps[len(cams), :-1])
-            maps[len(cams), -1] = pred["confidences"][level][0, 0]
+            # models without confidences (photometric) weigh every pixel the same
+            maps[len(cams), -1] = pred["confidences"][level][0, 0] if "confidences" in pred else 1.0
             cams.append(st["query"].camera.to_pixloc(torch.float64).scale((sx / stride, sy / stride)).float())
         device = maps.device
         problem = FeaturemetricProblem(torch.stack(p3d).to(device), torch.stack(F_ref).to(device),
@@ -210,18 +258,64 @@ class Localizer:
                                        torch.stack(W_ref).to(device), maps[:, -1],
                                        torch.stack(mask).to(device), maps=maps)
         T = Pose.stack([st["T"] for st in group]).to(device)
-        lm = self.solvers[level](problem, T, num_iters=self.conf.num_iters)
+        solver = self.solvers[level]
+        lm = solver(problem, T, num_iters=self.conf.num_iters)
+        start = alignment_evidence(problem, T, solver.loss_fn, solver.interpolator)
+        end = alignment_evidence(problem, lm.pose, solver.loss_fn, solver.interpolator)
+        at_prior, contrast = None, {}
+        if final:
+            prior = Pose.stack([st["prior_T"] for st in group]).to(device)
+            at_prior = alignment_evidence(problem, prior, solver.loss_fn, solver.interpolator)
+            contrast = {f"contrast_{px:g}px": alignment_contrast(problem, lm.pose, solver.loss_fn,
+                                                                 solver.interpolator, px) for px in CONTRAST_SHIFTS}
         for b, st in enumerate(group):
             failed = bool(lm.failed[b])
             result = st["result"]
+            evidence = {f"{key}_{which}": float(ev[key][b]) for which, ev in (("start", start), ("end", end))
+                        for key in ("inliers", "weighted_inliers", "valid", "cost")}
             result.per_level.append({"scale": int(image_scale), "level": level, "failed": failed,
                                      "pose": _matrix(lm.pose[b].cpu()).tolist(),
-                                     "iterations": int(lm.iterations[b])})
+                                     "iterations": int(lm.iterations[b]), **evidence})
             result.iterations += int(lm.iterations[b])
             result.cost = float(lm.cost[b, int(lm.iterations[b]) - 1])
             if failed:
                 result.reason = (f"LM failed at image scale {image_scale}, level {level} "
                                  f"({int(lm.num_valid[b])} valid points)")
                 st["active"] = False
-            else:
-                st["T"] = lm.pose[b].cpu()
+                continue
+            st["T"] = lm.pose[b].cpu()
+            if final:
+                result.evidence = evidence_summary(result.per_level, {
+                    key: float(at_prior[key][b]) for key in at_prior if key != "points"},
+                    {key: float(v[b]) for key, v in contrast.items()},
+                    np.asarray(result.prior), _matrix(st["T"]), problem.p3d_world[b][problem.mask[b]].cpu().numpy())
+
+
+def evidence_summary(per_level: List[Dict], at_prior: Dict[str, float], contrast: Dict[str, float],
+                     prior: np.ndarray, refined: np.ndarray, p3d: np.ndarray) -> Dict[str, float]:
+    """The evidence of a refinement, for ``verify``: at the finest level, the inlier fractions
+    (plain and confidence-weighted), valid fraction and cost at the refined pose and at the
+    prior; the sharpness of the cost around the refined pose (``contrast_*px``); the motion
+    from the prior and between the last two levels, the translations relative to the median
+    depth of the points at the refined pose (scale-free)."""
+    last = per_level[-1]
+    out = {f"{key}": last[f"{key}_end"] for key in ("inliers", "weighted_inliers", "valid", "cost")}
+    out.update({f"{key}_prior": v for key, v in at_prior.items()})
+    out.update(contrast)
+    depth = p3d @ refined[:, :3].T + refined[:, 3]
+    depth = float(np.median(depth[:, 2])) if len(depth) else float("nan")
+    scale = depth if np.isfinite(depth) and depth > 0 else 1.0
+    out["depth"] = depth
+    out["move_t"], out["move_R"] = _relative_motion(prior, refined, scale)
+    if len(per_level) > 1:
+        out["last_t"], out["last_R"] = _relative_motion(np.asarray(per_level[-2]["pose"]), refined, scale)
+    else:
+        out["last_t"], out["last_R"] = out["move_t"], out["move_R"]
+    return out
+
+
+def _relative_motion(a: np.ndarray, b: np.ndarray, scale: float) -> Tuple[float, float]:
+    """Camera-centre distance over ``scale`` and rotation angle (degrees) between two poses."""
+    ca, cb = -a[:, :3].T @ a[:, 3], -b[:, :3].T @ b[:, 3]
+    cos = (np.trace(a[:, :3] @ b[:, :3].T) - 1) / 2
+    return float(np.linalg.norm(ca - cb) / scale), float(np.degrees(np.arccos(np.clip(cos, -1, 1))))

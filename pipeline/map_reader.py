@@ -10,7 +10,7 @@ import numpy as np
 
 from .features import FeatureConfig
 from .scene import CameraRecord
-from .store import DONE, StoreError, feature_key, open_store
+from .store import DONE, StoreError, StoreReadError, check_feature_group, feature_key, open_store
 
 
 @dataclass
@@ -40,6 +40,7 @@ class MapReader:
             available = sorted(root["features"].group_keys()) if "features" in root else []
             raise StoreError(f"{path} has no features for {conf.to_dict()} (it has: {available or 'none'}).")
         self.group = root[key]
+        check_feature_group(self.group, root.attrs["pixloc_map"], path)
         if self.group.attrs.get("config") != conf.to_dict():
             raise StoreError(f"{path}: features {key} were made with {self.group.attrs.get('config')}.")
         if digest is not None and self.group.attrs.get("model_digest") != digest:
@@ -47,29 +48,34 @@ class MapReader:
                              f"not the localizer's {digest}: rebuild the map with this model.")
         self.conf = conf
         self.dims: List[int] = list(self.group.attrs["dims"])
-        self.names = [str(n) for n in root["images/name"][:]]
+
+        def read(group, name):
+            try:
+                return group[name][:]
+            except Exception as e:  # a corrupt chunk of the structure: every query needs it  # noqa: BLE001
+                raise StoreReadError(f"{path}: array {group[name].path} cannot be read: {type(e).__name__}: {e}"
+                                     " (run pixloc check-store)") from None
+        self.names = [str(n) for n in read(root, "images/name")]
         self.index = {n: i for i, n in enumerate(self.names)}
-        self.cameras = [CameraRecord.from_json(str(c)) for c in root["images/camera"][:]]
-        self.tags = [json.loads(str(t)) for t in root["images/tags"][:]]
-        T = root["images/cam_from_world"][:]
+        self.cameras = [CameraRecord.from_json(str(c)) for c in read(root, "images/camera")]
+        self.tags = [json.loads(str(t)) for t in read(root, "images/tags")]
+        T = read(root, "images/cam_from_world")
         self.cam_from_world = np.concatenate([T[:, :9].reshape(-1, 3, 3), T[:, 9:, None]], 2)
-        self.row_start = root["images/row_start"][:]
-        self.num_obs = root["images/num_obs"][:]
-        self.status = self.group["status"][:]
-        self.xyz = root["points/xyz"][:]
-        self.track_length = root["points/track_length"][:]
-        self.obs_point = root["observations/point"][:]
-        # ids in the source model (COLMAP); stores written before they were recorded have none
-        self.image_source_id = (root["images/source_id"][:] if "images/source_id" in root
-                                else np.full(len(self.names), -1, dtype=np.int64))
-        self.point_source_id = (root["points/source_id"][:] if "points/source_id" in root
-                                else np.full(len(self.xyz), -1, dtype=np.int64))
-        self.global_descriptors = self.group["global"][:]
+        self.row_start = read(root, "images/row_start")
+        self.num_obs = read(root, "images/num_obs")
+        self.status = read(self.group, "status")
+        self.xyz = read(root, "points/xyz")
+        self.track_length = read(root, "points/track_length")
+        self.obs_point = read(root, "observations/point")
+        self.image_source_id = read(root, "images/source_id")
+        self.point_source_id = read(root, "points/source_id")
+        self.global_descriptors = read(self.group, "global")
+        self._read = read
         self._block = functools.lru_cache(maxsize=cache_images)(self._read_block)
 
     def refresh(self) -> None:
         """Re-read which images are usable (a build may have finished more since)."""
-        self.status = self.group["status"][:]
+        self.status = self._read(self.group, "status")
 
     def usable(self, i: int) -> bool:
         return int(self.status[i]) == DONE
@@ -98,7 +104,14 @@ class MapReader:
     def _read_block(self, i: int, scale: int, level: int) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
         s = slice(int(self.row_start[i]), int(self.row_start[i] + self.num_obs[i]))
         g = self.group[f"s{scale}/l{level}"]
-        return (g["features"][s].astype(np.float32), g["confidences"][s].astype(np.float32), g["valid"][s])
+        out = []
+        for name in ("features", "confidences", "valid"):
+            try:
+                out.append(g[name][s])
+            except Exception as e:  # zarr/numcodecs raise many types for a bad chunk  # noqa: BLE001
+                raise StoreReadError(f"map store {self.path}: array {g.path}/{name} cannot be read for "
+                                     f"reference image {self.names[i]}: {type(e).__name__}: {e}") from None
+        return out[0].astype(np.float32), out[1].astype(np.float32), out[2]
 
     def features(self, obs: Observations, scale: int) -> List[Tuple[np.ndarray, np.ndarray, np.ndarray]]:
         """Per level: features (M, C) float32, confidences (M,), valid (M,) of the observations."""

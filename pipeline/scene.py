@@ -11,6 +11,7 @@ import numpy as np
 import torch
 
 from pixloc.geometry import COLMAP_MODELS, Camera, Pose, lie
+from pixloc.geometry.camera import _NUM_COLMAP_PARAMS
 
 
 def qvec_to_rotmat(qvec) -> np.ndarray:
@@ -46,9 +47,22 @@ class CameraRecord:
         """None if usable, else why not."""
         if self.model not in COLMAP_MODELS:
             return f"unsupported camera model {self.model!r} (supported: {', '.join(COLMAP_MODELS)})"
+        if len(self.params) != _NUM_COLMAP_PARAMS[self.model]:
+            return (f"camera model {self.model} has {_NUM_COLMAP_PARAMS[self.model]} parameters, "
+                    f"got {len(self.params)}")
         if not all(math.isfinite(p) for p in self.params) or self.width <= 0 or self.height <= 0:
             return f"invalid camera {self.model} {self.width}x{self.height} {list(self.params)}"
         return None
+
+    def rescaled(self, width: int, height: int) -> "CameraRecord":
+        """The same camera for an image of ``width`` x ``height`` (a resized copy of the file)."""
+        sx, sy = width / self.width, height / self.height
+        p = list(self.params)
+        if self.model.startswith("SIMPLE") or self.model == "RADIAL":
+            p[:3] = [p[0] * sx, p[1] * sx, p[2] * sy]
+        else:
+            p[:4] = [p[0] * sx, p[1] * sy, p[2] * sx, p[3] * sy]
+        return CameraRecord(self.model, int(width), int(height), tuple(p))
 
     def to_pixloc(self, dtype=torch.float32) -> Camera:
         return Camera.from_colmap(self.model, self.width, self.height, self.params, dtype=dtype)

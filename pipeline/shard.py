@@ -5,6 +5,7 @@ Every query gets exactly one record; a query that cannot be localized gets
 ``success: false`` and a reason, and keeps its prior when it has one.
 """
 
+import dataclasses
 import functools
 import logging
 from dataclasses import asdict, dataclass
@@ -82,6 +83,47 @@ class LocalizationJob:
     def to_dict(self) -> Dict:
         return asdict(self)
 
+    def validate(self) -> None:
+        """Refuse a job that cannot run, before any query does: unknown prior, retrieval method
+        or point selection, options that do not go together, missing input files."""
+        if self.prior not in PRIORS:
+            raise ValueError(f"Unknown prior {self.prior!r}: use one of {', '.join(PRIORS)}.")
+        method = self.retrieval.method
+        if method not in RETRIEVAL_METHODS:
+            raise ValueError(f"Unknown retrieval method {method!r}: use one of {', '.join(RETRIEVAL_METHODS)}.")
+        if self.point_selection not in POINT_SELECTIONS:
+            raise ValueError(f"Unknown point selection {self.point_selection!r}: use one of "
+                             f"{', '.join(POINT_SELECTIONS)}.")
+        if self.point_selection != "all" and self.prior != "hloc":
+            raise ValueError(f"Point selection {self.point_selection!r} needs the hloc prior (the inliers come "
+                             "from its logs); use --point-selection all with other priors.")
+        if self.num_hypotheses < 1 or self.localizer.num_dbs < 1 or self.retrieval.k < 1:
+            raise ValueError("num_hypotheses, num_dbs and retrieval k must be at least 1.")
+        needed = {"poses": ("prior_poses", "--prior poses needs --prior-poses FILE"),
+                  "hloc": ("hloc_logs", "--prior hloc needs --hloc-logs FILE (hloc's <results>_logs.pkl)")}
+        files = []
+        if self.prior in needed:
+            attr, text = needed[self.prior]
+            if not getattr(self, attr):
+                raise ValueError(text + ".")
+            files.append(getattr(self, attr))
+        if method == "pairs":
+            if not self.retrieval.pairs:
+                raise ValueError("Retrieval from pairs needs a pairs file (--pairs FILE).")
+            files.append(self.retrieval.pairs)
+        if method == "hloc":
+            if not self.retrieval.descriptors:
+                raise ValueError("Retrieval from hloc descriptors needs --descriptors FILE.h5.")
+            files.append(self.retrieval.descriptors)
+        for f in files:
+            if not Path(f).is_file():
+                raise ValueError(f"Input file {f} does not exist.")
+
+
+PRIORS = ("top1", "average", "hypotheses", "poses", "hloc")
+RETRIEVAL_METHODS = ("global", "pairs", "hloc")
+POINT_SELECTIONS = ("all", "inliers", "matched")
+
 
 @functools.lru_cache(maxsize=2)
 def localization_model(model: str, device: str = "cpu"):
@@ -140,8 +182,25 @@ def _find_prior(priors: Dict, name: str):
     return priors[matches[0]] if len(matches) == 1 else None
 
 
+def fit_camera(query: QueryRecord, rgb: np.ndarray) -> Tuple[QueryRecord, Optional[str]]:
+    """The query with a camera that fits its image file: a declared size that differs from the
+    file is rescaled when the aspect ratio is the same (a resized copy; logged and noted in the
+    record), and fails the query otherwise."""
+    height, width = rgb.shape[:2]
+    cam = query.camera
+    if (width, height) == (cam.width, cam.height):
+        return query, None
+    if abs(width / cam.width - height / cam.height) * max(width, height) <= 1.0:
+        note = (f"image file is {width}x{height}, the camera says {cam.width}x{cam.height}: "
+                "intrinsics rescaled to the file")
+        logger.warning("%s: %s", query.name, note)
+        return dataclasses.replace(query, camera=cam.rescaled(width, height), notes=query.notes + (note,)), None
+    return query, (f"image file is {width}x{height} but the camera is declared {cam.width}x{cam.height} "
+                   "(another aspect ratio): fix the query list")
+
+
 def _failure(query: QueryRecord, reason: str, prior=None, refs=None) -> QueryResult:
-    return QueryResult(query.name, False, prior, None, list(refs or []), reason=reason)
+    return QueryResult(query.name, False, prior, None, list(refs or []), reason=reason, notes=list(query.notes))
 
 
 def _retrieve(job: LocalizationJob, reader: MapReader, localizer: Localizer, query: QueryRecord,
@@ -178,11 +237,16 @@ def _retrieve(job: LocalizationJob, reader: MapReader, localizer: Localizer, que
 def prepare_query(job: LocalizationJob, reader: MapReader, localizer: Localizer, query: QueryRecord):
     """Retrieval and prior of one query: a failure (QueryResult), or the localize_batch item(s)
     (several for ``hypotheses``)."""
+    if query.error:
+        return _failure(query, query.error)
+    reason = query.camera.check()
+    if reason:
+        return _failure(query, reason)
     try:
         rgb = read_image(query.path)
     except ImageReadError as e:
         return _failure(query, str(e))
-    reason = query.camera.check()
+    query, reason = fit_camera(query, rgb)
     if reason:
         return _failure(query, reason)
     cache: Dict = {}
@@ -206,16 +270,12 @@ def prepare_query(job: LocalizationJob, reader: MapReader, localizer: Localizer,
         if prior is None:
             return _failure(query, f"no prior pose for this query in {job.prior_poses}", refs=dbs[:num])
         return [(query, dbs[:num], prior, rgb, cache)]
-    if job.prior != "top1":
-        raise ValueError(f"Unknown prior {job.prior!r}: use top1, average, hypotheses, poses or hloc.")
     return [(query, dbs[:num], reader.cam_from_world[dbs[0]], rgb, cache)]
 
 
 def _prepare_hloc(job: LocalizationJob, reader: MapReader, query: QueryRecord, rgb, cache):
     """Refinement mode from hloc's logs (official PoseRefiner): start from the PnP pose, use the
     references that gave the most inliers, optionally only the inlier points."""
-    if job.point_selection not in ("all", "inliers", "matched"):
-        raise ValueError(f"Unknown point selection {job.point_selection!r}: use all, inliers or matched.")
     log = _find_prior(_hloc_logs(job.hloc_logs), query.name)
     if log is None:
         return _failure(query, f"no hloc log for this query in {job.hloc_logs}")
@@ -249,7 +309,11 @@ def _prepare_hloc(job: LocalizationJob, reader: MapReader, query: QueryRecord, r
 def localize_queries(job: LocalizationJob, reader: MapReader, localizer: Localizer,
                      queries: List[QueryRecord]) -> List[QueryResult]:
     """Localize ``queries`` together: one LM batch per level and group of compatible queries.
-    For ``hypotheses``, each query keeps its successful hypothesis of lowest final cost."""
+
+    For ``hypotheses``, each query keeps the hypothesis whose refined pose has the most inliers
+    (confidence-weighted, ``pixloc.optim.evidence``). All hypotheses of a query use the same
+    points and features, so this compares like with like, which the final costs (means over
+    different sets of valid points) do not."""
     prepared = []
     for q in queries:
         try:
@@ -265,8 +329,8 @@ def localize_queries(job: LocalizationJob, reader: MapReader, localizer: Localiz
             results.append(p)
             continue
         candidates = [next(solved) for _ in p]
-        ok = [r for r in candidates if r.success]
-        results.append(min(ok, key=lambda r: r.cost) if ok else candidates[0])
+        refined = [r for r in candidates if r.evidence]
+        results.append(max(refined, key=lambda r: r.evidence["weighted_inliers"]) if refined else candidates[0])
     return results
 
 

@@ -1,6 +1,6 @@
 """The zarr map store: images, points, observations and per-model reference features.
 
-Layout (version 1, documented in docs/map_store.md):
+Layout (version 2, documented in docs/map_store.md):
 
     map.zarr/                     attrs: pixloc_map {version, chunk_rows, num_images, ...}
       images/name, camera, tags   (I,) str (camera and tags as JSON)
@@ -21,24 +21,46 @@ Rows are grouped by image and each image's block is padded to a multiple of
 ``chunk_rows``, so every chunk belongs to one image: workers writing
 different images never write the same chunk, and a build resumes image by
 image from ``status``.
+
+Version 2 checksums every chunk (zstd, then a CRC-32C codec): a flipped byte or a truncated
+chunk is an error naming its array, never silent garbage. ``open_store`` checks the layout
+(every array present, shapes that agree with the attributes) before anything is read.
 """
 
+import functools
+import hashlib
 import json
 from pathlib import Path
 from typing import Dict, List, Optional
 
 import numpy as np
 import zarr
+from zarr.codecs import Crc32cCodec, ZstdCodec
 
 from .features import FeatureConfig, ImageFeatures
 from .scene import CameraRecord, ImageRecord, Scene
 
-VERSION = 1
+VERSION = 2
 PENDING, DONE, FAILED = 0, 1, 2
+MAX_ROWS_PER_OBSERVATION = 64  # rows are observations plus padding to whole chunks: far fewer
+
+
+def _codecs():
+    """Compression then a CRC-32C checksum of each chunk (zarr v3 codecs)."""
+    return [ZstdCodec(level=3), Crc32cCodec()]
+
+
+def _array(group: zarr.Group, name: str, shape, chunks, dtype, **kwargs) -> zarr.Array:
+    return group.create_array(name, shape=shape, chunks=chunks, dtype=dtype, compressors=_codecs(), **kwargs)
 
 
 class StoreError(ValueError):
     """A store that does not exist, has another layout, or another model or config."""
+
+
+class StoreReadError(StoreError):
+    """A chunk of the store that cannot be read (corrupt, truncated, checksum mismatch):
+    fails the query that needed it, not the run."""
 
 
 def _padded(n: np.ndarray, chunk: int) -> np.ndarray:
@@ -55,7 +77,7 @@ def create_store(path, scene: Scene, chunk_rows: int = 256, overwrite: bool = Fa
         if list(root["images/name"][:]) != names or int(root.attrs["pixloc_map"]["num_observations"]) != len(
                 scene.obs_point):
             raise StoreError(f"{path} holds another map (other images or observations); "
-                             "choose another path or pass overwrite.")
+                             "choose another path or rebuild it with --overwrite.")
         return root
     order = np.lexsort((scene.obs_point, scene.obs_image))
     obs_image, obs_point, obs_xy = scene.obs_image[order], scene.obs_point[order], scene.obs_xy[order]
@@ -73,50 +95,129 @@ def create_store(path, scene: Scene, chunk_rows: int = 256, overwrite: bool = Fa
         "num_points": len(scene.points), "num_observations": int(len(obs_point)), "num_rows": rows,
         "source": source or {}}
     I = len(names)  # noqa: E741
-    root.create_array("images/name", shape=(I,), chunks=(I,), dtype=str)[:] = np.array(names)
-    root.create_array("images/camera", shape=(I,), chunks=(I,), dtype=str)[:] = np.array(
+    _array(root, "images/name", (I,), (I,), str)[:] = np.array(names)
+    _array(root, "images/camera", (I,), (I,), str)[:] = np.array(
         [im.camera.to_json() for im in scene.images])
-    root.create_array("images/tags", shape=(I,), chunks=(I,), dtype=str)[:] = np.array(
+    _array(root, "images/tags", (I,), (I,), str)[:] = np.array(
         [json.dumps(im.tags, sort_keys=True) for im in scene.images])
-    root.create_array("images/path", shape=(I,), chunks=(I,), dtype=str)[:] = np.array(
+    _array(root, "images/path", (I,), (I,), str)[:] = np.array(
         [str(im.path) for im in scene.images])
-    root.create_array("images/cam_from_world", shape=(I, 12), chunks=(I, 12), dtype="float64")[:] = np.stack(
+    _array(root, "images/cam_from_world", (I, 12), (I, 12), "float64")[:] = np.stack(
         [np.concatenate([np.asarray(im.cam_from_world)[:, :3].reshape(-1), np.asarray(im.cam_from_world)[:, 3]])
          for im in scene.images])
-    root.create_array("images/row_start", shape=(I,), chunks=(I,), dtype="int64")[:] = row_start
-    root.create_array("images/num_obs", shape=(I,), chunks=(I,), dtype="int64")[:] = num_obs
-    root.create_array("images/source_id", shape=(I,), chunks=(I,), dtype="int64")[:] = np.array(
+    _array(root, "images/row_start", (I,), (I,), "int64")[:] = row_start
+    _array(root, "images/num_obs", (I,), (I,), "int64")[:] = num_obs
+    _array(root, "images/source_id", (I,), (I,), "int64")[:] = np.array(
         [im.source_id for im in scene.images], dtype=np.int64)
     P = len(scene.points)
-    root.create_array("points/xyz", shape=(P, 3), chunks=(max(P, 1), 3), dtype="float64")[:] = scene.points
-    root.create_array("points/track_length", shape=(P,), chunks=(max(P, 1),), dtype="int32")[:] = scene.track_length
-    root.create_array("points/source_id", shape=(P,), chunks=(max(P, 1),), dtype="int64")[:] = scene.point_ids
+    _array(root, "points/xyz", (P, 3), (max(P, 1), 3), "float64")[:] = scene.points
+    _array(root, "points/track_length", (P,), (max(P, 1),), "int32")[:] = scene.track_length
+    _array(root, "points/source_id", (P,), (max(P, 1),), "int64")[:] = scene.point_ids
     point = np.full(rows, -1, dtype=np.int64)
     point[row] = obs_point
     xy = np.full((rows, 2), np.nan, dtype=np.float32)
     xy[row] = obs_xy
     chunk = max(chunk_rows * 64, 1)
-    root.create_array("observations/point", shape=(rows,), chunks=(chunk,), dtype="int64", fill_value=-1)[:] = point
-    root.create_array("observations/xy", shape=(rows, 2), chunks=(chunk, 2), dtype="float32")[:] = xy
+    _array(root, "observations/point", (rows,), (chunk,), "int64", fill_value=-1)[:] = point
+    _array(root, "observations/xy", (rows, 2), (chunk, 2), "float32")[:] = xy
     return root
 
 
 def open_store(path, mode: str = "r") -> zarr.Group:
+    """Open a map store after checking its layout (``check_layout``); a bad one is refused
+    with a StoreError that says what is wrong."""
     path = Path(path)
     if not path.exists():
         raise StoreError(f"Map store {path} does not exist.")
-    root = zarr.open_group(str(path), mode=mode)
-    meta = root.attrs.get("pixloc_map")
+    try:
+        root = zarr.open_group(str(path), mode=mode)
+        meta = root.attrs.get("pixloc_map")
+    except Exception as e:  # unreadable or invalid zarr.json  # noqa: BLE001
+        raise StoreError(f"{path} is not a readable zarr group: {type(e).__name__}: {e}") from None
     if not meta:
         raise StoreError(f"{path} is not a PixLoc map store.")
     if meta.get("version") != VERSION:
-        raise StoreError(f"{path} has map-store version {meta.get('version')}; this code reads version {VERSION}.")
+        raise StoreError(f"{path} has map-store version {meta.get('version')}; this code reads version {VERSION} "
+                         "(version 2 added chunk checksums): rebuild it with pixloc build-map --overwrite.")
+    check_layout(root, path)
     return root
 
 
+def _expected_arrays(meta: Dict) -> Dict[str, tuple]:
+    I, P, R = meta["num_images"], meta["num_points"], meta["num_rows"]  # noqa: E741
+    return {"images/name": (I,), "images/camera": (I,), "images/tags": (I,), "images/path": (I,),
+            "images/cam_from_world": (I, 12), "images/row_start": (I,), "images/num_obs": (I,),
+            "images/source_id": (I,), "points/xyz": (P, 3), "points/track_length": (P,),
+            "points/source_id": (P,), "observations/point": (R,), "observations/xy": (R, 2)}
+
+
+def _get(group: zarr.Group, name: str, path) -> zarr.Array:
+    try:
+        return group[name]
+    except Exception:  # missing, or metadata that does not parse  # noqa: BLE001
+        prefix = f"{group.path}/" if group.path else ""
+        raise StoreError(f"{path}: array {prefix}{name} is missing or its metadata is unreadable "
+                         "(a damaged or partly copied store).") from None
+
+
+def check_layout(root: zarr.Group, path) -> None:
+    """Refuse a store whose attributes contradict each other or its arrays (a missing array, a
+    shape that disagrees, absurd sizes), before any large read or allocation."""
+    meta = root.attrs["pixloc_map"]
+    keys = ("chunk_rows", "num_images", "num_points", "num_observations", "num_rows")
+    if not all(isinstance(meta.get(k), int) and meta[k] >= 0 for k in keys):
+        raise StoreError(f"{path}: map attributes {({k: meta.get(k) for k in keys})} must be counts (integers >= 0).")
+    I, R, chunk = meta["num_images"], meta["num_rows"], meta["chunk_rows"]  # noqa: E741
+    if chunk < 1 or not meta["num_observations"] <= R <= meta["num_observations"] + max(I, 1) * chunk:
+        raise StoreError(f"{path}: {R} rows for {meta['num_observations']} observations of {I} images in chunks "
+                         f"of {chunk}: the attributes contradict each other (a damaged store?).")
+    for name, shape in _expected_arrays(meta).items():
+        array = _get(root, name, path)
+        if tuple(array.shape) != shape:
+            raise StoreError(f"{path}: array {name} has shape {tuple(array.shape)}, the map attributes say {shape}.")
+
+
+def check_feature_group(group: zarr.Group, meta: Dict, path) -> None:
+    """Refuse a feature group whose arrays are missing or disagree with its config and dims."""
+    try:
+        dims = [int(d) for d in group.attrs["dims"]]
+        scales = len(group.attrs["config"]["image_scales"])
+    except (KeyError, TypeError, ValueError) as e:
+        raise StoreError(f"{path}: feature group {group.path} has no readable config or dims ({e}).") from None
+    I, R = meta["num_images"], meta["num_rows"]  # noqa: E741
+    expected = {"status": (I,), "reason": (I,)}
+    for k in range(scales):
+        for level, dim in enumerate(dims):
+            expected.update({f"s{k}/l{level}/features": (R, dim), f"s{k}/l{level}/confidences": (R,),
+                             f"s{k}/l{level}/valid": (R,)})
+    for name, shape in expected.items():
+        array = _get(group, name, path)
+        if tuple(array.shape) != shape:
+            raise StoreError(f"{path}: array {group.path}/{name} has shape {tuple(array.shape)}, expected {shape}.")
+    if _get(group, "global", path).shape[0] != I:
+        raise StoreError(f"{path}: array {group.path}/global has {group['global'].shape[0]} rows for {I} images.")
+
+
+@functools.lru_cache(maxsize=16)
+def _file_digest(path: str, size: int, mtime_ns: int) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()[:8]
+
+
 def feature_key(conf: FeatureConfig) -> str:
-    """The store group of a feature config: derived from it, so two configs never share one."""
-    name = Path(conf.model).stem if Path(conf.model).suffix else conf.model
+    """The store group of a feature config: derived from it, so two configs never share one.
+    A model file is named by its stem and the digest of its bytes: two different ``model.pt``
+    files never share a group."""
+    name = conf.model
+    if Path(conf.model).suffix:
+        path = Path(conf.model)
+        name = path.stem
+        if path.is_file():
+            st = path.stat()
+            name = f"{name}-{_file_digest(str(path.resolve()), st.st_size, st.st_mtime_ns)}"
     scales = "-".join(str(s) for s in conf.image_scales)
     dtype = "" if conf.dtype == "float16" else f"_{conf.dtype}"
     descriptor = "" if conf.descriptor == "gem" else f"_{conf.descriptor}"
@@ -144,16 +245,16 @@ def init_features(root: zarr.Group, conf: FeatureConfig, digest: str, dims: List
     I, R, chunk = meta["num_images"], meta["num_rows"], meta["chunk_rows"]  # noqa: E741
     group = root.create_group(f"features/{key}")
     group.attrs.update(expected)
-    group.create_array("status", shape=(I,), chunks=(1,), dtype="int8", fill_value=PENDING)
-    group.create_array("reason", shape=(I,), chunks=(1,), dtype=str)
+    _array(group, "status", (I,), (1,), "int8", fill_value=PENDING)
+    _array(group, "reason", (I,), (1,), str)
     D = descriptor_dim(conf.descriptor, dims[-1])
-    group.create_array("global", shape=(I, D), chunks=(1, D), dtype="float32", fill_value=0)
+    _array(group, "global", (I, D), (1, D), "float32", fill_value=0)
     for k in range(len(conf.image_scales)):
         for level, dim in enumerate(dims):
             g = f"s{k}/l{level}"
-            group.create_array(f"{g}/features", shape=(R, dim), chunks=(chunk, dim), dtype=conf.dtype, fill_value=0)
-            group.create_array(f"{g}/confidences", shape=(R,), chunks=(chunk,), dtype=conf.dtype, fill_value=0)
-            group.create_array(f"{g}/valid", shape=(R,), chunks=(chunk,), dtype="bool", fill_value=False)
+            _array(group, f"{g}/features", (R, dim), (chunk, dim), conf.dtype, fill_value=0)
+            _array(group, f"{g}/confidences", (R,), (chunk,), conf.dtype, fill_value=0)
+            _array(group, f"{g}/valid", (R,), (chunk,), "bool", fill_value=False)
     return group
 
 

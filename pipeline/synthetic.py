@@ -7,6 +7,7 @@ centre), so rendered pixels and projections agree by construction; textures are 
 functions of the 3D hit point, so they are consistent across views.
 """
 
+import logging
 from dataclasses import dataclass
 from pathlib import Path
 from typing import List, Tuple
@@ -15,6 +16,8 @@ import numpy as np
 import torch
 
 from .scene import CameraRecord, ImageRecord
+
+logger = logging.getLogger(__name__)
 
 CONDITIONS = ("day", "dusk", "night", "occluded")
 GROUND, PLASTER, BRICK, POLE, TRUNK, FOLIAGE, OCCLUDER = range(7)
@@ -305,8 +308,44 @@ def generate(root, conf: SyntheticConfig = SyntheticConfig(), num_references: in
                                                      list(camera.params)],
                             "cam_from_world": T.tolist(),
                             "tags": {"condition": condition, "split": "query", "area": area(T)}})
-    (root / "cameras.json").write_text(json.dumps({"config": conf.__dict__, "images": entries}, indent=1))
+    (root / "cameras.json").write_text(json.dumps(
+        {"config": conf.__dict__, "generation": _generation(conf, num_references, queries_per_condition, camera,
+                                                            query_depth, query_spread),
+         "images": entries}, indent=1))
     return root
+
+
+def _generation(conf: SyntheticConfig, num_references, queries_per_condition, camera: CameraRecord, query_depth,
+                query_spread) -> dict:
+    """Everything a generated dataset depends on, as stored in its cameras.json."""
+    import json
+    return json.loads(json.dumps({"config": dict(conf.__dict__), "num_references": num_references,
+                                  "queries_per_condition": queries_per_condition, "camera": camera.to_json(),
+                                  "query_depth": query_depth, "query_spread": query_spread}))
+
+
+def ensure_generated(root, conf: SyntheticConfig = SyntheticConfig(), num_references: int = 12,
+                     queries_per_condition: int = 2, camera: CameraRecord = CameraRecord(
+                         "PINHOLE", 640, 480, (500.0, 500.0, 320.0, 240.0)), query_depth: bool = False,
+                     query_spread: float = 1.0) -> Path:
+    """The dataset of these settings at ``root``: reused when the one there was generated with
+    the same settings, generated anew (replacing it) otherwise."""
+    import json
+    import shutil
+    root = Path(root)
+    wanted = _generation(conf, num_references, queries_per_condition, camera, query_depth, query_spread)
+    meta = root / "cameras.json"
+    if meta.is_file():
+        try:
+            if json.loads(meta.read_text()).get("generation") == wanted:
+                return root
+        except ValueError:
+            pass
+        logger.info("%s was generated with other settings: generating it again.", root)
+        meta.unlink()
+        for sub in ("mapping", "query"):
+            shutil.rmtree(root / sub, ignore_errors=True)
+    return generate(root, conf, num_references, queries_per_condition, camera, query_depth, query_spread)
 
 
 def read_views(root) -> List[ImageRecord]:

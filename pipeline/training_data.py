@@ -23,7 +23,7 @@ from pixloc.refiner import PairBatch
 from .depth import rgbd_scene
 from .images import read_image, resize_max, to_tensor
 from .scene import CameraRecord, ImageRecord, Scene, pose_from_matrix
-from .synthetic import SyntheticConfig, generate, read_views
+from .synthetic import SyntheticConfig, ensure_generated, read_views
 
 logger = logging.getLogger(__name__)
 
@@ -130,13 +130,12 @@ class PairDataset:
 
 def synthetic_scene(root, seed: int, camera: CameraRecord, num_references: int = 24,
                     queries_per_condition: int = 8, textures: Sequence[str] = ()) -> Scene:
-    """A generated synthetic dataset under ``root`` (reused if present) as a Scene of all its
+    """A generated synthetic dataset under ``root`` (reused if generated with the same settings) as a Scene of all its
     views, references and queries in every condition, with points from their depth.
     ``textures``: photos to cover some facades with (see ``SyntheticConfig``)."""
     root = Path(root)
-    if not (root / "cameras.json").is_file():
-        generate(root, SyntheticConfig(seed=seed, textures=tuple(str(t) for t in textures)), num_references,
-                 queries_per_condition, camera, query_depth=True)
+    ensure_generated(root, SyntheticConfig(seed=seed, textures=tuple(str(t) for t in textures)), num_references,
+                     queries_per_condition, camera, query_depth=True)
     images = synthetic_images(root)
     return rgbd_scene(images, method="frames", stride=8, min_track_length=2)
 

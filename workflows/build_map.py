@@ -8,7 +8,6 @@ an interrupted build resumes with what is missing.
 """
 
 import logging
-import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, List, Optional
@@ -18,6 +17,8 @@ import numpy as np
 from pipeline.build import ImageResult, extract_features, network, pending_images, write_structure
 from pipeline.features import FeatureConfig
 from pipeline.scene import Scene
+
+from . import executor
 
 logger = logging.getLogger(__name__)
 
@@ -34,6 +35,7 @@ class BuildPlan:
     device: str = "cpu"
     chunk_rows: int = 256
     source: Dict = field(default_factory=dict)
+    overwrite: bool = False
 
     def expected_bytes(self) -> int:
         """Approximate store size: padded rows x (features f16 + confidence f16 + valid) per scale and level."""
@@ -47,7 +49,7 @@ class BuildPlan:
         n_obs = len(self.scene.obs_point)
         todo = sum(len(b) for b in self.batches)
         lines = [
-            f"map store      {self.store}",
+            f"map store      {self.store}" + (" (overwritten)" if self.overwrite else ""),
             f"source         {self.source}",
             f"features       {self.conf.to_dict()} on {self.device}",
             "stages:",
@@ -60,19 +62,19 @@ class BuildPlan:
 
 
 def plan_build(scene: Scene, store, conf: FeatureConfig, *, batch_size: int = 1, device: str = "cpu",
-               chunk_rows: int = 256, source: Optional[Dict] = None) -> BuildPlan:
-    """Plan a build; images already done in an existing store are not planned again."""
+               chunk_rows: int = 256, source: Optional[Dict] = None, overwrite: bool = False) -> BuildPlan:
+    """Plan a build; images already done in an existing store are not planned again (all are
+    with ``overwrite``, which rebuilds the store)."""
     store = Path(store)
-    todo = pending_images(store, conf) if store.exists() else list(range(len(scene.images)))
+    todo = pending_images(store, conf) if store.exists() and not overwrite else list(range(len(scene.images)))
     batches = [todo[i:i + batch_size] for i in range(0, len(todo), batch_size)]
     dims = list(network(conf.model, "cpu")[0].output_dims)
-    return BuildPlan(scene, store, conf, batches, dims, device, chunk_rows, source or {})
+    return BuildPlan(scene, store, conf, batches, dims, device, chunk_rows, source or {}, overwrite)
 
 
 def run_sync(plan: BuildPlan, progress: bool = False) -> List[ImageResult]:
     """Run the plan in this process."""
-    write_structure(plan.scene, plan.store, plan.conf, chunk_rows=plan.chunk_rows, source=plan.source,
-                    device=plan.device)
+    _structure(plan)
     batches = pending_batches(plan)
     results = []
     iterator = batches
@@ -84,6 +86,12 @@ def run_sync(plan: BuildPlan, progress: bool = False) -> List[ImageResult]:
     return results
 
 
+def _structure(plan: BuildPlan) -> None:
+    write_structure(plan.scene, plan.store, plan.conf, chunk_rows=plan.chunk_rows, source=plan.source,
+                    device=plan.device, overwrite=plan.overwrite)
+    plan.overwrite = False  # done once: the tasks then resume like any build
+
+
 def pending_batches(plan: BuildPlan) -> List[List[int]]:
     """The plan's batches less images finished since planning (or refused at the structure stage)."""
     todo = set(pending_images(plan.store, plan.conf))
@@ -93,18 +101,17 @@ def pending_batches(plan: BuildPlan) -> List[List[int]]:
 
 def run_dask(plan: BuildPlan, client, progress: bool = False) -> List[ImageResult]:
     """Run the plan on a dask.distributed client: one task per batch, retried if its worker dies."""
-    write_structure(plan.scene, plan.store, plan.conf, chunk_rows=plan.chunk_rows, source=plan.source,
-                    device=plan.device)
-    resources = {"GPU": 1} if plan.device.startswith("cuda") else None
-    run = uuid.uuid4().hex[:8]  # keys unique per run: a key seen before would return its old result
-    futures = [client.submit(extract_features, str(plan.store), plan.conf, batch, device=plan.device,
-                             key=f"features-{batch[0]}-{len(batch)}-{run}", pure=False, retries=3,
-                             resources=resources)
-               for batch in pending_batches(plan)]
-    if progress and futures:
-        from distributed import progress as dask_progress
-        dask_progress(futures)
-    results = []
-    for batch_results in client.gather(futures, errors="raise"):
-        results += batch_results
-    return results
+    _structure(plan)
+    batches = pending_batches(plan)
+    bar = None
+    if progress and batches:
+        from tqdm import tqdm
+        bar = tqdm(total=sum(len(b) for b in batches), desc="features", unit="image")
+    calls = [(str(plan.store), plan.conf, batch, plan.device) for batch in batches]
+    try:
+        done = executor.run_dask(client, extract_features, calls, "features", plan.device,
+                                 on_done=(lambda r: bar.update(len(r))) if bar else None)
+    finally:
+        if bar:
+            bar.close()
+    return [r for batch_results in done for r in batch_results]

@@ -22,6 +22,12 @@ def build_parser() -> argparse.ArgumentParser:
         "build-map", help="build a map store (points, observations, reference features)",
         description="Build a map store from a COLMAP model, images, known poses or RGB-D frames."))
 
+    from .cli_build_map import add_check_store_arguments
+    add_check_store_arguments(sub.add_parser(
+        "check-store", help="verify every chunk of a map store (checksums, layout)",
+        description="Read and decode every chunk of a map store, checking its CRC-32C and the layout; "
+                    "bad chunks are listed with their array and images. Exit status 1 if any is bad."))
+
     from .cli_localize import add_arguments as localize_arguments
     from .cli_localize import add_evaluate_arguments
     localize_arguments(sub.add_parser("localize", help="localize queries against a map store",
@@ -49,10 +55,12 @@ def build_parser() -> argparse.ArgumentParser:
     from .benchmarks import build_map as bench_build_map
     from .benchmarks import lm as bench_lm
     from .benchmarks import localize as bench_localize
+    from .benchmarks import verification as bench_verification
     for name, module, text in [
             ("lm", bench_lm, "LM iterations per second, batched vs one problem at a time"),
             ("build-map", bench_build_map, "map building: images/s and bytes per observation, 1 vs 2 workers"),
-            ("localize", bench_localize, "queries/s with stored features vs the official re-extraction")]:
+            ("localize", bench_localize, "queries/s with stored features vs the official re-extraction"),
+            ("verification", bench_verification, "precision and rejections of pose verification per threshold")]:
         p = bench_sub.add_parser(name, help=text)
         module.add_arguments(p)
         p.set_defaults(func=module.main)

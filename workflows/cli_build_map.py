@@ -7,9 +7,14 @@ from collections import Counter
 from pathlib import Path
 
 from pipeline.features import FeatureConfig
+from pixloc.nets.registry import DEFAULT_MODEL
 
+from . import executor
 from .build_map import plan_build, run_dask, run_sync
 from .sources import KINDS, MapSource, load_scene
+
+_F = FeatureConfig()
+BUILD_DEFAULTS = {"resize": _F.resize, "image_scales": list(_F.image_scales), "pad": _F.pad}
 
 logger = logging.getLogger(__name__)
 
@@ -26,10 +31,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="posetxt: pinhole intrinsics of colour and depth (COLMAP convention)")
     p.add_argument("--depth-scale", type=float, default=1e-3, help="posetxt: depth units to scene units")
     p.add_argument("--depth-ext", default=".png", help="posetxt: depth file extension")
-    p.add_argument("--model", default="lite0-imagenet", help="feature network name or checkpoint path")
-    p.add_argument("--resize", type=int, default=1024, help="longer image side at image scale 1")
-    p.add_argument("--image-scales", type=int, nargs="+", default=[4, 1])
-    p.add_argument("--pad", type=int, default=2, help="interpolation margin in feature pixels")
+    p.add_argument("--model", default=DEFAULT_MODEL,
+                   help=f"feature network name or model file (default: the shipped {DEFAULT_MODEL})")
+    p.add_argument("--resize", type=int, help=f"longer image side at image scale 1 (default {_F.resize})")
+    p.add_argument("--image-scales", type=int, nargs="+", help=f"default {list(_F.image_scales)}")
+    p.add_argument("--pad", type=int, help=f"interpolation margin in feature pixels (default {_F.pad})")
     p.add_argument("--descriptor", choices=["gem", "grid"], default="gem",
                    help="global descriptor for retrieval (gem pooling, or a 2x3 grid of mean-centred features)")
     p.add_argument("--chunk-rows", type=int, default=256)
@@ -39,40 +45,37 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scheduler", help="address of an existing Dask scheduler (default: a local cluster)")
     p.add_argument("--workers", type=int, default=2, help="worker processes of the local cluster")
     p.add_argument("--sync", action="store_true", help="run in this process, without Dask")
+    p.add_argument("--overwrite", action="store_true", help="rebuild a store that holds another map or features")
     p.add_argument("--dry-run", action="store_true", help="print the plan and exit")
     p.add_argument("--preset", help="dataset preset with the paper's settings (see workflows/presets)")
     p.set_defaults(func=main)
-    p.set_defaults(_parser_defaults={a.dest: a.default for a in p._actions})
+
+
+def _resolved(path):
+    return Path(path).expanduser().resolve() if path is not None else None
 
 
 def main(args: argparse.Namespace) -> int:
-    if args.preset:
-        from . import presets
-        presets.apply(args, presets.load(args.preset), args._parser_defaults)
-    source = MapSource(args.kind, args.path, args.images, tuple(args.sequences), args.rgbd_points, args.densify,
-                       tuple(args.intrinsics), args.depth_scale, args.depth_ext)
-    conf = FeatureConfig(args.model, args.resize, tuple(args.image_scales), args.pad, descriptor=args.descriptor)
-    work_dir = args.work_dir or args.store.with_suffix(".work")
+    from .cli_localize import resolve
+    resolve(args, BUILD_DEFAULTS)
+    model = str(_resolved(args.model)) if Path(args.model).suffix else args.model
+    store = _resolved(args.store)
+    source = MapSource(args.kind, _resolved(args.path), _resolved(args.images), tuple(args.sequences),
+                       args.rgbd_points, args.densify, tuple(args.intrinsics), args.depth_scale, args.depth_ext)
+    conf = FeatureConfig(model, args.resize, tuple(args.image_scales), args.pad, descriptor=args.descriptor)
+    work_dir = _resolved(args.work_dir) or store.with_suffix(".work")
     t0 = time.time()
     scene = load_scene(source, work_dir)
-    plan = plan_build(scene, args.store, conf, batch_size=args.batch_size, device=args.device,
-                      chunk_rows=args.chunk_rows, source=source.to_dict())
+    plan = plan_build(scene, store, conf, batch_size=args.batch_size, device=args.device,
+                      chunk_rows=args.chunk_rows, source=source.to_dict(), overwrite=args.overwrite)
     print(plan.describe())
     if args.dry_run:
         return 0
     if args.sync:
         results = run_sync(plan, progress=True)
     else:
-        from distributed import Client, LocalCluster
-        if args.scheduler:
-            client = Client(args.scheduler)
-        else:
-            resources = {"GPU": 1} if args.device.startswith("cuda") else None
-            cluster = LocalCluster(n_workers=args.workers, threads_per_worker=1, processes=True,
-                                   resources=resources, dashboard_address=":0")
-            client = Client(cluster)
-        print(f"Dask dashboard: {client.dashboard_link}")
-        with client:
+        with executor.dask_client(args.scheduler, args.workers, args.device) as client:
+            print(f"Dask dashboard: {client.dashboard_link}")
             results = run_dask(plan, client, progress=True)
     counts = Counter(r.status for r in results)
     already = len(scene.images) - sum(len(b) for b in plan.batches) + counts.get("skipped", 0)
@@ -82,3 +85,16 @@ def main(args: argparse.Namespace) -> int:
         if r.status == "failed":
             print(f"  failed: {r.name}: {r.reason}")
     return 0
+
+
+def add_check_store_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("store", type=Path, help="a map store (.zarr folder)")
+    p.set_defaults(func=check_store_main)
+
+
+def check_store_main(args: argparse.Namespace) -> int:
+    """Verify every chunk (checksums) and the layout; exit 1 when anything is bad."""
+    from pipeline.store_check import check_store
+    report = check_store(args.store, progress=lambda name: logger.debug("checking %s", name))
+    print(report.summary())
+    return 0 if report.ok else 1

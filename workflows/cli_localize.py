@@ -1,20 +1,42 @@
-"""``pixloc localize`` and ``pixloc evaluate``."""
+"""``pixloc localize``, ``pixloc evaluate`` and ``pixloc report``.
+
+Options that a dataset preset can set default to ``None`` on the parser and are resolved in
+one place (``resolve``): the command line, then the preset, then the built-in default of the
+configs (``LOCALIZE_DEFAULTS``). Every path is resolved once, here, and recorded absolute.
+"""
 
 import argparse
-import json
+import logging
 import time
 from collections import Counter
 from pathlib import Path
+from typing import Dict, Optional
 
-from pipeline.evaluate import DEFAULT_THRESHOLDS, INDOOR_THRESHOLDS, evaluate
+import numpy as np
+
+from pipeline.evaluate import DEFAULT_THRESHOLDS, INDOOR_THRESHOLDS, evaluate, fmt, parse_thresholds, to_json
 from pipeline.features import FeatureConfig
 from pipeline.localize import LocalizerConfig
-from pipeline.results import read_records
-from pipeline.shard import LocalizationJob, RetrievalConfig
+from pipeline.results import outcome, read_records
+from pipeline.shard import POINT_SELECTIONS, PRIORS, LocalizationJob, RetrievalConfig
 from pipeline.store import StoreError, open_store
+from pipeline.verify import VerificationConfig
 
+from . import executor
 from .localize import plan_localization, run_dask, run_sync
 from .sources import QUERY_KINDS, load_queries
+
+logger = logging.getLogger(__name__)
+_L, _R = LocalizerConfig(), RetrievalConfig()
+LOCALIZE_DEFAULTS = {"prior": "top1", "point_selection": "all", "min_points": _L.min_points, "num_dbs": _L.num_dbs,
+                     "average_observations": _L.average_observations, "iters": _L.num_iters,
+                     "retrieval_k": _R.k, "same_tag": None, "levels": None, "scales": None,
+                     "min_track_length": _L.min_track_length,
+                     "min_confidence": _L.verification.min_confidence}
+
+
+def _absolute(path: Optional[Path]) -> Optional[str]:
+    return str(Path(path).expanduser().resolve()) if path is not None else None
 
 
 def add_query_arguments(p: argparse.ArgumentParser) -> None:
@@ -26,42 +48,60 @@ def add_query_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    d = LOCALIZE_DEFAULTS
     add_query_arguments(p)
     p.add_argument("--store", type=Path, required=True, help="map store built by pixloc build-map")
     p.add_argument("--features", help="feature group of the store (default: its only one)")
     p.add_argument("--output", type=Path, required=True, help="output folder (records, poses, shards)")
     p.add_argument("--pairs", type=Path, help="retrieval pairs file (default: global descriptors)")
-    p.add_argument("--retrieval-k", type=int, default=10)
+    p.add_argument("--retrieval-k", type=int, help=f"references retrieved (default {d['retrieval_k']})")
     p.add_argument("--same-tag", help="restrict references to those sharing this tag with the query")
     p.add_argument("--descriptors", type=Path, help="hloc HDF5 global descriptors for retrieval (e.g. NetVLAD)")
-    p.add_argument("--prior", choices=["top1", "average", "hypotheses", "poses", "hloc"], default="top1",
-                   help="hloc: refinement mode from an hloc _logs.pkl (its PnP poses and inliers)")
+    p.add_argument("--prior", choices=PRIORS, help=f"pose prior (default {d['prior']}); hloc: refinement mode "
+                   "from an hloc _logs.pkl (its PnP poses and inliers)")
     p.add_argument("--prior-poses", type=Path, help="refinement mode: poses file of another pipeline")
     p.add_argument("--hloc-logs", type=Path, help="refinement mode: hloc localization logs (_logs.pkl); "
                    "the store must be built from the SfM model hloc localized against")
-    p.add_argument("--point-selection", choices=["all", "inliers", "matched"], default="all",
-                   help="with --prior hloc: all points of the references, or hloc's PnP inliers (paper) or matches")
-    p.add_argument("--min-points", type=int, default=10, help="fewer 3D points fails a query (official: 10, "
-                   "100 in refinement mode)")
+    p.add_argument("--point-selection", choices=POINT_SELECTIONS,
+                   help="with --prior hloc: all points of the references (default), or hloc's PnP inliers (paper) "
+                        "or matches")
+    p.add_argument("--min-points", type=int, help=f"fewer 3D points fails a query (default {d['min_points']}, "
+                   "official; 100 in refinement mode)")
+    p.add_argument("--min-track-length", type=int, help="leave out points seen by fewer map images "
+                   f"(default {d['min_track_length']}, official; 2 keeps the points of two-view maps)")
     p.add_argument("--levels", type=int, nargs="+", help="optimise only these levels (refinement mode: 0 1)")
     p.add_argument("--scales", type=int, nargs="+", help="run only these of the store's image scales "
                    "(refinement mode: 1)")
-    p.add_argument("--num-dbs", type=int, default=5, help="reference images per query")
-    p.add_argument("--average-observations", action="store_true")
-    p.add_argument("--iters", type=int, default=100, help="LM iterations per level")
-    p.add_argument("--shard-size", type=int, default=8)
+    p.add_argument("--num-dbs", type=int, help=f"reference images per query (default {d['num_dbs']})")
+    p.add_argument("--average-observations", action="store_true", default=None,
+                   help="one residual per point, confidence-weighted over references")
+    p.add_argument("--iters", type=int, help=f"LM iterations per level (default {d['iters']})")
+    p.add_argument("--min-confidence", type=float, help="verification: refinements with a lower confidence are "
+                   f"rejected and keep their prior (default {d['min_confidence']}, docs/verification.md)")
+    p.add_argument("--no-verify", action="store_true", help="report every converged refinement as a success "
+                   "(official PixLoc behaviour)")
+    p.add_argument("--shard-size", type=int, default=8, help="queries per task (default 8)")
     p.add_argument("--device", default="cpu")
     p.add_argument("--scheduler", help="address of an existing Dask scheduler")
-    p.add_argument("--workers", type=int, default=2)
+    p.add_argument("--workers", type=int, default=2, help="worker processes of the local cluster (default 2)")
     p.add_argument("--sync", action="store_true", help="run in this process, without Dask")
-    p.add_argument("--dry-run", action="store_true")
+    p.add_argument("--keep-failures", action="store_true",
+                   help="a rerun keeps earlier failures instead of retrying them")
+    p.add_argument("--overwrite", action="store_true", help="redo a run whose output folder holds another job")
+    p.add_argument("--dry-run", action="store_true", help="print the plan and exit; writes nothing")
     p.add_argument("--preset", help="dataset preset with the paper's settings (see workflows/presets)")
     p.set_defaults(func=main)
-    p.set_defaults(_parser_defaults={a.dest: a.default for a in p._actions})
+
+
+def resolve(args: argparse.Namespace, defaults: Dict) -> None:
+    """Explicit options, then the preset, then built-in defaults."""
+    from . import presets
+    presets.apply(args, presets.load(args.preset) if args.preset else None, defaults)
 
 
 def store_feature_config(store: Path, key=None) -> FeatureConfig:
-    groups = sorted(open_store(store)["features"].group_keys())
+    root = open_store(store)
+    groups = sorted(root["features"].group_keys()) if "features" in root else []
     if not groups:
         raise StoreError(f"{store} has no features: run pixloc build-map first.")
     if key is None and len(groups) > 1:
@@ -69,92 +109,133 @@ def store_feature_config(store: Path, key=None) -> FeatureConfig:
     key = key or groups[0]
     if key not in groups:
         raise StoreError(f"{store} has no feature group {key!r} (it has {groups}).")
-    conf = dict(open_store(store)[f"features/{key}"].attrs["config"])
+    conf = dict(root[f"features/{key}"].attrs["config"])
     conf["image_scales"] = tuple(conf["image_scales"])
     return FeatureConfig(**conf)
 
 
-def main(args: argparse.Namespace) -> int:
-    if args.preset:
-        from . import presets
-        presets.apply(args, presets.load(args.preset), args._parser_defaults)
-    fconf = store_feature_config(args.store, args.features)
+def build_job(args: argparse.Namespace) -> LocalizationJob:
+    store = Path(_absolute(args.store))
+    fconf = store_feature_config(store, args.features)
     if args.scales and not set(args.scales) <= set(fconf.image_scales):
         raise ValueError(f"--scales {args.scales}: the store's features have image scales {list(fconf.image_scales)}.")
+    verification = VerificationConfig(enabled=not args.no_verify, min_confidence=args.min_confidence)
     job = LocalizationJob(
-        str(args.store), fconf, fconf.model,
-        LocalizerConfig(num_dbs=args.num_dbs, average_observations=args.average_observations, num_iters=args.iters,
-                        min_points=args.min_points),
+        str(store), fconf, fconf.model,
+        LocalizerConfig(num_dbs=args.num_dbs, average_observations=bool(args.average_observations),
+                        num_iters=args.iters, min_track_length=args.min_track_length, min_points=args.min_points,
+                        verification=verification),
         RetrievalConfig("pairs" if args.pairs else "hloc" if args.descriptors else "global",
-                        str(args.pairs) if args.pairs else None, args.retrieval_k, args.same_tag,
-                        str(args.descriptors) if args.descriptors else None),
-        prior=args.prior, device=args.device, prior_poses=str(args.prior_poses) if args.prior_poses else None,
-        levels=tuple(args.levels) if args.levels else None, hloc_logs=str(args.hloc_logs) if args.hloc_logs else None,
+                        _absolute(args.pairs), args.retrieval_k, args.same_tag, _absolute(args.descriptors)),
+        prior=args.prior, device=args.device, prior_poses=_absolute(args.prior_poses),
+        levels=tuple(args.levels) if args.levels else None, hloc_logs=_absolute(args.hloc_logs),
         point_selection=args.point_selection, scales=tuple(args.scales) if args.scales else None)
-    if args.prior == "poses" and not args.prior_poses:
-        raise ValueError("--prior poses needs --prior-poses FILE.")
-    if args.prior == "hloc" and not args.hloc_logs:
-        raise ValueError("--prior hloc needs --hloc-logs FILE (hloc's <results>_logs.pkl).")
-    if args.point_selection != "all" and args.prior != "hloc":
-        raise ValueError("--point-selection inliers/matched needs --prior hloc (the inliers come from its logs).")
-    queries = load_queries(args.query_kind, args.query_path, args.query_images, tuple(args.query_sequences),
-                           args.query_names)
-    plan = plan_localization(job, queries, args.output, args.shard_size)
+    job.validate()
+    return job
+
+
+def _load_queries(args):
+    return load_queries(args.query_kind, args.query_path.expanduser().resolve(),
+                        args.query_images.expanduser().resolve() if args.query_images else None,
+                        tuple(args.query_sequences), args.query_names)
+
+
+def main(args: argparse.Namespace) -> int:
+    resolve(args, LOCALIZE_DEFAULTS)
+    job = build_job(args)
+    queries = _load_queries(args)
+    output = Path(_absolute(args.output))
+    plan = plan_localization(job, queries, output, args.shard_size, keep_failures=args.keep_failures,
+                             overwrite=args.overwrite)
     print(plan.describe())
     if args.dry_run:
         return 0
+    counts = plan.counts()
     t0 = time.time()
-    if args.sync:
+    if not plan.todo:
+        print(f"{counts['queries']} of {counts['queries']} queries already done, nothing to do.")
+        records = run_sync(plan)  # merges the finished shards (poses.txt, failed.txt) and nothing else
+    elif args.sync:
         records = run_sync(plan, progress=True)
     else:
-        from distributed import Client, LocalCluster
-        client = Client(args.scheduler) if args.scheduler else Client(LocalCluster(
-            n_workers=args.workers, threads_per_worker=1, processes=True, dashboard_address=":0"))
-        print(f"Dask dashboard: {client.dashboard_link}")
-        with client:
+        with executor.dask_client(args.scheduler, args.workers, args.device) as client:
+            print(f"Dask dashboard: {client.dashboard_link}")
             records = run_dask(plan, client, progress=True)
-    counts = Counter("success" if r["success"] else "failed" for r in records)
-    print(f"\n{len(records)} queries in {time.time() - t0:.1f} s: {counts['success']} refined, "
-          f"{counts['failed']} failed (kept their prior). -> {args.output / 'poses.txt'}")
-    for reason, n in Counter(r["reason"] for r in records if not r["success"]).most_common(5):
+    by = Counter(outcome(r) for r in records)
+    print(f"\n{len(records)} queries ({counts['to_run']} run in {time.time() - t0:.1f} s, {counts['reused_queries']} "
+          f"reused): {by['refined']} refined, {by['rejected']} rejected by verification, {by['failed']} failed "
+          f"(those keep their prior). -> {output / 'poses.txt'}, {output / 'failed.txt'}")
+    for reason, n in Counter(r["reason"].split(" (")[0] for r in records if not r["success"]).most_common(5):
         print(f"  {n} x {reason}")
+    dropped = Counter()
+    for r in records:
+        dropped.update(r.get("filters", {}))
+    if dropped:
+        print(f"  point filters, over all queries: {dropped['short_tracks']} points seen by fewer than "
+              f"{job.localizer.min_track_length} map images left out (--min-track-length), "
+              + ", ".join(f"{v} observations invalid at image scale {k.rsplit('_s', 1)[1]}"
+                          for k, v in dropped.items() if k.startswith("invalid_observations")))
     return 0
 
 
 def add_evaluate_arguments(p: argparse.ArgumentParser) -> None:
     add_query_arguments(p)
     p.add_argument("--output", type=Path, required=True, help="a pixloc localize output folder")
-    p.add_argument("--indoor", action="store_true", help="thresholds (5 cm, 5 deg) as for 7-Scenes/Cambridge")
-    p.add_argument("--preset", help="take the dataset preset's thresholds")
+    add_threshold_arguments(p)
+    p.add_argument("--ground-truth", type=Path, help="ground-truth poses file (name qw qx qy qz tx ty tz, "
+                   "cam_from_world), for query lists that carry none")
     p.set_defaults(func=evaluate_main)
 
 
-def evaluate_main(args: argparse.Namespace) -> int:
-    queries = load_queries(args.query_kind, args.query_path, args.query_images, tuple(args.query_sequences),
-                           args.query_names)
-    gt = {q.name: q.cam_from_world_gt for q in queries if q.cam_from_world_gt is not None}
-    if not gt:
-        raise ValueError("These queries have no ground truth to evaluate against.")
-    records = read_records(args.output / "records.jsonl")
-    thresholds = INDOOR_THRESHOLDS if args.indoor else DEFAULT_THRESHOLDS
+def add_threshold_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--thresholds", nargs="+", metavar="DIST,DEG",
+                   help="recall thresholds, e.g. 0.05,1 0.25,2 (scene units, degrees)")
+    p.add_argument("--indoor", action="store_true", help="thresholds (5 cm, 5 deg) as for 7-Scenes/Cambridge")
+    p.add_argument("--preset", help="take the dataset preset's thresholds")
+
+
+def thresholds_of(args: argparse.Namespace):
+    if args.thresholds:
+        return parse_thresholds(args.thresholds)
     if args.preset:
         from . import presets
-        thresholds = tuple(tuple(t) for t in presets.load(args.preset)["thresholds"])
-    summary = evaluate(records, gt, thresholds)
-    (args.output / "evaluation.json").write_text(json.dumps(summary, indent=1))
+        return tuple(tuple(t) for t in presets.load(args.preset)["thresholds"])
+    return INDOOR_THRESHOLDS if args.indoor else DEFAULT_THRESHOLDS
+
+
+def ground_truth(args: argparse.Namespace, queries) -> Dict[str, Optional[np.ndarray]]:
+    """The queries' ground truth (None where they have none), or that of ``--ground-truth``."""
+    if args.ground_truth is not None:
+        from pipeline.shard import _find_prior, _prior_poses
+        poses = _prior_poses(str(args.ground_truth.expanduser().resolve()))
+        return {q.name: _find_prior(poses, q.name) for q in queries}
+    return {q.name: q.cam_from_world_gt for q in queries}
+
+
+def evaluate_main(args: argparse.Namespace) -> int:
+    queries = _load_queries(args)
+    gt = ground_truth(args, queries)
+    if all(T is None for T in gt.values()):
+        raise ValueError("These queries have no ground truth to evaluate against: pass --ground-truth POSES.")
+    records = read_records(args.output / "records.jsonl")
+    summary = evaluate(records, gt, thresholds_of(args))
+    (args.output / "evaluation.json").write_text(to_json(summary))
     print(format_summary(summary))
     return 0
 
 
 def format_summary(summary) -> str:
     lines = []
+    missing = summary["all"].get("no_ground_truth", 0)
     for key, s in summary.items():
         for which in ("prior", "refined"):
             r = s[which]
-            recalls = "  ".join(f"{k[len('recall@'):]}: {v * 100:5.1f}%" for k, v in r.items()
-                                if k.startswith("recall@"))
-            lines.append(f"{key:<28} {which:<8} n={r['count']:<4} median {r['median_t']:.3f} / "
-                         f"{r['median_R']:.2f} deg  {recalls}")
+            recalls = "  ".join(f"{k[len('recall@'):]}: {fmt(100 * v if v is not None else None, '5.1f')}%"
+                                for k, v in r.items() if k.startswith("recall@"))
+            lines.append(f"{key:<28} {which:<8} n={r['count']:<4} median {fmt(r['median_t'], '.3f')} / "
+                         f"{fmt(r['median_R'], '.2f')} deg  {recalls}")
+    if missing:
+        lines.append(f"({missing} queries without ground truth not evaluated)")
     return "\n".join(lines)
 
 
@@ -162,14 +243,15 @@ def add_report_arguments(p: argparse.ArgumentParser) -> None:
     add_query_arguments(p)
     p.add_argument("--output", type=Path, required=True, help="a pixloc localize output folder")
     p.add_argument("--examples", type=int, default=3, help="example queries shown")
-    p.add_argument("--indoor", action="store_true", help="thresholds (5 cm, 5 deg)")
+    add_threshold_arguments(p)
+    p.add_argument("--ground-truth", type=Path, help="ground-truth poses file, for query lists that carry none")
     p.set_defaults(func=report_main)
 
 
 def report_main(args: argparse.Namespace) -> int:
     from .report import make_report
-    queries = load_queries(args.query_kind, args.query_path, args.query_images, tuple(args.query_sequences),
-                           args.query_names)
-    path = make_report(args.output, queries, args.examples, INDOOR_THRESHOLDS if args.indoor else None)
+    queries = _load_queries(args)
+    gt = ground_truth(args, queries)
+    path = make_report(args.output, queries, args.examples, thresholds_of(args), ground_truth=gt)
     print(f"report: {path}")
     return 0

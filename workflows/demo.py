@@ -23,9 +23,9 @@ from pipeline.features import FeatureConfig
 from pipeline.localize import LocalizerConfig
 from pipeline.scene import CameraRecord
 from pipeline.shard import LocalizationJob, RetrievalConfig
-from pipeline.synthetic import SyntheticConfig, generate, read_synthetic
+from pipeline.synthetic import SyntheticConfig, ensure_generated, read_synthetic
 
-from . import build_map, localize
+from . import build_map, executor, localize
 from .report import make_report
 
 logger = logging.getLogger(__name__)
@@ -43,13 +43,12 @@ def run_demo(output: Path, model: str = "pixloc-lite0", num_references: int = 30
              workers: int = 2, sync: bool = False, num_iters: int = 50, seed: int = DEMO_SEED,
              query_spread: float = 0.5, prior: str = "top1", client=None) -> Dict[str, Dict]:
     """Run the demo into ``output``; returns the evaluation summary (per condition)."""
-    output = Path(output)
+    output = Path(output).resolve()  # recorded absolute in job.json
     t_start = _stage(1, f"generating the synthetic scene (seed {seed}): {num_references} references, "
                         f"{queries_per_condition} queries per condition")
     root = output / "scene"
-    if not (root / "cameras.json").is_file():
-        generate(root, SyntheticConfig(seed=seed), num_references, queries_per_condition, DEMO_CAMERA,
-                 query_spread=query_spread)
+    ensure_generated(root, SyntheticConfig(seed=seed), num_references, queries_per_condition, DEMO_CAMERA,
+                     query_spread=query_spread)
     mapping, queries = read_synthetic(root)
 
     t = _stage(2, f"building the map store from depth and known poses, features of {model}")
@@ -70,7 +69,7 @@ def run_demo(output: Path, model: str = "pixloc-lite0", num_references: int = 30
         records = localize.run_sync(plan)
     else:
         records = _run_dask(plan, workers, client)
-    print(f"      {sum(r['success'] for r in records)} of {len(records)} refined in {time.perf_counter() - t:.1f} s")
+    print(f"      {sum(r['success'] for r in records)} of {len(records)} refined and verified in {time.perf_counter() - t:.1f} s")
 
     _stage(4, "evaluation per condition")
     gt = {q.name: q.cam_from_world_gt for q in queries}
@@ -87,9 +86,7 @@ def run_demo(output: Path, model: str = "pixloc-lite0", num_references: int = 30
 def _run_dask(plan, workers: int, client=None):
     if client is not None:
         return localize.run_dask(plan, client)
-    from distributed import Client, LocalCluster
-    with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None) as cluster, \
-            Client(cluster) as c:
+    with executor.dask_client(workers=workers, dashboard=False) as c:
         return localize.run_dask(plan, c)
 
 

@@ -17,7 +17,7 @@ from typing import Dict, List, Sequence, Tuple
 
 import torch
 
-from pipeline.evaluate import summarize
+from pipeline.evaluate import fmt, summarize
 from pipeline.scene import CameraRecord
 from pipeline.training_data import PairConfig, PairDataset
 from pixloc.geometry import pose_error
@@ -66,8 +66,9 @@ def markdown(results: Dict[str, Dict[str, Dict[str, float]]]) -> str:
         "| --- | --- | ---: | ---: | ---: | " + " | ".join("---:" for _ in keys) + " |"]
     for model, per in results.items():
         for data, s in per.items():
-            lines.append(f"| {model} | {data} | {s['count']} | {100 * s['median_t']:.1f} | {s['median_R']:.2f} | "
-                         + " | ".join(f"{s[k]:.3f}" for k in keys) + " |")
+            lines.append(f"| {model} | {data} | {s['count']} | {fmt(100 * s['median_t'] if s['median_t'] is not None else None, '.1f')} | "
+                         f"{fmt(s['median_R'], '.2f')} | "
+                         + " | ".join(fmt(s[k], ".3f") for k in keys) + " |")
     return "\n".join(lines) + "\n"
 
 

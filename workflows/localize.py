@@ -1,90 +1,207 @@
 """Batch localization workflow: shard the queries, localize shards (sync or Dask), merge.
 
-Each shard writes ``shards/shard-XXXXX.jsonl`` atomically when done; a rerun
-skips finished shards, so an interrupted run resumes without redoing or
-losing work. A shard whose worker dies is retried elsewhere by Dask.
+Planning writes nothing (``--dry-run`` shows the plan). Running takes a lock on the output
+folder (a second run into it is refused), records the job in ``job.json`` and runs what is
+pending. Each shard writes ``shards/shard-XXXXX.jsonl`` atomically when done, so an
+interrupted run resumes without redoing or losing work, and a finished run reruns as a
+no-op. Queries that failed for a reason that a user can fix (an unreadable image, a bad line
+of the list, a store chunk) are retried by a rerun, unless ``keep_failures``; refinements
+that verification rejected are outcomes and are kept. A shard whose worker dies is retried
+elsewhere by Dask.
 """
 
+import contextlib
 import json
 import logging
-import uuid
-from dataclasses import dataclass
+import os
+import shutil
+import socket
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Dict, List
+from typing import Dict, List, Optional
 
 from pipeline.queries import QueryRecord
-from pipeline.results import read_records, write_poses, write_records
+from pipeline.results import is_retryable, read_records, write_failed, write_poses, write_records
 from pipeline.shard import LocalizationJob, localize_shard
 
+from . import executor
+
 logger = logging.getLogger(__name__)
+LOCK = ".pixloc.lock"
+
+
+class OutputLocked(ValueError):
+    """Another run is writing to the output folder."""
 
 
 @dataclass
 class LocalizationPlan:
+    """What a localization run will do. ``todo`` maps shard index -> the queries to (re)run: a
+    whole pending shard, or the retryable failures of a finished one."""
+
     job: LocalizationJob
     shards: List[List[QueryRecord]]
     output: Path
+    todo: Dict[int, List[QueryRecord]] = field(default_factory=dict)
+    overwrite: bool = False
+    shard_size: int = 8
 
     def shard_path(self, k: int) -> Path:
         return self.output / "shards" / f"shard-{k:05d}.jsonl"
 
+    def retry_path(self, k: int) -> Path:
+        return self.output / "shards" / f"shard-{k:05d}.retry.jsonl"
+
     def pending(self) -> List[int]:
-        return [k for k in range(len(self.shards)) if not self.shard_path(k).exists()]
+        return [k for k in range(len(self.shards)) if self.overwrite or not self.shard_path(k).exists()]
+
+    def counts(self) -> Dict[str, int]:
+        n = sum(len(s) for s in self.shards)
+        whole = [k for k in self.todo if len(self.todo[k]) == len(self.shards[k]) and k in self.pending()]
+        retried = sum(len(v) for k, v in self.todo.items() if k not in whole)
+        queued = sum(len(self.shards[k]) for k in whole) + retried
+        return {"queries": n, "shards": len(self.shards), "to_run": queued, "retried": retried,
+                "reused_queries": n - queued, "reused_shards": len(self.shards) - len(self.todo)}
 
     def describe(self) -> str:
-        n = sum(len(s) for s in self.shards)
-        return (f"localize {n} queries in {len(self.shards)} shards ({len(self.pending())} to run) "
-                f"against {self.job.store}\n  output  {self.output}\n  job     {self.job.to_dict()}")
+        c = self.counts()
+        return (f"localize {c['queries']} queries in {c['shards']} shards against {self.job.store}\n"
+                f"  to run  {c['to_run']} queries ({c['retried']} failures retried); reused {c['reused_queries']} "
+                f"queries, {c['reused_shards']} finished shards\n"
+                f"  output  {self.output}\n  model   {self.job.model}\n  job     {self.job.to_dict()}")
 
 
-def plan_localization(job: LocalizationJob, queries: List[QueryRecord], output, shard_size: int = 8
-                      ) -> LocalizationPlan:
+def _stored_job(output: Path) -> Optional[Dict]:
+    path = output / "job.json"
+    return json.loads(path.read_text()) if path.is_file() else None
+
+
+def plan_localization(job: LocalizationJob, queries: List[QueryRecord], output, shard_size: int = 8, *,
+                      keep_failures: bool = False, overwrite: bool = False) -> LocalizationPlan:
+    """Plan a run into ``output``; writes nothing. A folder holding another job is refused
+    (unless ``overwrite``, which redoes everything)."""
     if not queries:
         raise ValueError("The query list is empty: nothing to localize.")
+    if shard_size < 1:
+        raise ValueError(f"--shard-size must be at least 1, got {shard_size}.")
     names = [q.name for q in queries]
     if len(set(names)) != len(names):
-        raise ValueError("Query names must be unique.")
+        dup = sorted({n for n in names if names.count(n) > 1})
+        raise ValueError(f"Query names must be unique; repeated: {dup[:5]}.")
+    job.validate()
     output = Path(output)
-    (output / "shards").mkdir(parents=True, exist_ok=True)
-    config = output / "job.json"
-    stored = json.loads(config.read_text()) if config.exists() else None
-    current = {"job": job.to_dict(), "queries": names, "shard_size": shard_size}
-    if stored is not None and stored != json.loads(json.dumps(current)):
-        raise ValueError(f"{output} holds a run with another job or query list; use another output folder.")
-    config.write_text(json.dumps(current, indent=1))
+    stored = _stored_job(output)
+    if stored is not None and not overwrite and stored != _job_json(job, names, shard_size):
+        raise ValueError(f"{output} holds a run with another job or query list: use another --output, "
+                         "or --overwrite to redo it.")
     shards = [queries[i:i + shard_size] for i in range(0, len(queries), shard_size)]
-    return LocalizationPlan(job, shards, output)
+    plan = LocalizationPlan(job, shards, output, overwrite=overwrite, shard_size=shard_size)
+    for k, shard in enumerate(shards):
+        if k in plan.pending():
+            plan.todo[k] = shard
+        elif not keep_failures:
+            done = {r["name"]: r for r in _shard_records(plan, k, commit=False)}
+            retry = [q for q in shard if is_retryable(done.get(q.name))]
+            if retry:
+                plan.todo[k] = retry
+    return plan
+
+
+def _job_json(job: LocalizationJob, names: List[str], shard_size: int) -> Dict:
+    return json.loads(json.dumps({"job": job.to_dict(), "queries": names, "shard_size": shard_size}))
+
+
+@contextlib.contextmanager
+def output_lock(output: Path):
+    """Exclusive use of ``output`` by this process; a live holder's lock is refused, a dead one's
+    (a killed run) taken over."""
+    output.mkdir(parents=True, exist_ok=True)
+    path = output / LOCK
+    me = f"{socket.gethostname()} {os.getpid()}"
+    for _ in range(2):
+        try:
+            fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
+        except FileExistsError:
+            holder = path.read_text().split() if path.exists() else []
+            if len(holder) == 2 and holder[0] == socket.gethostname() and not _alive(int(holder[1])):
+                path.unlink(missing_ok=True)  # left by a run that was killed
+                continue
+            raise OutputLocked(f"{output} is in use by another pixloc run ({' pid '.join(holder) or 'unknown'}); "
+                               f"wait for it to finish, or remove {path} if no run is going on.") from None
+        with os.fdopen(fd, "w") as f:
+            f.write(me)
+        break
+    try:
+        yield
+    finally:
+        path.unlink(missing_ok=True)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def _start(plan: LocalizationPlan) -> None:
+    names = [q.name for s in plan.shards for q in s]
+    if plan.overwrite and (plan.output / "shards").exists():
+        shutil.rmtree(plan.output / "shards")
+    (plan.output / "shards").mkdir(parents=True, exist_ok=True)
+    (plan.output / "job.json").write_text(json.dumps(_job_json(plan.job, names, plan.shard_size), indent=1))
+
+
+def _calls(plan: LocalizationPlan):
+    return [(plan.job, queries, str(plan.shard_path(k) if k in plan.pending() else plan.retry_path(k)))
+            for k, queries in sorted(plan.todo.items())]
+
+
+def _progress(plan: LocalizationPlan, progress: bool):
+    if not progress or not plan.todo:
+        return contextlib.nullcontext(None)
+    from tqdm import tqdm
+    return tqdm(total=plan.counts()["to_run"], desc="queries", unit="query")
 
 
 def run_sync(plan: LocalizationPlan, progress: bool = False) -> List[Dict]:
-    todo = plan.pending()
-    if progress:
-        from tqdm import tqdm
-        todo = tqdm(todo, desc="shards", unit="shard")
-    for k in todo:
-        localize_shard(plan.job, plan.shards[k], plan.shard_path(k))
-    return merge(plan)
+    with output_lock(plan.output), _progress(plan, progress) as bar:
+        _start(plan)
+        executor.run_sync(localize_shard, _calls(plan), on_done=(lambda recs: bar.update(len(recs))) if bar else None)
+        return merge(plan)
 
 
 def run_dask(plan: LocalizationPlan, client, progress: bool = False) -> List[Dict]:
-    resources = {"GPU": 1} if plan.job.device.startswith("cuda") else None
-    run = uuid.uuid4().hex[:8]  # keys unique per run: a key seen before would return its old result
-    futures = [client.submit(localize_shard, plan.job, plan.shards[k], str(plan.shard_path(k)),
-                             key=f"localize-shard-{k}-{run}", pure=False, retries=3, resources=resources)
-               for k in plan.pending()]
-    if progress and futures:
-        from distributed import progress as dask_progress
-        dask_progress(futures)
-    client.gather(futures)
-    return merge(plan)
+    with output_lock(plan.output), _progress(plan, progress) as bar:
+        _start(plan)
+        executor.run_dask(client, localize_shard, _calls(plan), "localize-shard", plan.job.device,
+                          on_done=(lambda recs: bar.update(len(recs))) if bar else None)
+        return merge(plan)
+
+
+def _shard_records(plan: LocalizationPlan, k: int, commit: bool = True) -> List[Dict]:
+    """Shard k's records, with those of a finished retry in place of the ones it redid; ``commit``
+    writes them back into the shard (atomically) and removes the retry file."""
+    records = read_records(plan.shard_path(k)) if plan.shard_path(k).exists() else []
+    retry = plan.retry_path(k)
+    if retry.exists():
+        redone = {r["name"]: r for r in read_records(retry)}
+        records = [redone.get(r["name"], r) for r in records]
+        if commit:
+            write_records(records, plan.shard_path(k))
+            retry.unlink()
+    return records
 
 
 def merge(plan: LocalizationPlan, prepend_camera=None) -> List[Dict]:
-    """All shard records, in query order, written to records.jsonl and poses.txt."""
+    """All shard records, in query order, written to records.jsonl, poses.txt and failed.txt."""
     records = []
     for k in range(len(plan.shards)):
-        records += read_records(plan.shard_path(k))
+        records += _shard_records(plan, k)
     write_records(records, plan.output / "records.jsonl")
     write_poses(records, plan.output / "poses.txt", prepend_camera)
+    write_failed(records, plan.output / "failed.txt")
     return records
-

@@ -4,18 +4,19 @@ import base64
 import html
 import io
 import json
+from collections import Counter
 from pathlib import Path
-from typing import Dict, List
+from typing import Dict, List, Optional
 
 import numpy as np
 import torch
 
-from pipeline.evaluate import evaluate
+from pipeline.evaluate import evaluate, fmt
 from pipeline.features import FeatureConfig
 from pipeline.images import read_image
 from pipeline.map_reader import MapReader
 from pipeline.queries import QueryRecord
-from pipeline.results import read_records, record_pose
+from pipeline.results import outcome, read_records, record_pose
 
 
 def _png(fig) -> str:
@@ -89,30 +90,36 @@ def example_figure(record: Dict, query: QueryRecord, reader: MapReader, net) -> 
     pca = (pca - pca.min((0, 1))) / (np.ptp(pca, (0, 1)) + 1e-9)
     axes[1].imshow(pca)
     axes[1].set_title("finest features (PCA)", fontsize=8)
-    axes[2].imshow(pred["confidences"][0][0, 0].numpy(), cmap="viridis", vmin=0, vmax=1)
-    axes[2].set_title("finest confidence", fontsize=8)
+    if "confidences" in pred:
+        axes[2].imshow(pred["confidences"][0][0, 0].numpy(), cmap="viridis", vmin=0, vmax=1)
+        axes[2].set_title("finest confidence", fontsize=8)
+    else:
+        axes[2].set_title("(this model has no confidences)", fontsize=8)
     for ax in axes:
         ax.axis("off")
     return _png(fig)
 
 
 def make_report(output: Path, queries: List[QueryRecord], num_examples: int = 3,
-                thresholds=None) -> Path:
-    """Write ``output/report.html`` from ``records.jsonl`` (and the run's ``job.json``)."""
+                thresholds=None, ground_truth: Optional[Dict] = None) -> Path:
+    """Write ``output/report.html`` from ``records.jsonl`` (and the run's ``job.json``);
+    ``ground_truth`` (name -> cam_from_world or None) defaults to the queries' own."""
     from pipeline.shard import localization_model
 
     records = read_records(output / "records.jsonl")
-    gt = {q.name: q.cam_from_world_gt for q in queries if q.cam_from_world_gt is not None}
-    parts = [f"<h1>PixLoc localization report</h1><p>{len(records)} queries, "
-             f"{sum(r['success'] for r in records)} refined, "
-             f"{sum(not r['success'] for r in records)} failed (kept their prior).</p>"]
+    gt = ground_truth if ground_truth is not None else {q.name: q.cam_from_world_gt for q in queries}
+    gt = {k: v for k, v in gt.items() if v is not None}
+    by = Counter(outcome(r) for r in records)
+    parts = [f"<h1>PixLoc localization report</h1><p>{len(records)} queries: {by['refined']} refined, "
+             f"{by['rejected']} rejected by verification, {by['failed']} failed (those keep their prior).</p>"]
     if gt:
         summary = evaluate(records, gt, **({"thresholds": thresholds} if thresholds else {}))
         keys = [k for k in summary["all"]["refined"] if k.startswith("recall@")]
         rows = "".join(
             f"<tr><td>{html.escape(name)}</td><td>{which}</td><td>{s[which]['count']}</td>"
-            f"<td>{s[which]['median_t']:.3f}</td><td>{s[which]['median_R']:.2f}</td>"
-            + "".join(f"<td>{100 * s[which][k]:.1f}%</td>" for k in keys) + "</tr>"
+            f"<td>{fmt(s[which]['median_t'], '.3f')}</td><td>{fmt(s[which]['median_R'], '.2f')}</td>"
+            + "".join(f"<td>{fmt(100 * s[which][k] if s[which][k] is not None else None, '.1f')}%</td>"
+                      for k in keys) + "</tr>"
             for name, s in summary.items() for which in ("prior", "refined"))
         parts.append("<h2>Accuracy per condition</h2><table border=1 cellpadding=4><tr><th>condition</th>"
                      "<th>poses</th><th>n</th><th>median t</th><th>median R (deg)</th>"

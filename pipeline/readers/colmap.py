@@ -1,5 +1,6 @@
 """COLMAP models (binary or text) via pycolmap: read, reconstruct, triangulate from known poses."""
 
+import json
 import logging
 from pathlib import Path
 from typing import Dict, List, Optional, Sequence
@@ -74,15 +75,57 @@ def _extract_and_match(database: Path, image_dir: Path, names: Sequence[str],
     pycolmap.match_exhaustive(database, device=pycolmap.Device.cpu)
 
 
+def _fingerprint(image_dir: Path, names: Sequence[str], **extra) -> dict:
+    """What a reconstruction depends on: its image files (name, size, mtime) and settings."""
+    files = []
+    for n in names:
+        st = (image_dir / n).stat() if (image_dir / n).is_file() else None
+        files.append([n, st.st_size if st else None, st.st_mtime_ns if st else None])
+    return json.loads(json.dumps({"images": files, **extra}))
+
+
+def _cached(work_dir: Path, marker: str, model: str, fingerprint: dict) -> Optional[pycolmap.Reconstruction]:
+    """The reconstruction a previous run finished in ``work_dir`` from the same inputs, if any.
+
+    pycolmap's SfM and triangulation are not deterministic (threads, RANSAC): rerunning them
+    would give another map, which the store then refuses. Reusing the finished model makes a
+    rebuild a no-op and an interrupted build resumable."""
+    path = work_dir / marker
+    if path.is_file() and (work_dir / model).is_dir():
+        try:
+            if json.loads(path.read_text()) == fingerprint:
+                logger.info("Reusing the reconstruction in %s (same inputs).", work_dir / model)
+                return pycolmap.Reconstruction(str(work_dir / model))
+        except (ValueError, RuntimeError) as e:
+            logger.warning("Cannot reuse %s (%s): reconstructing again.", work_dir / model, e)
+    return None
+
+
+def _finish(rec: pycolmap.Reconstruction, work_dir: Path, marker: str, model: str,
+            fingerprint: dict) -> pycolmap.Reconstruction:
+    """Write the model and then its marker (a crash in between leaves no marker); return it as
+    read back, so that a first run and a rerun build from the same bytes."""
+    (work_dir / model).mkdir(parents=True, exist_ok=True)
+    rec.write(str(work_dir / model))
+    (work_dir / marker).write_text(json.dumps(fingerprint))
+    return pycolmap.Reconstruction(str(work_dir / model))
+
+
 def run_sfm(image_dir, work_dir, names: Optional[Sequence[str]] = None, tags=None) -> Scene:
     """Structure-from-motion with pycolmap (SIFT, exhaustive matching, incremental mapping).
 
-    Keeps the largest model; images it could not register are left out and logged.
+    Keeps the largest model; images it could not register are left out and logged. A model
+    finished in ``work_dir`` from the same images is reused.
     """
     image_dir, work_dir = Path(image_dir), Path(work_dir)
     work_dir.mkdir(parents=True, exist_ok=True)
     names = sorted(p.name for p in image_dir.iterdir() if p.suffix.lower() in {".jpg", ".jpeg", ".png"}) \
         if names is None else list(names)
+    fingerprint = _fingerprint(image_dir, names, kind="sfm")
+    rec = _cached(work_dir, "sfm.json", "model", fingerprint)
+    if rec is not None:
+        return scene_from_reconstruction(rec, image_dir, tags)
+    (work_dir / "sfm.json").unlink(missing_ok=True)
     database = work_dir / "database.db"
     if database.exists():
         database.unlink()
@@ -97,7 +140,7 @@ def run_sfm(image_dir, work_dir, names: Optional[Sequence[str]] = None, tags=Non
     missing = set(names) - {im.name for im in rec.images.values() if im.has_pose}
     if missing:
         logger.warning("SfM did not register %d of %d images: %s", len(missing), len(names), sorted(missing))
-    rec.write(str(work_dir / "sparse"))
+    rec = _finish(rec, work_dir, "sfm.json", "model", fingerprint)
     return scene_from_reconstruction(rec, image_dir, tags)
 
 
@@ -111,12 +154,20 @@ def triangulate_known_poses(images: List[ImageRecord], image_root, work_dir, *,
     """
     image_root, work_dir = Path(image_root), Path(work_dir)
     work_dir.mkdir(parents=True, exist_ok=True)
+    names = [im.name for im in images]
+    by_name = {im.name: im for im in images}
+    fingerprint = _fingerprint(image_root, names, kind="triangulation", min_track_length=min_track_length,
+                               max_reprojection_error=max_reprojection_error,
+                               cameras=[im.camera.to_json() for im in images],
+                               poses=[np.round(np.asarray(im.cam_from_world, np.float64), 12).tolist() for im in images])
+    rec = _cached(work_dir, "triangulation.json", "model", fingerprint)
+    if rec is not None:
+        return _known_pose_scene(rec, image_root, by_name)
+    (work_dir / "triangulation.json").unlink(missing_ok=True)
     database = work_dir / "database.db"
     if database.exists():
         database.unlink()
-    names = [im.name for im in images]
     _extract_and_match(database, image_root, names, [im.camera for im in images])
-    by_name = {im.name: im for im in images}
     rec = pycolmap.Reconstruction()
     with pycolmap.Database.open(database) as db:
         for image in db.read_all_images():
@@ -129,6 +180,11 @@ def triangulate_known_poses(images: List[ImageRecord], image_root, work_dir, *,
             rec.delete_point3D(pid)
     if rec.num_points3D() == 0:
         raise SceneError("Triangulation from the known poses produced no 3D points.")
+    rec = _finish(rec, work_dir, "triangulation.json", "model", fingerprint)
+    return _known_pose_scene(rec, image_root, by_name)
+
+
+def _known_pose_scene(rec: pycolmap.Reconstruction, image_root: Path, by_name: Dict[str, ImageRecord]) -> Scene:
     scene = scene_from_reconstruction(rec, image_root)
     # Keep the caller's records (tags, depth), in the scene's order.
     scene.images = [by_name[im.name] for im in scene.images]

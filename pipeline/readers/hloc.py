@@ -66,6 +66,16 @@ def _pose(ret: Dict) -> Optional[np.ndarray]:
 
 
 def parse_loc(name: str, loc: Dict) -> PnPLog:
+    """One query's log. With covisibility clustering (Aachen practice), hloc keeps one log per
+    cluster under ``log_clusters`` and the index of the cluster with most inliers under
+    ``best_cluster`` (None when PnP failed in every cluster); that cluster's log is the pose."""
+    if "log_clusters" in loc:
+        best = loc.get("best_cluster")
+        clusters = loc.get("log_clusters") or []
+        if best is None or not 0 <= int(best) < len(clusters):
+            return PnPLog(False, None, 0, [int(i) for i in loc.get("db", [])], np.zeros(0, np.int64), [],
+                          np.zeros(0, bool))
+        loc = clusters[int(best)]
     ret = loc.get("PnP_ret") or {}
     success = bool(ret.get("success", False))
     pose = _pose(ret) if success else None

@@ -22,6 +22,7 @@ from ..optim import LearnedDamping, LevenbergMarquardt
 from ..refiner import TwoViewRefiner
 
 MODEL_FORMAT = "pixloc-at-scale-model"
+DEFAULT_MODEL = "pixloc-lite0"  # the one default of every command and config
 SHIPPED = {"pixloc-lite0": "pixloc-lite0.pt"}  # name -> file in pixloc/nets/weights
 
 

@@ -145,3 +145,39 @@ def test_rgbd_pose_txt_source_plan(shared, tmp_path):
                           "--store", str(tmp_path / "k.zarr"), "--dry-run"], capture_output=True, text=True, cwd=ROOT)
     assert out.returncode == 2 and "pixloc: error: A posetxt source needs --intrinsics" in out.stderr
     assert "Traceback" not in out.stderr
+
+
+def _done(store: Path) -> int:
+    try:
+        root = open_store(store)
+        (key,) = list(root["features"].group_keys())
+        return int((root[f"features/{key}/status"][:] == DONE).sum())
+    except Exception:  # not created yet
+        return 0
+
+
+@pytest.mark.parametrize("kind, folder, images", [("strecha", "strecha/Herz-Jesus-P8", 8),
+                                                  ("sfm", "sacre_coeur/mapping", 10)])
+def test_killed_build_resumes_and_a_finished_build_reruns_as_a_noop(shared, tmp_path, kind, folder, images):
+    """Before: pycolmap's SfM and triangulation gave another map on each run, so any rerun failed with
+    'holds another map ... pass overwrite'. The work folder's finished reconstruction is now reused."""
+    store = tmp_path / "map.zarr"
+    cmd = [sys.executable, "-m", "workflows.cli", "build-map", kind, str(shared / "data" / folder),
+           "--store", str(store), "--sync", "--resize", "1024", "--image-scales", "1"]
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    wait_for(lambda: _done(store) >= 1, timeout=400)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    before = _done(store)
+    assert 1 <= before < images
+    resumed = subprocess.run(cmd, env=env, capture_output=True, text=True)
+    assert resumed.returncode == 0, resumed.stderr[-2000:]
+    assert _done(store) == images
+    assert f"{images - before} images extracted, {before} already done" in resumed.stdout
+    again = subprocess.run(cmd, env=env, capture_output=True, text=True)
+    assert again.returncode == 0, again.stderr[-2000:]
+    assert f"0 images extracted, {images} already done" in again.stdout
+    # --overwrite rebuilds it whole
+    over = subprocess.run(cmd + ["--overwrite"], env=env, capture_output=True, text=True)
+    assert over.returncode == 0 and f"{images} images extracted, 0 already done" in over.stdout

@@ -16,6 +16,7 @@ from pathlib import Path
 from pipeline.features import FeatureConfig
 from pipeline.readers.colmap import read_colmap
 
+from .. import executor
 from ..build_map import plan_build, run_dask
 
 
@@ -35,7 +36,6 @@ def _size(path: Path) -> int:
 
 
 def main(args: argparse.Namespace) -> int:
-    from distributed import Client, LocalCluster
 
     root = args.shared / "data" / "maupertuis"
     scene = read_colmap(root / "reconstruction", root / "images").repeated(args.repeat)
@@ -49,8 +49,7 @@ def main(args: argparse.Namespace) -> int:
         tmp = Path(tempfile.mkdtemp())
         try:
             store = tmp / "map.zarr"
-            with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                              dashboard_address=None) as cluster, Client(cluster) as client:
+            with executor.dask_client(workers=workers, dashboard=False) as client:
                 client.run(lambda: __import__("pipeline.build").build.network(conf.model))  # warm-up
                 plan = plan_build(scene, store, conf)
                 t0 = time.perf_counter()

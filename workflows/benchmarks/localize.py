@@ -25,6 +25,7 @@ from pipeline.queries import read_pairs, read_queries_with_intrinsics
 from pipeline.readers.colmap import read_colmap
 from pipeline.shard import LocalizationJob, RetrievalConfig
 
+from .. import executor
 from ..localize import plan_localization, run_dask
 
 
@@ -72,7 +73,6 @@ def official_way_shard(job: LocalizationJob, queries, out_path, images_root: str
 
 
 def main(args: argparse.Namespace) -> int:
-    from distributed import Client, LocalCluster
 
     oracle = args.shared / "oracle"
     images = args.shared / "data" / "sacre_coeur" / "mapping"
@@ -101,14 +101,14 @@ def main(args: argparse.Namespace) -> int:
             rates = {}
             peaks = {}
             for way in ("official", "ours"):
-                with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                                  dashboard_address=None) as cluster, Client(cluster) as client:
+                with executor.dask_client(workers=workers, dashboard=False) as client:
                     plan = plan_localization(job, queries, work / f"{way}-{workers}", shard_size=2)
                     client.run(_warm_up, job.model)
                     t0 = time.perf_counter()
                     if way == "ours":
                         run_dask(plan, client)
                     else:
+                        plan.shard_path(0).parent.mkdir(parents=True, exist_ok=True)
                         futures = [client.submit(official_way_shard, job, plan.shards[k], str(plan.shard_path(k)),
                                                  str(images), pure=False) for k in plan.pending()]
                         client.gather(futures)

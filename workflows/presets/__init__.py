@@ -1,7 +1,7 @@
 """Dataset presets: the paper's settings per dataset, as YAML data (see the .yaml files here)."""
 
 from importlib import resources
-from typing import Dict, List
+from typing import Any, Dict, List, Optional
 
 import yaml
 
@@ -17,29 +17,44 @@ def load(name: str) -> Dict:
     return yaml.safe_load(path.read_text())
 
 
-def apply(args, preset: Dict, defaults: Dict) -> None:
-    """Set ``args`` fields from the preset where the user left the command-line default.
+# command-line option -> where a preset holds its value
+MAPPING = {
+    "resize": ("features", "resize"), "image_scales": ("features", "image_scales"), "pad": ("features", "pad"),
+    "num_dbs": ("localizer", "num_dbs"), "average_observations": ("localizer", "average_observations"),
+    "iters": ("localizer", "num_iters"), "retrieval_k": ("retrieval", "k"),
+    "same_tag": ("retrieval", "same_tag"), "prior": ("prior",), "levels": ("levels",),
+    "point_selection": ("point_selection",), "min_points": ("localizer", "min_points"), "scales": ("scales",),
+}
+
+
+def _lookup(preset: Dict, keys) -> Any:
+    value = preset
+    for k in keys:
+        value = value.get(k) if isinstance(value, dict) else None
+    return value
+
+
+def apply(args, preset: Optional[Dict], defaults: Dict) -> None:
+    """Resolve the options in ``defaults`` that the command line left unset (``None``): the
+    preset's value if it has one, else the built-in default. An option given on the command
+    line always wins, whatever its value.
 
     A preset's ``from_poses`` block (the paper's refinement-mode settings) overrides the rest
-    when the prior comes from another pipeline (``--prior hloc`` or ``poses``).
+    when the prior comes from another pipeline (``--prior hloc`` or ``poses``); its point
+    selection (hloc's PnP inliers) applies only with ``--prior hloc``, which has them.
     """
-    if getattr(args, "prior", None) in ("hloc", "poses") and "from_poses" in preset:
-        preset = _merge(preset, preset["from_poses"])
-    mapping = {
-        "resize": ("features", "resize"), "image_scales": ("features", "image_scales"), "pad": ("features", "pad"),
-        "num_dbs": ("localizer", "num_dbs"), "average_observations": ("localizer", "average_observations"),
-        "iters": ("localizer", "num_iters"), "retrieval_k": ("retrieval", "k"),
-        "same_tag": ("retrieval", "same_tag"), "prior": ("prior",), "levels": ("levels",),
-        "point_selection": ("point_selection",), "min_points": ("localizer", "min_points"), "scales": ("scales",),
-    }
-    for arg, keys in mapping.items():
-        if not hasattr(args, arg) or getattr(args, arg) != defaults.get(arg):
+    preset = preset or {}
+    prior = args.prior if getattr(args, "prior", None) is not None else preset.get("prior")
+    if prior in ("hloc", "poses") and "from_poses" in preset:
+        from_poses = dict(preset["from_poses"])
+        if prior != "hloc":
+            from_poses.pop("point_selection", None)
+        preset = _merge(preset, from_poses)
+    for arg, default in defaults.items():
+        if not hasattr(args, arg) or getattr(args, arg) is not None:
             continue
-        value = preset
-        for k in keys:
-            value = value.get(k) if isinstance(value, dict) else None
-        if value is not None:
-            setattr(args, arg, value)
+        value = _lookup(preset, MAPPING[arg]) if arg in MAPPING else None
+        setattr(args, arg, value if value is not None else default)
 
 
 def _merge(base: Dict, override: Dict) -> Dict:

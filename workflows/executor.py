@@ -1,0 +1,75 @@
+"""Executors of a plan's tasks: in this process, or on a Dask distributed cluster.
+
+One place builds Dask clients (a local cluster of worker processes, or an existing
+scheduler), annotates tasks with the resources their device needs, gives them keys unique to
+the run and retries them when a worker dies. Plans hand over a function and its argument
+tuples; nothing here knows about maps or queries.
+"""
+
+import contextlib
+import logging
+import uuid
+from typing import Callable, Dict, Iterator, List, Optional, Sequence
+
+logger = logging.getLogger(__name__)
+RETRIES = 3  # a task whose worker dies is rerun elsewhere (tasks are idempotent)
+
+
+def task_resources(device: str) -> Optional[Dict[str, float]]:
+    """Dask resources a task on ``device`` asks for: one ``GPU`` slot on CUDA devices."""
+    return {"GPU": 1} if str(device).startswith("cuda") else None
+
+
+@contextlib.contextmanager
+def dask_client(scheduler: Optional[str] = None, workers: int = 2, device: str = "cpu",
+                dashboard: bool = True) -> Iterator:
+    """A client of ``scheduler``, or of a local cluster of ``workers`` processes (one thread each)
+    whose workers declare the resources that tasks on ``device`` ask for (a local cluster that
+    did not would leave GPU tasks waiting for ever)."""
+    from distributed import Client, LocalCluster
+    resources = task_resources(device)
+    if scheduler:
+        with Client(scheduler) as client:
+            check_resources(client, resources)
+            yield client
+        return
+    with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, resources=resources,
+                      dashboard_address=":0" if dashboard else None) as cluster, Client(cluster) as client:
+        yield client
+
+
+def check_resources(client, resources: Optional[Dict[str, float]]) -> None:
+    """Refuse to submit tasks that no worker of the cluster could ever run."""
+    if not resources:
+        return
+    info = client.scheduler_info()["workers"]
+    able = [w for w in info.values() if all(w.get("resources", {}).get(k, 0) >= v for k, v in resources.items())]
+    if not able:
+        raise ValueError(f"No worker of the Dask cluster declares the resources {resources} that the tasks need: "
+                         "start the workers with e.g. 'dask worker ADDRESS --resources GPU=1'.")
+
+
+def run_sync(fn: Callable, calls: Sequence[tuple], on_done: Optional[Callable] = None) -> List:
+    """Run ``fn(*args)`` for each argument tuple, in order, in this process."""
+    out = []
+    for args in calls:
+        out.append(fn(*args))
+        if on_done:
+            on_done(out[-1])
+    return out
+
+
+def run_dask(client, fn: Callable, calls: Sequence[tuple], name: str, device: str = "cpu",
+             on_done: Optional[Callable] = None) -> List:
+    """Submit ``fn(*args)`` per argument tuple to ``client`` (retried if a worker dies) and gather
+    the results in order. Keys are unique per run: a key seen before would return its old result."""
+    from distributed import as_completed
+    resources = task_resources(device)
+    check_resources(client, resources)
+    run = uuid.uuid4().hex[:8]
+    futures = [client.submit(fn, *args, key=f"{name}-{k}-{run}", pure=False, retries=RETRIES,
+                             resources=resources) for k, args in enumerate(calls)]
+    if on_done:
+        for future in as_completed(futures):
+            on_done(future.result())
+    return client.gather(futures, errors="raise")
