@@ -310,10 +310,11 @@ def localize_queries(job: LocalizationJob, reader: MapReader, localizer: Localiz
                      queries: List[QueryRecord]) -> List[QueryResult]:
     """Localize ``queries`` together: one LM batch per level and group of compatible queries.
 
-    For ``hypotheses``, each query keeps the hypothesis whose refined pose has the most inliers
-    (confidence-weighted, ``pixloc.optim.evidence``). All hypotheses of a query use the same
-    points and features, so this compares like with like, which the final costs (means over
-    different sets of valid points) do not."""
+    For ``hypotheses``, each query keeps the hypothesis whose refined pose has the highest
+    verification confidence (the sharpness of the cost there, ``pipeline.verify``), ties broken
+    by the confidence-weighted inlier fraction. All hypotheses of a query use the same points
+    and features, so this compares like with like, which the final costs (means over different
+    sets of valid points) do not."""
     prepared = []
     for q in queries:
         try:
@@ -330,7 +331,8 @@ def localize_queries(job: LocalizationJob, reader: MapReader, localizer: Localiz
             continue
         candidates = [next(solved) for _ in p]
         refined = [r for r in candidates if r.evidence]
-        results.append(max(refined, key=lambda r: r.evidence["weighted_inliers"]) if refined else candidates[0])
+        results.append(max(refined, key=lambda r: (r.confidence, r.evidence["weighted_inliers"])) if refined
+                       else candidates[0])
     return results
 
 

@@ -173,7 +173,7 @@ def main(args: argparse.Namespace) -> int:
     if dropped:
         print(f"  point filters, over all queries: {dropped['short_tracks']} points seen by fewer than "
               f"{job.localizer.min_track_length} map images left out (--min-track-length), "
-              + ", ".join(f"{v} observations invalid at image scale {k.rsplit('_s', 1)[1]}"
+              + ", ".join(f"{v} observations invalid at image scale index {k.rsplit('_s', 1)[1]}"
                           for k, v in dropped.items() if k.startswith("invalid_observations")))
     return 0
 

@@ -45,6 +45,20 @@ class LocalizationPlan:
     todo: Dict[int, List[QueryRecord]] = field(default_factory=dict)
     overwrite: bool = False
     shard_size: int = 8
+    keep_failures: bool = False
+
+    def refresh(self) -> None:
+        """Recompute what is to run from the shards on disk (run again under the lock: an
+        interrupted run or a finished one may have changed them since planning)."""
+        self.todo = {}
+        for k, shard in enumerate(self.shards):
+            if k in self.pending():
+                self.todo[k] = shard
+            elif not self.keep_failures:
+                done = {r["name"]: r for r in _shard_records(self, k, commit=False)}
+                retry = [q for q in shard if is_retryable(done.get(q.name))]
+                if retry:
+                    self.todo[k] = retry
 
     def shard_path(self, k: int) -> Path:
         return self.output / "shards" / f"shard-{k:05d}.jsonl"
@@ -95,15 +109,9 @@ def plan_localization(job: LocalizationJob, queries: List[QueryRecord], output, 
         raise ValueError(f"{output} holds a run with another job or query list: use another --output, "
                          "or --overwrite to redo it.")
     shards = [queries[i:i + shard_size] for i in range(0, len(queries), shard_size)]
-    plan = LocalizationPlan(job, shards, output, overwrite=overwrite, shard_size=shard_size)
-    for k, shard in enumerate(shards):
-        if k in plan.pending():
-            plan.todo[k] = shard
-        elif not keep_failures:
-            done = {r["name"]: r for r in _shard_records(plan, k, commit=False)}
-            retry = [q for q in shard if is_retryable(done.get(q.name))]
-            if retry:
-                plan.todo[k] = retry
+    plan = LocalizationPlan(job, shards, output, overwrite=overwrite, shard_size=shard_size,
+                            keep_failures=keep_failures)
+    plan.refresh()
     return plan
 
 
@@ -151,6 +159,8 @@ def _start(plan: LocalizationPlan) -> None:
     names = [q.name for s in plan.shards for q in s]
     if plan.overwrite and (plan.output / "shards").exists():
         shutil.rmtree(plan.output / "shards")
+    plan.overwrite = False  # done once: from here on the run resumes like any other
+    plan.refresh()
     (plan.output / "shards").mkdir(parents=True, exist_ok=True)
     (plan.output / "job.json").write_text(json.dumps(_job_json(plan.job, names, plan.shard_size), indent=1))
 
@@ -168,17 +178,21 @@ def _progress(plan: LocalizationPlan, progress: bool):
 
 
 def run_sync(plan: LocalizationPlan, progress: bool = False) -> List[Dict]:
-    with output_lock(plan.output), _progress(plan, progress) as bar:
+    """Run the plan in this process; returns every query's record, in query order."""
+    with output_lock(plan.output):
         _start(plan)
-        executor.run_sync(localize_shard, _calls(plan), on_done=(lambda recs: bar.update(len(recs))) if bar else None)
+        with _progress(plan, progress) as bar:
+            executor.run_sync(localize_shard, _calls(plan), on_done=(lambda r: bar.update(len(r))) if bar else None)
         return merge(plan)
 
 
 def run_dask(plan: LocalizationPlan, client, progress: bool = False) -> List[Dict]:
-    with output_lock(plan.output), _progress(plan, progress) as bar:
+    """Run the plan's shards as tasks of ``client``'s cluster; returns every query's record."""
+    with output_lock(plan.output):
         _start(plan)
-        executor.run_dask(client, localize_shard, _calls(plan), "localize-shard", plan.job.device,
-                          on_done=(lambda recs: bar.update(len(recs))) if bar else None)
+        with _progress(plan, progress) as bar:
+            executor.run_dask(client, localize_shard, _calls(plan), "localize-shard", plan.job.device,
+                              on_done=(lambda r: bar.update(len(r))) if bar else None)
         return merge(plan)
 
 

@@ -378,3 +378,36 @@ def test_evaluate_takes_thresholds_and_a_ground_truth_file(stairs, tmp_path):
     assert summary["all"]["refined"]["count"] == 2
     assert {"recall@0.05m,1.0deg", "recall@0.25m,2.0deg"} <= set(summary["all"]["refined"])
     assert "nan" not in res.stdout
+
+
+def test_min_track_length_is_an_option_and_what_it_drops_is_counted(stairs, tmp_path):
+    """Before: the fixed minimum track length (3) silently dropped points of small maps."""
+    job, queries, root = stairs
+    three = run_sync(plan_localization(job, queries[:1], tmp_path / "a"))[0]
+    two_job = dataclasses.replace(job, localizer=dataclasses.replace(LCONF, min_track_length=2))
+    two = run_sync(plan_localization(two_job, queries[:1], tmp_path / "b"))[0]
+    assert three["filters"]["short_tracks"] > 0 and two["filters"]["short_tracks"] == 0
+    assert two["num_points"] == three["num_points"] + three["filters"]["short_tracks"]
+    out = pixloc("localize", "7scenes", root, "--query-sequences", "1", "--query-names", queries[0].name,
+                 "--store", job.store, "--output", tmp_path / "c", "--sync", "--iters", "3",
+                 "--min-track-length", "2")
+    assert out.returncode == 0, out.stderr
+    assert "0 points seen by fewer than 2 map images left out" in out.stdout
+
+
+def test_hypotheses_keep_the_most_confident_refinement(stairs):
+    """Before: the lowest mean cost won, over different sets of valid points."""
+    from pipeline.localize import Localizer
+    from pipeline.map_reader import MapReader
+    from pipeline.shard import localization_model, localize_queries, prepare_query
+    job, queries, _ = stairs
+    hjob = dataclasses.replace(job, prior="hypotheses", num_hypotheses=3)
+    refiner, digest = localization_model(job.model)
+    reader = MapReader(job.store, FCONF, digest)
+    localizer = Localizer(refiner.extractor, refiner.solvers, reader, LCONF)
+    for q in queries[:2]:
+        candidates = localizer.localize_batch(prepare_query(hjob, reader, localizer, q))
+        (chosen,) = localize_queries(hjob, reader, localizer, [q])
+        assert len(candidates) == 3
+        assert chosen.confidence == max(c.confidence for c in candidates)
+        np.testing.assert_allclose(chosen.refined, max(candidates, key=lambda c: c.confidence).refined, atol=1e-6)

@@ -195,8 +195,10 @@ def test_hloc_descriptors_and_refinement_mode(seven_scenes, sync_records, tmp_pa
     refined = run_sync(plan_localization(rjob, queries, tmp_path / "r"))
     for r, prev in zip(refined, records):
         assert [lvl["level"] for lvl in r["per_level"]] == [1, 0]
+        # 1e-4: a rejected query's line is its reference's 7-Scenes pose, whose rotation is not exactly
+        # orthonormal; written as a quaternion, it comes back orthonormalised
         np.testing.assert_allclose(np.asarray(r["prior"]), np.asarray(prev["refined"] if prev["success"]
-                                                                      else prev["prior"]), atol=1e-7)
+                                                                      else prev["prior"]), atol=1e-4)
 
 
 def test_shard_batches_queries_like_one_at_a_time(seven_scenes, sync_records):
