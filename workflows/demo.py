@@ -11,14 +11,13 @@
 """
 
 import argparse
-import json
 import logging
 import time
 from pathlib import Path
 from typing import Dict
 
 from pipeline.depth import rgbd_scene
-from pipeline.evaluate import evaluate
+from pipeline.evaluate import evaluate, fmt, to_json
 from pipeline.features import FeatureConfig
 from pipeline.localize import LocalizerConfig
 from pipeline.scene import CameraRecord
@@ -74,7 +73,7 @@ def run_demo(output: Path, model: str = "pixloc-lite0", num_references: int = 30
     _stage(4, "evaluation per condition")
     gt = {q.name: q.cam_from_world_gt for q in queries}
     summary = evaluate(records, gt, DEMO_THRESHOLDS, tag_keys=["condition"])
-    (output / "evaluation.json").write_text(json.dumps(summary, indent=1))
+    (output / "evaluation.json").write_text(to_json(summary))
     _stage(5, "report")
     report = make_report(output / "localization", queries, num_examples=3, thresholds=DEMO_THRESHOLDS)
     print()
@@ -96,10 +95,12 @@ def format_table(summary: Dict[str, Dict]) -> str:
         f"{k[len('recall@'):]:>11}" for k in keys)
     lines = [head, "-" * len(head)]
     for name, s in summary.items():
-        for which in ("prior", "refined"):
+        for which, label in (("prior", "prior"), ("refined", "result")):
             r = s[which]
-            lines.append(f"{name:<20} {which:<8} {r['count']:>3} {r['median_t']:>8.3f}m {r['median_R']:>7.2f}deg  "
-                         + "  ".join(f"{100 * r[k]:>10.0f}%" for k in keys))
+            lines.append(f"{name:<20} {label:<8} {r['count']:>3} {fmt(r['median_t'], '>8.3f')}m "
+                         f"{fmt(r['median_R'], '>7.2f')}deg  "
+                         + "  ".join(f"{fmt(100 * r[k] if r[k] is not None else None, '>10.0f')}%" for k in keys))
+    lines.append("result: the refined pose where verification accepted it, else the prior (docs/verification.md)")
     return "\n".join(lines)
 
 
