@@ -7,6 +7,7 @@ configs (``LOCALIZE_DEFAULTS``). Every path is resolved once, here, and recorded
 
 import argparse
 import logging
+import re
 import time
 from collections import Counter
 from pathlib import Path
@@ -165,8 +166,12 @@ def main(args: argparse.Namespace) -> int:
     print(f"\n{len(records)} queries ({counts['to_run']} run in {time.time() - t0:.1f} s, {counts['reused_queries']} "
           f"reused): {by['refined']} refined, {by['rejected']} rejected by verification, {by['failed']} failed "
           f"(those keep their prior). -> {output / 'poses.txt'}, {output / 'failed.txt'}")
-    for reason, n in Counter(r["reason"].split(" (")[0] for r in records if not r["success"]).most_common(5):
-        print(f"  {n} x {reason}")
+    groups: Dict[str, list] = {}
+    for r in records:
+        if not r["success"]:  # reasons that differ only in their figures count as one
+            groups.setdefault(re.sub(r"\d+(\.\d+)?", "#", r["reason"].split(" (")[0]), []).append(r["reason"])
+    for reasons in sorted(groups.values(), key=len, reverse=True)[:5]:
+        print(f"  {len(reasons)} x {reasons[0]}" + (f" (and {len(reasons) - 1} like it)" if len(reasons) > 1 else ""))
     dropped = Counter()
     for r in records:
         dropped.update(r.get("filters", {}))
@@ -228,12 +233,13 @@ def format_summary(summary) -> str:
     lines = []
     missing = summary["all"].get("no_ground_truth", 0)
     for key, s in summary.items():
-        for which in ("prior", "refined"):
+        for which, label in (("prior", "prior"), ("refined", "result")):
             r = s[which]
             recalls = "  ".join(f"{k[len('recall@'):]}: {fmt(100 * v if v is not None else None, '5.1f')}%"
                                 for k, v in r.items() if k.startswith("recall@"))
-            lines.append(f"{key:<28} {which:<8} n={r['count']:<4} median {fmt(r['median_t'], '.3f')} / "
+            lines.append(f"{key:<28} {label:<8} n={r['count']:<4} median {fmt(r['median_t'], '.3f')} / "
                          f"{fmt(r['median_R'], '.2f')} deg  {recalls}")
+    lines.append("result: the refined pose where verification accepted it, else the prior")
     if missing:
         lines.append(f"({missing} queries without ground truth not evaluated)")
     return "\n".join(lines)
