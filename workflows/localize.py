@@ -46,13 +46,15 @@ class LocalizationPlan:
     overwrite: bool = False
     shard_size: int = 8
     keep_failures: bool = False
+    whole: set = field(default_factory=set)  # shards of ``todo`` that run whole (not written yet)
 
     def refresh(self) -> None:
         """Recompute what is to run from the shards on disk (run again under the lock: an
         interrupted run or a finished one may have changed them since planning)."""
         self.todo = {}
+        self.whole = set(self.pending())
         for k, shard in enumerate(self.shards):
-            if k in self.pending():
+            if k in self.whole:
                 self.todo[k] = shard
             elif not self.keep_failures:
                 done = {r["name"]: r for r in _shard_records(self, k, commit=False)}
@@ -71,9 +73,8 @@ class LocalizationPlan:
 
     def counts(self) -> Dict[str, int]:
         n = sum(len(s) for s in self.shards)
-        whole = [k for k in self.todo if len(self.todo[k]) == len(self.shards[k]) and k in self.pending()]
-        retried = sum(len(v) for k, v in self.todo.items() if k not in whole)
-        queued = sum(len(self.shards[k]) for k in whole) + retried
+        retried = sum(len(v) for k, v in self.todo.items() if k not in self.whole)
+        queued = sum(len(self.shards[k]) for k in self.whole) + retried
         return {"queries": n, "shards": len(self.shards), "to_run": queued, "retried": retried,
                 "reused_queries": n - queued, "reused_shards": len(self.shards) - len(self.todo)}
 
@@ -166,7 +167,7 @@ def _start(plan: LocalizationPlan) -> None:
 
 
 def _calls(plan: LocalizationPlan):
-    return [(plan.job, queries, str(plan.shard_path(k) if k in plan.pending() else plan.retry_path(k)))
+    return [(plan.job, queries, str(plan.shard_path(k) if k in plan.whole else plan.retry_path(k)))
             for k, queries in sorted(plan.todo.items())]
 
 
