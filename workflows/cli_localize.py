@@ -180,6 +180,10 @@ def main(args: argparse.Namespace) -> int:
               f"{job.localizer.min_track_length} map images left out (--min-track-length), "
               + ", ".join(f"{v} observations invalid at image scale index {k.rsplit('_s', 1)[1]}"
                           for k, v in dropped.items() if k.startswith("invalid_observations")))
+    gt = {q.name: q.cam_from_world_gt for q in queries}
+    if any(T is not None for T in gt.values()):
+        args.thresholds, args.indoor = None, False  # localize has no such options: the preset's, or defaults
+        print("\n" + format_summary(evaluate(records, gt, thresholds_of(args))))
     return 0
 
 

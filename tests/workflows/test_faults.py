@@ -267,6 +267,7 @@ def test_dry_run_writes_nothing_and_the_real_run_then_works(stairs, tmp_path):
     assert "model   pixloc-lite0" in dry.stdout and not out.exists()
     run = pixloc(*args[:-4], "--iters", "6", "--num-dbs", "2")
     assert run.returncode == 0, run.stderr
+    assert "all                          result   n=3" in run.stdout  # the evaluate table, as ground truth exists
     stored = json.loads((out / "job.json").read_text())
     assert stored["job"]["localizer"]["num_iters"] == 6
     assert Path(stored["job"]["store"]).is_absolute() and Path(stored["job"]["store"]) == Path(job.store).resolve()
