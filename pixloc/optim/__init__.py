@@ -2,8 +2,8 @@
 
 from .cost import FeaturemetricProblem, Linearization, build_system, linearize
 from .damping import ConstantDamping, LearnedDamping
-from .evidence import alignment_contrast, alignment_evidence
+from .evidence import alignment_contrast, alignment_depth_contrast, alignment_evidence
 from .solver import LevenbergMarquardt, LMResult, StoppingRule, solve_damped
 
 __all__ = ["ConstantDamping", "FeaturemetricProblem", "LearnedDamping", "LevenbergMarquardt",
-           "Linearization", "LMResult", "StoppingRule", "alignment_contrast", "alignment_evidence", "build_system", "linearize", "solve_damped"]
+           "Linearization", "LMResult", "StoppingRule", "alignment_contrast", "alignment_depth_contrast", "alignment_evidence", "build_system", "linearize", "solve_damped"]

@@ -84,3 +84,38 @@ def alignment_contrast(problem: FeaturemetricProblem, cam_from_world: Pose, loss
     around = torch.stack([(r * valid).sum(-1) / n for r in shifted]).mean(0)
     out = 1 - c0 / around.clamp(min=1e-12)
     return torch.where(valid.sum(-1) > 0, out, torch.zeros(B, dtype=out.dtype, device=out.device))
+
+
+@torch.no_grad()
+def alignment_depth_contrast(problem: FeaturemetricProblem, cam_from_world: Pose, loss_fn: Callable,
+                             interpolator: Interpolator, shift_px: float = 3.0) -> Tensor:
+    """(B,) as ``alignment_contrast``, for the camera moved forward and backward along its axis by
+    the distance that moves the median point ``shift_px`` pixels in the image (radially). Small
+    turns hardly see a pose that is wrong along the viewing direction; this does."""
+    C = problem.F_ref.shape[-1]
+    mask = problem.mask if problem.mask is not None else torch.ones(problem.p3d_world.shape[:2], dtype=torch.bool,
+                                                                      device=problem.p3d_world.device)
+
+    def costs(T: Pose):
+        p3d = T.transform(problem.p3d_world)
+        p2d, visible = problem.camera.cam2image(p3d)
+        values, valid, _ = interpolator(problem.query_maps, p2d, gradients=False)
+        rho, _, _ = loss_fn(((values[..., :C] - problem.F_ref) ** 2).sum(-1))
+        return rho, valid & visible & mask, p3d, p2d
+
+    rho0, valid, p3d, p2d = costs(cam_from_world)
+    nan = torch.tensor(float("nan"), dtype=p2d.dtype, device=p2d.device)
+    radius = torch.where(valid, (p2d - problem.camera.c[..., None, :]).norm(dim=-1), nan).nanmedian(-1).values
+    depth = torch.where(valid, p3d[..., 2], nan).nanmedian(-1).values
+    dz = torch.nan_to_num(shift_px * depth / radius.clamp(min=1.0), nan=0.0)  # B
+    shifted = []
+    for sign in (1.0, -1.0):
+        t = torch.stack([torch.zeros_like(dz), torch.zeros_like(dz), sign * dz], -1)
+        rho, v, _, _ = costs(Pose.from_aa(torch.zeros_like(t), t) @ cam_from_world)
+        shifted.append(rho)
+        valid = valid & v
+    n = valid.sum(-1).clamp(min=1)
+    c0 = (rho0 * valid).sum(-1) / n
+    around = torch.stack([(r * valid).sum(-1) / n for r in shifted]).mean(0)
+    out = 1 - c0 / around.clamp(min=1e-12)
+    return torch.where(valid.sum(-1) > 0, out, torch.zeros_like(out))
