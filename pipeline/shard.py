@@ -154,7 +154,7 @@ def _hloc_descriptors(path: str) -> Dict[str, np.ndarray]:
 
 
 @functools.lru_cache(maxsize=2)
-def _prior_poses(path: str) -> Dict[str, np.ndarray]:
+def read_poses_file(path: str) -> Dict[str, np.ndarray]:
     """``name qw qx qy qz tx ty tz`` lines -> cam_from_world (3, 4), by name as written
     and by ``parentdir/basename`` and basename where those are unambiguous."""
     from .scene import qvec_to_rotmat
@@ -172,7 +172,7 @@ def _hloc_logs(path: str) -> Dict[str, PnPLog]:
     return read_hloc_logs(path)
 
 
-def _find_prior(priors: Dict, name: str):
+def find_by_name(priors: Dict, name: str):
     """The prior of query ``name``: exact, then ``parentdir/basename``, then a unique basename."""
     p = Path(name)
     for key in (name, f"{p.parent.name}/{p.name}"):
@@ -266,7 +266,7 @@ def prepare_query(job: LocalizationJob, reader: MapReader, localizer: Localizer,
     if job.prior == "hypotheses":
         return [(query, dbs[:num], reader.cam_from_world[i], rgb, cache) for i in dbs[:job.num_hypotheses]]
     if job.prior == "poses":
-        prior = _find_prior(_prior_poses(job.prior_poses), query.name)
+        prior = find_by_name(read_poses_file(job.prior_poses), query.name)
         if prior is None:
             return _failure(query, f"no prior pose for this query in {job.prior_poses}", refs=dbs[:num])
         return [(query, dbs[:num], prior, rgb, cache)]
@@ -276,7 +276,7 @@ def prepare_query(job: LocalizationJob, reader: MapReader, localizer: Localizer,
 def _prepare_hloc(job: LocalizationJob, reader: MapReader, query: QueryRecord, rgb, cache):
     """Refinement mode from hloc's logs (official PoseRefiner): start from the PnP pose, use the
     references that gave the most inliers, optionally only the inlier points."""
-    log = _find_prior(_hloc_logs(job.hloc_logs), query.name)
+    log = find_by_name(_hloc_logs(job.hloc_logs), query.name)
     if log is None:
         return _failure(query, f"no hloc log for this query in {job.hloc_logs}")
     if not log.success:

@@ -51,19 +51,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.set_defaults(func=main)
 
 
-def _resolved(path):
-    return Path(path).expanduser().resolve() if path is not None else None
-
-
 def main(args: argparse.Namespace) -> int:
-    from .cli_localize import resolve
+    from .cli_localize import absolute, resolve
     resolve(args, BUILD_DEFAULTS)
-    model = str(_resolved(args.model)) if Path(args.model).suffix else args.model
-    store = _resolved(args.store)
-    source = MapSource(args.kind, _resolved(args.path), _resolved(args.images), tuple(args.sequences),
+    model = str(absolute(args.model)) if Path(args.model).suffix else args.model
+    store = absolute(args.store)
+    source = MapSource(args.kind, absolute(args.path), absolute(args.images), tuple(args.sequences),
                        args.rgbd_points, args.densify, tuple(args.intrinsics), args.depth_scale, args.depth_ext)
     conf = FeatureConfig(model, args.resize, tuple(args.image_scales), args.pad, descriptor=args.descriptor)
-    work_dir = _resolved(args.work_dir) or store.with_suffix(".work")
+    work_dir = absolute(args.work_dir) or store.with_suffix(".work")
     t0 = time.time()
     scene = load_scene(source, work_dir)
     plan = plan_build(scene, store, conf, batch_size=args.batch_size, device=args.device,

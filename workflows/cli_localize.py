@@ -36,8 +36,14 @@ LOCALIZE_DEFAULTS = {"prior": "top1", "point_selection": "all", "min_points": _L
                      "min_confidence": _L.verification.min_confidence}
 
 
-def _absolute(path: Optional[Path]) -> Optional[str]:
-    return str(Path(path).expanduser().resolve()) if path is not None else None
+def absolute(path) -> Optional[Path]:
+    """A command-line path made absolute, once, here (None stays None)."""
+    return Path(path).expanduser().resolve() if path is not None else None
+
+
+def _absolute(path) -> Optional[str]:
+    """``absolute`` as the string that jobs record."""
+    return str(absolute(path)) if path is not None else None
 
 
 def add_query_arguments(p: argparse.ArgumentParser) -> None:
@@ -136,8 +142,7 @@ def build_job(args: argparse.Namespace) -> LocalizationJob:
 
 
 def _load_queries(args):
-    return load_queries(args.query_kind, args.query_path.expanduser().resolve(),
-                        args.query_images.expanduser().resolve() if args.query_images else None,
+    return load_queries(args.query_kind, absolute(args.query_path), absolute(args.query_images),
                         tuple(args.query_sequences), args.query_names)
 
 
@@ -215,9 +220,9 @@ def thresholds_of(args: argparse.Namespace):
 def ground_truth(args: argparse.Namespace, queries) -> Dict[str, Optional[np.ndarray]]:
     """The queries' ground truth (None where they have none), or that of ``--ground-truth``."""
     if args.ground_truth is not None:
-        from pipeline.shard import _find_prior, _prior_poses
-        poses = _prior_poses(str(args.ground_truth.expanduser().resolve()))
-        return {q.name: _find_prior(poses, q.name) for q in queries}
+        from pipeline.shard import find_by_name, read_poses_file
+        poses = read_poses_file(_absolute(args.ground_truth))
+        return {q.name: find_by_name(poses, q.name) for q in queries}
     return {q.name: q.cam_from_world_gt for q in queries}
 
 

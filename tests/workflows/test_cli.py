@@ -65,7 +65,6 @@ def test_explicit_flags_win_even_at_the_builtin_default():
 def test_every_preset_works_with_every_prior(tmp_path):
     """Before: --preset aachen --prior poses always failed (point selection 'inliers' needs hloc)."""
     from workflows import presets
-    from workflows.cli_localize import LOCALIZE_DEFAULTS  # noqa: F401
     from pipeline.features import FeatureConfig
     from pipeline.localize import LocalizerConfig
     from pipeline.shard import PRIORS, LocalizationJob, RetrievalConfig

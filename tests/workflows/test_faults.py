@@ -8,7 +8,6 @@ refusal, or a recovery. Read top to bottom, it is the list of what the tool guar
 import dataclasses
 import json
 import os
-import pickle
 import subprocess
 import sys
 from pathlib import Path

@@ -25,7 +25,7 @@ from pipeline.localize import LocalizerConfig
 from pipeline.readers.colmap import triangulate_known_poses
 from pipeline.readers.rgbd import read_7scenes
 from pipeline.readers.strecha import read_strecha
-from pipeline.scene import qvec_to_rotmat, rotmat_to_qvec
+from pipeline.scene import rotmat_to_qvec
 from pipeline.shard import LocalizationJob, RetrievalConfig
 from pipeline.verify import VerificationConfig, verify
 
