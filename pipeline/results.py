@@ -1,13 +1,14 @@
 """Localization outputs: poses in the visuallocalization.net format and one JSON record per query."""
 
 import json
+import re
 from pathlib import Path
-from typing import Dict, Iterable, List, Optional
+from typing import Dict, Iterable, List, Optional, Tuple
 
 import numpy as np
 
 from .localize import QueryResult
-from .scene import rotmat_to_qvec
+from .scene import CameraRecord, rotmat_to_qvec
 
 
 REJECTED = "rejected: "  # reason prefix of refinements that verification did not accept
@@ -71,24 +72,85 @@ def write_failed(records: Iterable[Dict], path) -> int:
     return len(lines)
 
 
-def write_poses(records: Iterable[Dict], path, prepend_camera: Optional[bool] = None) -> int:
-    """``name qw qx qy qz tx ty tz`` (cam_from_world) per query with a pose; returns the count.
+POSE_NAMES = ("full", "basename", "camera")
 
-    prepend_camera: write ``parentdir/basename`` names (RobotCar, 7-Scenes, Cambridge);
-    by default only when basenames alone would be ambiguous.
-    """
+
+def pose_name(name: str, names: str = "full") -> str:
+    """A query's name in a poses file: ``full`` (as the query list has it, relative to the
+    image folder), ``basename`` (Aachen, CMU submissions) or ``camera`` (``parentdir/basename``:
+    RobotCar, 7-Scenes, Cambridge)."""
+    path = Path(name)
+    return {"full": name, "basename": path.name, "camera": f"{path.parent.name}/{path.name}"}[names]
+
+
+def write_poses(records: Iterable[Dict], path, names: str = "full") -> int:
+    """``name qw qx qy qz tx ty tz`` (cam_from_world) per query with a pose; returns the count.
+    ``names``: see ``pose_name``; names that it would make ambiguous are refused."""
+    if names not in POSE_NAMES:
+        raise ValueError(f"Pose names {names!r}: choose one of {', '.join(POSE_NAMES)}.")
     records = list(records)
-    if prepend_camera is None:
-        basenames = [Path(r["name"]).name for r in records]
-        prepend_camera = len(set(basenames)) < len(basenames)
+    written = [pose_name(r["name"], names) for r in records]
+    if len(set(written)) < len(written):
+        dup = sorted({n for n in written if written.count(n) > 1})
+        raise ValueError(f"Pose names {names!r} make query names ambiguous ({', '.join(dup[:3])}): use 'full'.")
     lines = []
-    for rec in records:
+    for rec, name in zip(records, written):
         T = record_pose(rec)
         if T is None:
             continue
-        name = Path(rec["name"])
-        name = f"{name.parent.name}/{name.name}" if prepend_camera else name.name
         q = rotmat_to_qvec(T[:, :3])
         lines.append(" ".join([name, *(f"{v:.10g}" for v in q), *(f"{v:.10g}" for v in T[:, 3])]))
     Path(path).write_text("\n".join(lines) + ("\n" if lines else ""))
     return len(lines)
+
+
+KAPTURE_HEADER = "# kapture format: 1.1\n"
+
+
+def write_kapture(records: Iterable[Dict], cameras: Dict[str, CameraRecord], folder) -> int:
+    """The reported poses as a kapture folder (``sensors/``: sensors.txt, records_camera.txt,
+    trajectories.txt with device_from_world poses), readable by kapture tools; returns the
+    number of poses. Queries read from kapture keep their timestamp and camera id (tags
+    ``timestamp``, ``camera``); others get their index and one camera id per distinct camera.
+    ``cameras``: query name -> CameraRecord. The images themselves are not copied."""
+    sensors = Path(folder) / "sensors"
+    sensors.mkdir(parents=True, exist_ok=True)
+    ids: Dict[tuple, str] = {}
+    sensor_rows, record_rows, trajectory_rows = [], [], []
+    for k, rec in enumerate(records):
+        cam = cameras[rec["name"]]
+        key = (cam.model, cam.width, cam.height, tuple(cam.params))
+        sensor = rec.get("tags", {}).get("camera") or ids.get(key) or f"query_cam{len(ids)}"
+        if sensor not in ids.values():
+            ids[key] = sensor
+            sensor_rows.append(", ".join([sensor, "", "camera", cam.model, str(cam.width), str(cam.height),
+                                          *(f"{p:.10g}" for p in cam.params)]))
+        ts = str(rec.get("tags", {}).get("timestamp", k))
+        record_rows.append(f"{ts}, {sensor}, {rec['name']}")
+        T = record_pose(rec)
+        if T is not None:
+            q = rotmat_to_qvec(T[:, :3])
+            trajectory_rows.append(", ".join([ts, sensor, *(f"{v:.10g}" for v in q), *(f"{v:.10g}" for v in T[:, 3])]))
+    for name, head, rows in (("sensors.txt", "# sensor_id, name, sensor_type, [sensor_params]+", sensor_rows),
+                             ("records_camera.txt", "# timestamp, device_id, image_path", record_rows),
+                             ("trajectories.txt", "# timestamp, device_id, qw, qx, qy, qz, tx, ty, tz",
+                              trajectory_rows)):
+        tmp = sensors / (name + ".tmp")
+        tmp.write_text(KAPTURE_HEADER + head + "\n" + "".join(r + "\n" for r in rows))
+        tmp.replace(sensors / name)
+    return len(trajectory_rows)
+
+
+def reason_kind(reason: str) -> str:
+    """A failure reason with its figures and details left out, so that reasons that differ only
+    in those count as one kind ('references see 3 points (< 10)' -> 'references see # points')."""
+    return re.sub(r"\d+(\.\d+)?", "#", reason.split(" (")[0]).strip()
+
+
+def reason_groups(records: Iterable[Dict]) -> List[Tuple[str, str, List[Dict]]]:
+    """(outcome, kind, records) of the queries without a verified pose, largest group first."""
+    groups: Dict[Tuple[str, str], List[Dict]] = {}
+    for r in records:
+        if not r["success"]:
+            groups.setdefault((outcome(r), reason_kind(r["reason"])), []).append(r)
+    return sorted(((o, k, v) for (o, k), v in groups.items()), key=lambda g: (-len(g[2]), g[0], g[1]))

@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
-# Sets up .venv with the CPU build of PyTorch, then this package and its test tools.
+# Sets up .venv with the CPU build of PyTorch, then this package and its test tools
+# (with --test, also Chromium for the report's browser test).
 # torch is installed first and pinned, so that no CUDA build is ever pulled in.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -10,6 +11,15 @@ if ! ldconfig -p | grep -q "libusb-1.0.so.0"; then
     else
         echo "open3d needs libusb-1.0: run 'sudo apt-get install libusb-1.0-0'" >&2
         exit 1
+    fi
+fi
+# --test: the report's browser test renders it in headless Chromium (a Debian package); it skips without one.
+if [ "${1:-}" = "--test" ] && ! command -v chromium >/dev/null 2>&1; then
+    if [ "$(id -u)" = 0 ]; then
+        apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null \
+            || echo "chromium could not be installed: the report's browser test will skip" >&2
+    else
+        echo "note: 'sudo apt-get install chromium' lets the report's browser test run (it skips otherwise)" >&2
     fi
 fi
 if [ ! -x .venv/bin/python ]; then

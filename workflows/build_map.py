@@ -7,6 +7,7 @@ image is skipped), so a killed worker's tasks are simply rerun elsewhere and
 an interrupted build resumes with what is missing.
 """
 
+import contextlib
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -74,19 +75,26 @@ def plan_build(scene: Scene, store, conf: FeatureConfig, *, batch_size: int = 1,
 
 def run_sync(plan: BuildPlan, progress: bool = False) -> List[ImageResult]:
     """Run the plan in this process."""
-    _structure(plan)
+    prepare_structure(plan)
     batches = pending_batches(plan)
     results = []
-    iterator = batches
-    if progress:
-        from tqdm import tqdm
-        iterator = tqdm(batches, desc="features", unit="task")
-    for batch in iterator:
-        results += extract_features(plan.store, plan.conf, batch, device=plan.device)
+    with _progress(batches, progress) as bar:
+        for batch in batches:
+            results += extract_features(plan.store, plan.conf, batch, device=plan.device)
+            if bar:
+                bar.update(len(batch))
     return results
 
 
-def _structure(plan: BuildPlan) -> None:
+def _progress(batches: List[List[int]], progress: bool):
+    if not progress or not batches:
+        return contextlib.nullcontext(None)
+    from .progress import Progress
+    return Progress(sum(len(b) for b in batches), "features", "image")
+
+
+def prepare_structure(plan: BuildPlan) -> None:
+    """Write (or check) the store structure; refused images whose problem is gone become pending."""
     write_structure(plan.scene, plan.store, plan.conf, chunk_rows=plan.chunk_rows, source=plan.source,
                     device=plan.device, overwrite=plan.overwrite)
     plan.overwrite = False  # done once: the tasks then resume like any build
@@ -101,17 +109,10 @@ def pending_batches(plan: BuildPlan) -> List[List[int]]:
 
 def run_dask(plan: BuildPlan, client, progress: bool = False) -> List[ImageResult]:
     """Run the plan on a dask.distributed client: one task per batch, retried if its worker dies."""
-    _structure(plan)
+    prepare_structure(plan)
     batches = pending_batches(plan)
-    bar = None
-    if progress and batches:
-        from tqdm import tqdm
-        bar = tqdm(total=sum(len(b) for b in batches), desc="features", unit="image")
     calls = [(str(plan.store), plan.conf, batch, plan.device) for batch in batches]
-    try:
+    with _progress(batches, progress) as bar:
         done = executor.run_dask(client, extract_features, calls, "features", plan.device,
                                  on_done=(lambda r: bar.update(len(r))) if bar else None)
-    finally:
-        if bar:
-            bar.close()
     return [r for batch_results in done for r in batch_results]

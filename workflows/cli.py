@@ -28,6 +28,13 @@ def build_parser() -> argparse.ArgumentParser:
         description="Read and decode every chunk of a map store, checking its CRC-32C and the layout; "
                     "bad chunks are listed with their array and images. Exit status 1 if any is bad."))
 
+    from .cli_queries import add_arguments as queries_arguments
+    queries_arguments(sub.add_parser(
+        "queries", help="query list with intrinsics of uncalibrated photos, from their EXIF",
+        description="Write a query list (name MODEL width height params) for photos without calibration: the "
+                    "focal length from EXIF (35 mm equivalent, or focal length and focal plane resolution), "
+                    "else a default. Exit status 1 if an image was skipped."))
+
     from .cli_localize import add_arguments as localize_arguments
     from .cli_localize import add_evaluate_arguments
     localize_arguments(sub.add_parser("localize", help="localize queries against a map store",

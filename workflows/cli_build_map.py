@@ -10,7 +10,7 @@ from pipeline.features import FeatureConfig
 from pixloc.nets.registry import DEFAULT_MODEL
 
 from . import executor
-from .build_map import plan_build, run_dask, run_sync
+from .build_map import pending_batches, plan_build, prepare_structure, run_dask, run_sync
 from .sources import KINDS, MapSource, load_scene
 
 _F = FeatureConfig()
@@ -67,6 +67,12 @@ def main(args: argparse.Namespace) -> int:
     print(plan.describe())
     if args.dry_run:
         return 0
+    if not plan.overwrite and store.exists():
+        prepare_structure(plan)  # cheap; re-admits refused images whose problem is gone
+        if not pending_batches(plan):
+            print(f"\nAll {len(scene.images)} images of {store} already have features (or were refused): nothing "
+                  "to do (--overwrite rebuilds it).")
+            return 0
     if args.sync:
         results = run_sync(plan, progress=True)
     else:

@@ -7,7 +7,6 @@ configs (``LOCALIZE_DEFAULTS``). Every path is resolved once, here, and recorded
 
 import argparse
 import logging
-import re
 import time
 from collections import Counter
 from pathlib import Path
@@ -18,7 +17,7 @@ import numpy as np
 from pipeline.evaluate import DEFAULT_THRESHOLDS, INDOOR_THRESHOLDS, evaluate, fmt, parse_thresholds, to_json
 from pipeline.features import FeatureConfig
 from pipeline.localize import LocalizerConfig
-from pipeline.results import outcome, read_records
+from pipeline.results import POSE_NAMES, outcome, read_records, reason_groups
 from pipeline.shard import POINT_SELECTIONS, PRIORS, LocalizationJob, RetrievalConfig
 from pipeline.store import StoreError, open_store
 from pipeline.verify import VerificationConfig
@@ -33,7 +32,7 @@ LOCALIZE_DEFAULTS = {"prior": "top1", "point_selection": "all", "min_points": _L
                      "average_observations": _L.average_observations, "iters": _L.num_iters,
                      "retrieval_k": _R.k, "same_tag": None, "levels": None, "scales": None,
                      "min_track_length": _L.min_track_length,
-                     "min_confidence": _L.verification.min_confidence}
+                     "min_confidence": _L.verification.min_confidence, "pose_names": "full"}
 
 
 def absolute(path) -> Optional[Path]:
@@ -87,7 +86,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    f"rejected and keep their prior (default {d['min_confidence']}, docs/verification.md)")
     p.add_argument("--no-verify", action="store_true", help="report every converged refinement as a success "
                    "(official PixLoc behaviour)")
-    p.add_argument("--shard-size", type=int, default=8, help="queries per task (default 8)")
+    p.add_argument("--pose-names", choices=POSE_NAMES, help="also write poses_NAMES.txt with these names for a "
+                   "benchmark submission: basename (Aachen, CMU) or camera (parentdir/basename: RobotCar, 7-Scenes, "
+                   "Cambridge); poses.txt always has the full names (default: the preset's, else none)")
+    p.add_argument("--shard-size", type=int, help="queries per task (default: a rerun keeps its own; a new run "
+                   "takes enough tasks for every worker to get several, at most 8 queries each)")
     p.add_argument("--device", default="cpu")
     p.add_argument("--scheduler", help="address of an existing Dask scheduler")
     p.add_argument("--workers", type=int, default=2, help="worker processes of the local cluster (default 2)")
@@ -151,15 +154,17 @@ def main(args: argparse.Namespace) -> int:
     job = build_job(args)
     queries = _load_queries(args)
     output = Path(_absolute(args.output))
-    plan = plan_localization(job, queries, output, args.shard_size, keep_failures=args.keep_failures,
-                             overwrite=args.overwrite)
+    plan = plan_localization(job, queries, output, args.shard_size, workers=1 if args.sync else args.workers,
+                             keep_failures=args.keep_failures, overwrite=args.overwrite)
+    plan.pose_names = args.pose_names
     print(plan.describe())
     if args.dry_run:
         return 0
     counts = plan.counts()
     t0 = time.time()
     if not plan.todo:
-        print(f"{counts['queries']} of {counts['queries']} queries already done, nothing to do.")
+        print(f"{counts['queries']} of {counts['queries']} queries already done in {output}: nothing to do "
+              "(--overwrite redoes them).")
         records = run_sync(plan)  # merges the finished shards (poses.txt, failed.txt) and nothing else
     elif args.sync:
         records = run_sync(plan, progress=True)
@@ -168,15 +173,14 @@ def main(args: argparse.Namespace) -> int:
             print(f"Dask dashboard: {client.dashboard_link}")
             records = run_dask(plan, client, progress=True)
     by = Counter(outcome(r) for r in records)
-    print(f"\n{len(records)} queries ({counts['to_run']} run in {time.time() - t0:.1f} s, {counts['reused_queries']} "
-          f"reused): {by['refined']} refined, {by['rejected']} rejected by verification, {by['failed']} failed "
-          f"(those keep their prior). -> {output / 'poses.txt'}, {output / 'failed.txt'}")
-    groups: Dict[str, list] = {}
-    for r in records:
-        if not r["success"]:  # reasons that differ only in their figures count as one
-            groups.setdefault(re.sub(r"\d+(\.\d+)?", "#", r["reason"].split(" (")[0]), []).append(r["reason"])
-    for reasons in sorted(groups.values(), key=len, reverse=True)[:5]:
-        print(f"  {len(reasons)} x {reasons[0]}" + (f" (and {len(reasons) - 1} like it)" if len(reasons) > 1 else ""))
+    ran = (f"{counts['to_run']} run in {time.time() - t0:.1f} s, {counts['reused_queries']} reused" if counts["to_run"]
+           else "all reused")
+    print(f"\n{len(records)} queries ({ran}): {by['refined']} refined, {by['rejected']} rejected by verification, "
+          f"{by['failed']} failed (those keep their prior).\n  -> {output / 'poses.txt'}, "
+          f"{output / 'kapture'}, {output / 'failed.txt'}, {output / 'records.jsonl'}"
+          + (f", {output / f'poses_{plan.pose_names}.txt'}" if plan.pose_names != "full" else ""))
+    for kind, _, group in reason_groups(records)[:5]:  # reasons that differ only in their figures count as one
+        print(f"  {len(group)} {kind}: {group[0]['reason']}" + (f" (and {len(group) - 1} like it)" if len(group) > 1 else ""))
     dropped = Counter()
     for r in records:
         dropped.update(r.get("filters", {}))
@@ -257,7 +261,10 @@ def format_summary(summary) -> str:
 def add_report_arguments(p: argparse.ArgumentParser) -> None:
     add_query_arguments(p)
     p.add_argument("--output", type=Path, required=True, help="a pixloc localize output folder")
-    p.add_argument("--examples", type=int, default=3, help="example queries shown")
+    p.add_argument("--examples", type=int, default=3, help="example queries per condition: best, median, worst "
+                   "(default 3), then up to 3 failures")
+    p.add_argument("--units", help="distance unit of the map (default: m for metric sources, 'SfM units' for SfM "
+                   "models)")
     add_threshold_arguments(p)
     p.add_argument("--ground-truth", type=Path, help="ground-truth poses file, for query lists that carry none")
     p.set_defaults(func=report_main)
@@ -267,6 +274,7 @@ def report_main(args: argparse.Namespace) -> int:
     from .report import make_report
     queries = _load_queries(args)
     gt = ground_truth(args, queries)
-    path = make_report(args.output, queries, args.examples, thresholds_of(args), ground_truth=gt)
+    path = make_report(absolute(args.output), queries, args.examples, thresholds_of(args), ground_truth=gt,
+                       units=args.units)
     print(f"report: {path}")
     return 0

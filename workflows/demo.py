@@ -46,9 +46,13 @@ def run_demo(output: Path, model: str = "pixloc-lite0", num_references: int = 30
     t_start = _stage(1, f"generating the synthetic scene (seed {seed}): {num_references} references, "
                         f"{queries_per_condition} queries per condition")
     root = output / "scene"
+    meta = root / "cameras.json"
+    before = meta.stat().st_mtime_ns if meta.is_file() else None
     ensure_generated(root, SyntheticConfig(seed=seed), num_references, queries_per_condition, DEMO_CAMERA,
                      query_spread=query_spread)
     mapping, queries = read_synthetic(root)
+    if before is not None and meta.stat().st_mtime_ns == before:
+        print(f"      reused {root} (generated earlier with these settings)")
 
     t = _stage(2, f"building the map store from depth and known poses, features of {model}")
     scene = rgbd_scene(mapping, method="frames", stride=8, min_track_length=3)
@@ -56,19 +60,24 @@ def run_demo(output: Path, model: str = "pixloc-lite0", num_references: int = 30
                           descriptor="grid")
     store = output / "map.zarr"
     plan = build_map.plan_build(scene, store, fconf, source={"kind": "synthetic", "seed": seed})
-    build_map.run_sync(plan)
-    print(f"      {len(scene.images)} images, {len(scene.points)} points in {time.perf_counter() - t:.1f} s")
+    todo = sum(len(b) for b in plan.batches)
+    build_map.run_sync(plan, progress=True)
+    print(f"      {len(scene.images)} images, {len(scene.points)} points in {time.perf_counter() - t:.1f} s"
+          + ("" if todo else f" (reused {store}: every image already had its features)"))
 
     job = LocalizationJob(str(store), fconf, model, LocalizerConfig(num_dbs=3, num_iters=num_iters),
                           RetrievalConfig("global", k=5, same_tag="area"), prior=prior)
     t = _stage(3, f"retrieval and localization of {len(queries)} queries "
                   f"({'in-process' if sync else f'{workers} Dask workers'})")
-    plan = localize.plan_localization(job, queries, output / "localization", shard_size=5)
-    if sync:
-        records = localize.run_sync(plan)
+    plan = localize.plan_localization(job, queries, output / "localization", workers=1 if sync else workers)
+    if not plan.todo:
+        records = localize.run_sync(plan)  # merges the finished shards, runs nothing
+        print(f"      {len(records)} of {len(records)} queries already done in {plan.output}: nothing to do; "
+              f"{sum(r['success'] for r in records)} of them refined and verified")
     else:
-        records = _run_dask(plan, workers, client)
-    print(f"      {sum(r['success'] for r in records)} of {len(records)} refined and verified in {time.perf_counter() - t:.1f} s")
+        records = localize.run_sync(plan, progress=True) if sync else _run_dask(plan, workers, client)
+        print(f"      {sum(r['success'] for r in records)} of {len(records)} refined and verified in "
+              f"{time.perf_counter() - t:.1f} s")
 
     _stage(4, "evaluation per condition")
     gt = {q.name: q.cam_from_world_gt for q in queries}
@@ -84,9 +93,9 @@ def run_demo(output: Path, model: str = "pixloc-lite0", num_references: int = 30
 
 def _run_dask(plan, workers: int, client=None):
     if client is not None:
-        return localize.run_dask(plan, client)
+        return localize.run_dask(plan, client, progress=True)
     with executor.dask_client(workers=workers, dashboard=False) as c:
-        return localize.run_dask(plan, c)
+        return localize.run_dask(plan, c, progress=True)
 
 
 def format_table(summary: Dict[str, Dict]) -> str:

@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Dict, List, Optional
 
 from pipeline.queries import QueryRecord
-from pipeline.results import is_retryable, read_records, write_failed, write_poses, write_records
+from pipeline.results import is_retryable, read_records, write_failed, write_kapture, write_poses, write_records
 from pipeline.shard import LocalizationJob, localize_shard
 
 from . import executor
@@ -47,6 +47,7 @@ class LocalizationPlan:
     shard_size: int = 8
     keep_failures: bool = False
     whole: set = field(default_factory=set)  # shards of ``todo`` that run whole (not written yet)
+    pose_names: str = "full"  # names of an extra poses file for benchmarks (pipeline.results.pose_name)
 
     def refresh(self) -> None:
         """Recompute what is to run from the shards on disk (run again under the lock: an
@@ -91,21 +92,33 @@ def _stored_job(output: Path) -> Optional[Dict]:
     return json.loads(path.read_text()) if path.is_file() else None
 
 
-def plan_localization(job: LocalizationJob, queries: List[QueryRecord], output, shard_size: int = 8, *,
-                      keep_failures: bool = False, overwrite: bool = False) -> LocalizationPlan:
+def auto_shard_size(num_queries: int, workers: int) -> int:
+    """Queries per task: few enough that every worker gets several tasks (no worker idles while
+    another finishes a large last shard, and progress moves), at most 8 (one LM batch of 8
+    amortises the per-task overhead)."""
+    return max(1, min(8, -(-num_queries // (4 * max(workers, 1)))))
+
+
+def plan_localization(job: LocalizationJob, queries: List[QueryRecord], output, shard_size: Optional[int] = None, *,
+                      workers: int = 2, keep_failures: bool = False, overwrite: bool = False) -> LocalizationPlan:
     """Plan a run into ``output``; writes nothing. A folder holding another job is refused
-    (unless ``overwrite``, which redoes everything)."""
+    (unless ``overwrite``, which redoes everything). Without ``shard_size``, a run of the same
+    job and queries keeps its shard size, and a new one gets ``auto_shard_size``."""
     if not queries:
         raise ValueError("The query list is empty: nothing to localize.")
+    names = [q.name for q in queries]
+    stored = _stored_job(Path(output))
+    if shard_size is None:
+        same = stored is not None and not overwrite and stored.get("queries") == names \
+            and stored.get("job") == _job_json(job, names, 1)["job"]
+        shard_size = stored["shard_size"] if same else auto_shard_size(len(queries), workers)
     if shard_size < 1:
         raise ValueError(f"--shard-size must be at least 1, got {shard_size}.")
-    names = [q.name for q in queries]
     if len(set(names)) != len(names):
         dup = sorted({n for n in names if names.count(n) > 1})
         raise ValueError(f"Query names must be unique; repeated: {dup[:5]}.")
     job.validate()
     output = Path(output)
-    stored = _stored_job(output)
     if stored is not None and not overwrite and stored != _job_json(job, names, shard_size):
         raise ValueError(f"{output} holds a run with another job or query list: use another --output, "
                          "or --overwrite to redo it.")
@@ -174,8 +187,8 @@ def _calls(plan: LocalizationPlan):
 def _progress(plan: LocalizationPlan, progress: bool):
     if not progress or not plan.todo:
         return contextlib.nullcontext(None)
-    from tqdm import tqdm
-    return tqdm(total=plan.counts()["to_run"], desc="queries", unit="query")
+    from .progress import Progress
+    return Progress(plan.counts()["to_run"], "localize", "query", "queries")
 
 
 def run_sync(plan: LocalizationPlan, progress: bool = False) -> List[Dict]:
@@ -211,12 +224,17 @@ def _shard_records(plan: LocalizationPlan, k: int, commit: bool = True) -> List[
     return records
 
 
-def merge(plan: LocalizationPlan, prepend_camera=None) -> List[Dict]:
-    """All shard records, in query order, written to records.jsonl, poses.txt and failed.txt."""
+def merge(plan: LocalizationPlan) -> List[Dict]:
+    """All shard records, in query order, written to records.jsonl, poses.txt (full names; and
+    ``poses_{names}.txt`` with the plan's ``pose_names`` for a benchmark), kapture/ and failed.txt."""
     records = []
     for k in range(len(plan.shards)):
         records += _shard_records(plan, k)
     write_records(records, plan.output / "records.jsonl")
-    write_poses(records, plan.output / "poses.txt", prepend_camera)
+    write_poses(records, plan.output / "poses.txt")
+    if plan.pose_names != "full":
+        write_poses(records, plan.output / f"poses_{plan.pose_names}.txt", plan.pose_names)
+    cameras = {q.name: q.camera for s in plan.shards for q in s}
+    write_kapture([r for r in records if cameras.get(r["name"]) is not None], cameras, plan.output / "kapture")
     write_failed(records, plan.output / "failed.txt")
     return records

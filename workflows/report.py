@@ -1,85 +1,419 @@
-"""A self-contained HTML report of a localization run: accuracy per condition and example queries."""
+"""A self-contained HTML report of a localization run (one file, offline: plots are embedded PNGs).
+
+Sections, in order:
+- the run: outcomes, the job, the map, time per query;
+- accuracy: ``all`` first, then one table and one plot of cumulative errors per tag family
+  (``condition``, ``area``, ...), values sorted, prior and result side by side;
+- failures grouped by reason;
+- every query in one table (failures first, then by error; click a header to sort);
+- a top view of the map with each query's prior, result and ground truth;
+- examples chosen to inform: per condition the best, median and worst query, and failures,
+  with the map points projected at the prior, refined and ground-truth poses, the feature and
+  confidence maps, and the convergence over the levels.
+"""
 
 import base64
 import html
 import io
 import json
-from collections import Counter
+import re
 from pathlib import Path
-from typing import Dict, List, Optional
+from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 import torch
 
-from pipeline.evaluate import evaluate, fmt
+from pipeline.evaluate import DEFAULT_THRESHOLDS, evaluate, fmt, pose_errors
 from pipeline.features import FeatureConfig
 from pipeline.images import read_image
 from pipeline.map_reader import MapReader
 from pipeline.queries import QueryRecord
-from pipeline.results import outcome, read_records, record_pose
+from pipeline.results import REJECTED, outcome, read_records, reason_groups, record_pose
+
+METRIC_SOURCES = ("synthetic", "strecha", "7scenes", "posetxt", "kapture")  # map sources in metres
+OUTCOME_ORDER = {"failed": 0, "rejected": 1, "refined": 2}
+MAX_CONDITIONS = 8  # conditions of a family given examples
 
 
-def _png(fig) -> str:
-    import matplotlib.pyplot as plt
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=90, bbox_inches="tight")
-    plt.close(fig)
-    return base64.b64encode(buf.getvalue()).decode()
+def map_units(source: Dict) -> str:
+    """'m' for map sources with a metric scale, 'SfM units' for SfM models (scale unknown),
+    'scene units' for stores that do not record their source (built through the library)."""
+    kind = source.get("kind")
+    return "m" if kind in METRIC_SOURCES else "SfM units" if kind in ("colmap", "sfm") else "scene units"
 
 
-def error_curves(summary: Dict) -> str:
-    """Cumulative distributions of translation and rotation errors per condition (refined solid, prior dashed)."""
+def natural_key(text: str) -> List:
+    """Sort key that orders 'seq-2' before 'seq-10'."""
+    return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", text)]
+
+
+def tag_families(summary: Dict) -> List[Tuple[str, List[str]]]:
+    """[('all', ['all']), (family, its keys sorted)...] from the ``family=value`` keys of a summary."""
+    families: Dict[str, List[str]] = {}
+    for key in summary:
+        if key != "all":
+            families.setdefault(key.split("=", 1)[0], []).append(key)
+    return [("all", ["all"])] + [(f, sorted(keys, key=natural_key)) for f, keys in sorted(families.items())]
+
+
+def _plt():
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
-    for i, (key, s) in enumerate(summary.items()):
-        color = f"C{i % 10}"
+    return plt
+
+
+def _png(fig, fmt: str = "png") -> str:
+    """The figure as base64 PNG (plots), or JPEG (figures with photos: a tenth of the bytes)."""
+    buf = io.BytesIO()
+    fig.savefig(buf, format=fmt, dpi=80, bbox_inches="tight", **({"pil_kwargs": {"quality": 85}} if fmt == "jpeg" else {}))
+    _plt().close(fig)
+    return base64.b64encode(buf.getvalue()).decode()
+
+
+def _img(data: str, alt: str, fmt: str = "png") -> str:
+    return f'<img alt="{html.escape(alt)}" src="data:image/{fmt};base64,{data}">'
+
+
+def _colors(n: int) -> List:
+    cmap = _plt().get_cmap("tab10" if n <= 10 else "tab20")
+    return [cmap(i % cmap.N) for i in range(n)]
+
+
+def _log_axis(ax, values: np.ndarray) -> None:
+    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
+    v = values[np.isfinite(values) & (values > 0)]
+    lo, hi = (np.percentile(v, 0) * 0.8, v.max() * 1.25) if len(v) else (1e-3, 1.0)
+    lo = max(lo, hi * 1e-5)
+    ax.set_xscale("log")
+    ax.set_xlim(lo, hi)
+    decades = np.log10(hi / lo)
+    ax.xaxis.set_major_locator(LogLocator(base=10, subs=(1.0,) if decades > 3 else (1.0, 2.0, 5.0)))
+    ax.xaxis.set_major_formatter(FuncFormatter(lambda x, _: f"{x:g}"))
+    ax.xaxis.set_minor_formatter(NullFormatter())
+
+
+def error_curves(summary: Dict, keys: Sequence[str], units: str) -> str:
+    """Cumulative distributions of camera-centre and rotation errors, one colour per condition:
+    result solid, prior dashed. Queries without a pose never reach the curve's top."""
+    plt = _plt()
+    from matplotlib.lines import Line2D
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.4))
+    handles = []
+    allv = [[], []]
+    for key, color in zip(keys, _colors(len(keys))):
+        s = summary[key]
         for which, style in (("errors", "-"), ("prior_errors", "--")):
             e = np.asarray(s[which], float).reshape(-1, 2)
-            for ax, col in zip(axes, (0, 1)):
+            for col, ax in enumerate(axes):
                 v = np.sort(e[:, col])
                 y = np.arange(1, len(v) + 1) / max(len(v), 1)
                 finite = np.isfinite(v)
-                ax.step(v[finite], y[finite], style, color=color, where="post",
-                        label=f"{key} ({'refined' if which == 'errors' else 'prior'})")
-    for ax, label in zip(axes, ("camera centre error (scene units)", "rotation error (deg)")):
-        ax.set_xscale("log")
+                ax.step(np.maximum(v[finite], 1e-6), y[finite], style, color=color, where="post", lw=1.4)
+                allv[col].append(v)
+        handles.append(Line2D([], [], color=color, lw=2, label=f"{key.split('=', 1)[-1]} (n={s['refined']['count']})"))
+    handles += [Line2D([], [], color="k", ls="-", label="result"), Line2D([], [], color="k", ls="--", label="prior")]
+    for col, (ax, label) in enumerate(zip(axes, (f"camera centre error ({units})", "rotation error (deg)"))):
+        _log_axis(ax, np.concatenate(allv[col]) if allv[col] else np.zeros(0))
+        ax.set_ylim(0, 1.02)
         ax.set_xlabel(label)
         ax.set_ylabel("fraction of queries")
-        ax.grid(alpha=0.3)
-    axes[1].legend(fontsize=7, loc="lower right")
+        ax.grid(alpha=0.3, which="both")
+    fig.legend(handles=handles, loc="center left", bbox_to_anchor=(1.0, 0.5), fontsize=8, frameon=False)
+    fig.tight_layout()
     return _png(fig)
+
+
+def _centre(T) -> np.ndarray:
+    T = np.asarray(T, np.float64)
+    return -T[:, :3].T @ T[:, 3]
+
+
+def query_errors(rec: Optional[Dict], T_gt) -> Dict[str, Optional[float]]:
+    """Errors of the result and of the prior against ground truth (None without one)."""
+    if rec is None or T_gt is None:
+        return {"t": None, "R": None, "prior_t": None, "prior_R": None}
+    t, R = pose_errors(record_pose(rec), T_gt)
+    pt, pR = pose_errors(np.asarray(rec["prior"]) if rec["prior"] is not None else None, T_gt)
+    clean = (lambda x: x if np.isfinite(x) else None)
+    return {"t": clean(t), "R": clean(R), "prior_t": clean(pt), "prior_R": clean(pR)}
+
+
+def _score(err: Dict, thresholds) -> float:
+    """One number per query for ordering: the error relative to the first threshold (inf: no pose)."""
+    if err["t"] is None:
+        return float("inf")
+    t0, r0 = thresholds[0]
+    return max(err["t"] / t0, err["R"] / r0)
+
+
+def _tags_text(tags: Dict) -> str:
+    return ", ".join(f"{k}={v}" for k, v in sorted(tags.items()))
+
+
+def query_table(records: List[Dict], errors: Dict[str, Dict], thresholds, units: str) -> str:
+    """Every query, failures first, then by error (largest first); sortable by clicking a header."""
+    rows = sorted(records, key=lambda r: (OUTCOME_ORDER[outcome(r)], -_score(errors[r["name"]], thresholds)
+                                          if errors[r["name"]]["t"] is not None else float("-inf"), r["name"]))
+    cols = ["query", "tags", "outcome", f"error t ({units})", "error R (deg)", f"prior t ({units})",
+            "prior R (deg)", "confidence", "reason", "references", "points", "iterations", "time (s)"]
+    out = ["<table id='queries' class='sortable'><thead><tr>"
+           + "".join(f"<th data-type='{'text' if c in ('query', 'tags', 'outcome', 'reason', 'references') else 'num'}'>"
+                     f"{html.escape(c)}</th>" for c in cols) + "</tr></thead><tbody>"]
+    for r in rows:
+        e = errors[r["name"]]
+        o = outcome(r)
+        num = (lambda v, spec: f"<td data-v='{v if v is not None else ''}'>{fmt(v, spec)}</td>")
+        out.append(
+            f"<tr class='{o}'><td>{html.escape(r['name'])}</td><td class='text'>{html.escape(_tags_text(r.get('tags', {})))}</td>"
+            f"<td data-v='{OUTCOME_ORDER[o]}'>{o}</td>" + num(e["t"], ".3f") + num(e["R"], ".2f")
+            + num(e["prior_t"], ".3f") + num(e["prior_R"], ".2f") + num(r.get("confidence"), ".2f")
+            + f"<td class='text'>{html.escape(r['reason'])}</td>"
+            f"<td class='text'>{html.escape(', '.join(r['references'][:3]) + (' ...' if len(r['references']) > 3 else ''))}</td>"
+            + num(r.get("num_points"), "d") + num(r.get("iterations"), "d")
+            + num(r.get("timings", {}).get("total"), ".2f") + "</tr>")
+    out.append("</tbody></table>")
+    return "".join(out)
+
+
+SORT_SCRIPT = """
+document.querySelectorAll('table.sortable').forEach(function (table) {
+  var heads = table.tHead.rows[0].cells;
+  Array.prototype.forEach.call(heads, function (th, col) {
+    th.title = 'sort'; th.style.cursor = 'pointer';
+    th.addEventListener('click', function () {
+      var body = table.tBodies[0], rows = Array.prototype.slice.call(body.rows);
+      var asc = th.dataset.order !== 'asc', num = th.dataset.type === 'num';
+      rows.sort(function (a, b) {
+        var x = a.cells[col], y = b.cells[col];
+        if (num) {
+          var u = x.dataset.v === '' ? Infinity : parseFloat(x.dataset.v);
+          var v = y.dataset.v === '' ? Infinity : parseFloat(y.dataset.v);
+          return asc ? u - v : v - u;
+        }
+        return asc ? x.textContent.localeCompare(y.textContent) : y.textContent.localeCompare(x.textContent);
+      });
+      Array.prototype.forEach.call(heads, function (h) { delete h.dataset.order; });
+      th.dataset.order = asc ? 'asc' : 'desc';
+      rows.forEach(function (r) { body.appendChild(r); });
+    });
+  });
+  table.dataset.ready = 'true';
+});
+"""
+
+STYLE = """
+body{font-family:sans-serif;max-width:1280px;margin:auto;padding:0 1em;color:#222}
+img{max-width:100%} h2{border-bottom:1px solid #ccc;margin-top:1.6em}
+table{border-collapse:collapse;font-size:13px;margin:0.5em 0}
+td,th{border:1px solid #ccc;padding:3px 6px;text-align:right} th{background:#f2f2f2}
+td:first-child,th:first-child,td.text,th[data-type=text]{text-align:left}
+tr.failed td{background:#fde2e2} tr.rejected td{background:#fff3d6}
+th[data-order=asc]::after{content:' \\25B2'} th[data-order=desc]::after{content:' \\25BC'}
+.scroll{max-height:600px;overflow:auto} .note{color:#666;font-size:13px}
+"""
+
+
+def accuracy_tables(summary: Dict, thresholds, units: str) -> str:
+    keys = [k for k in summary["all"]["refined"] if k.startswith("recall@")]
+    head = ("<tr><th>condition</th><th>n</th><th>median t prior</th><th>median t result</th>"
+            "<th>median R prior</th><th>median R result</th>"
+            + "".join(f"<th>within {t:g} {units}, {r:g}&deg;<br>prior &rarr; result</th>" for t, r in thresholds)
+            + "</tr>")
+    parts = []
+    for family, fkeys in tag_families(summary):
+        rows = []
+        for key in fkeys:
+            p, r = summary[key]["prior"], summary[key]["refined"]
+            pct = (lambda v: fmt(100 * v if v is not None else None, ".0f"))
+            rows.append(f"<tr><td>{html.escape(key)}</td><td>{r['count']}</td>"
+                        f"<td>{fmt(p['median_t'], '.3f')}</td><td>{fmt(r['median_t'], '.3f')}</td>"
+                        f"<td>{fmt(p['median_R'], '.2f')}</td><td>{fmt(r['median_R'], '.2f')}</td>"
+                        + "".join(f"<td>{pct(p[k])} &rarr; <b>{pct(r[k])}</b> %</td>" for k in keys) + "</tr>")
+        same = family != "all" and len(fkeys) == 1  # one value for every query: the curves of 'all'
+        parts.append(f"<h3 id='family-{html.escape(family)}'>{html.escape(family)}</h3>"
+                     f"<table class='accuracy'>{head}{''.join(rows)}</table>"
+                     + ("" if same else _img(error_curves(summary, fkeys, units), f"cumulative errors by {family}")))
+    return "".join(parts)
+
+
+def failure_summary(records: List[Dict]) -> str:
+    groups = reason_groups(records)
+    if not groups:
+        return "<p>Every query has a verified refinement.</p>"
+    rows = "".join(f"<tr><td>{len(rs)}</td><td>{o}</td><td class='text'>{html.escape(rs[0]['reason'])}</td>"
+                   f"<td class='text'>{html.escape(', '.join(r['name'] for r in rs[:5]))}"
+                   f"{' ...' if len(rs) > 5 else ''}</td></tr>" for o, _, rs in groups)
+    return ("<table id='failures'><tr><th>queries</th><th>outcome</th><th>reason (first of its kind)</th>"
+            f"<th>queries</th></tr>{rows}</table><p class='note'>Rejected: refined, but the evidence did not "
+            "support the pose (docs/verification.md); failed: not refined. Both report their prior.</p>")
+
+
+def _up_and_plane(reader: MapReader) -> Tuple[np.ndarray, np.ndarray]:
+    """A (2, 3) basis of the ground plane (up: the mean of the reference cameras' up vectors)."""
+    R = reader.cam_from_world[:, :, :3]
+    up = -R[:, 1, :].mean(0)
+    if np.linalg.norm(up) < 1e-6:
+        up = np.array([0.0, 0.0, 1.0])
+    up /= np.linalg.norm(up)
+    centres = np.stack([_centre(T) for T in reader.cam_from_world])
+    flat = centres - centres.mean(0)
+    flat -= np.outer(flat @ up, up)
+    _, _, vt = np.linalg.svd(flat if len(flat) > 1 else np.eye(3), full_matrices=False)
+    e1 = vt[0] - (vt[0] @ up) * up
+    if np.linalg.norm(e1) < 1e-6:
+        e1 = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    return np.stack([e1, np.cross(up, e1)]), up
+
+
+def top_view(reader: MapReader, records: List[Dict], gt: Dict, family: Optional[str], units: str) -> str:
+    """Map points (subsampled), reference cameras, and per query its prior (x), result (o) and
+    ground truth (*), joined by lines; queries coloured by their tag of ``family``. Left: the
+    whole map; right: the region of the cameras."""
+    plt = _plt()
+    from matplotlib.lines import Line2D
+    basis, _ = _up_and_plane(reader)
+    refs = np.stack([_centre(T) for T in reader.cam_from_world]) @ basis.T
+    rng = np.random.default_rng(0)
+    pts = reader.xyz[rng.permutation(len(reader.xyz))[:6000]] @ basis.T if len(reader.xyz) else np.zeros((0, 2))
+    values = sorted({r.get("tags", {}).get(family, "") for r in records}, key=natural_key) if family else [""]
+    color = dict(zip(values, _colors(len(values))))
+    fig, axes = plt.subplots(1, 2, figsize=(12, 5.6))
+    anchor = [refs]
+    for ax in axes:
+        ax.scatter(pts[:, 0], pts[:, 1], s=1.5, c="0.65", lw=0, rasterized=True)
+        ax.scatter(refs[:, 0], refs[:, 1], s=14, marker="^", c="k", lw=0)
+    for r in records:
+        c = color[r.get("tags", {}).get(family, "") if family else ""]
+        prior = _centre(r["prior"]) @ basis.T if r["prior"] is not None else None
+        res = _centre(record_pose(r)) @ basis.T if record_pose(r) is not None else None
+        g = _centre(gt[r["name"]]) @ basis.T if gt.get(r["name"]) is not None else None
+        if g is not None:
+            anchor.append(g[None])
+        for ax in axes:
+            if prior is not None and res is not None:
+                ax.plot(*np.stack([prior, res]).T, "--", color=c, lw=0.7)
+            if res is not None and g is not None:
+                ax.plot(*np.stack([res, g]).T, "-", color="k", lw=0.7)
+            if prior is not None:
+                ax.scatter(*prior, marker="x", s=22, color=c, lw=1)
+            if res is not None:
+                ax.scatter(*res, marker="o", s=22, color=c, edgecolors="k" if r["success"] else "none", lw=0.6)
+            if g is not None:
+                ax.scatter(*g, marker="*", s=40, facecolors="none", edgecolors=c, lw=0.8)
+    a = np.concatenate(anchor)
+    for ax, (lo, hi), title in (
+            (axes[0], (np.minimum(a.min(0), np.percentile(pts, 2, 0)), np.maximum(a.max(0), np.percentile(pts, 98, 0)))
+             if len(pts) > 10 else (a.min(0), a.max(0)), "the map"),
+            (axes[1], (a.min(0), a.max(0)), "the cameras")):
+        pad = 0.08 * max(float((hi - lo).max()), 1e-3)
+        ax.set_xlim(lo[0] - pad, hi[0] + pad)
+        ax.set_ylim(lo[1] - pad, hi[1] + pad)
+        ax.set_aspect("equal", adjustable="box")
+        ax.set_xlabel(units)
+        ax.set_title(title, fontsize=9)
+        ax.grid(alpha=0.2)
+    handles = [Line2D([], [], ls="", marker="^", color="k", label="reference cameras"),
+               Line2D([], [], ls="", marker="x", color="0.3", label="prior"),
+               Line2D([], [], ls="", marker="o", color="0.3", markeredgecolor="k", label="result (verified)"),
+               Line2D([], [], ls="", marker="o", color="0.3", label="result (prior kept)"),
+               Line2D([], [], ls="", marker="*", markerfacecolor="none", color="0.3", label="ground truth")]
+    if family:
+        handles += [Line2D([], [], ls="", marker="o", color=color[v], label=f"{family}={v}") for v in values]
+    fig.legend(handles=handles, loc="center left", bbox_to_anchor=(1.0, 0.5), fontsize=8, frameon=False)
+    fig.tight_layout()
+    return _png(fig)
+
+
+def choose_examples(records: List[Dict], errors: Dict[str, Dict], family: Optional[str], per_condition: int,
+                    thresholds, num_failures: int = 3) -> List[Tuple[Dict, str]]:
+    """(record, why) per example: per value of ``family``, the best, median and worst query by error
+    (by confidence without ground truth), then failures of different kinds."""
+    out, seen = [], set()
+    usable = [r for r in records if r["references"]]
+    values = sorted({r.get("tags", {}).get(family, "") for r in usable}, key=natural_key)[:MAX_CONDITIONS] \
+        if family else [""]
+    labels = {1: ["median"], 2: ["best", "worst"], 3: ["best", "median", "worst"]}
+    for value in values:
+        group = [r for r in usable if not family or r.get("tags", {}).get(family, "") == value]
+        has_gt = [r for r in group if errors[r["name"]]["t"] is not None]
+        if has_gt:
+            ranked = sorted(has_gt, key=lambda r: _score(errors[r["name"]], thresholds))
+        else:
+            ranked = sorted(group, key=lambda r: -(r.get("confidence") or 0.0))
+        if not ranked or per_condition < 1:
+            continue
+        picks = np.unique(np.round(np.linspace(0, len(ranked) - 1, min(per_condition, len(ranked)))).astype(int))
+        names = labels.get(len(picks), [f"rank {i + 1} of {len(ranked)}" for i in picks])
+        for i, label in zip(picks, names):
+            r = ranked[i]
+            if r["name"] not in seen:
+                seen.add(r["name"])
+                where = f"{family}={value}: " if family else ""
+                out.append((r, f"{where}{label}" + (" by error" if has_gt else " by confidence")))
+    kinds = set()
+    for o, kind, rs in reason_groups(usable):
+        for r in rs:
+            if len([x for x in out if x[1].startswith("failure")]) >= num_failures:
+                break
+            if r["name"] not in seen and kind not in kinds:
+                seen.add(r["name"])
+                kinds.add(kind)
+                out.append((r, f"failure ({o})"))
+    return out
 
 
 def _project(camera, T: np.ndarray, xyz: np.ndarray) -> np.ndarray:
     p = torch.from_numpy(xyz @ T[:, :3].T + T[:, 3])
     p2d, valid = camera.to_pixloc(torch.float64).cam2image(p)
-    return p2d.numpy()[valid.numpy()]
+    p2d, valid = p2d.numpy(), valid.numpy()
+    inside = valid & (p2d[:, 0] >= 0) & (p2d[:, 1] >= 0) & (p2d[:, 0] < camera.width) & (p2d[:, 1] < camera.height)
+    return p2d[inside]
 
 
-def example_figure(record: Dict, query: QueryRecord, reader: MapReader, net) -> str:
-    """The query with map points projected at the prior (red) and refined (green) pose, and the
-    finest feature map (first 3 PCA components) and confidence map."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+def _level_poses(record: Dict) -> List[Tuple[str, np.ndarray]]:
+    steps = [("prior", np.asarray(record["prior"]))] if record["prior"] is not None else []
+    for lv in record.get("per_level") or []:
+        if lv.get("pose") is not None:
+            steps.append((f"s{lv['scale']} L{lv['level']}", np.asarray(lv["pose"])))
+    return steps
+
+
+def example_figure(record: Dict, why: str, query: QueryRecord, reader: MapReader, net, T_gt, units: str) -> str:
+    """Top: the query with the points of its references projected at the prior (red), refined
+    (green) and ground-truth (blue) poses; the finest features (3 PCA components); the finest
+    confidence. Bottom: the cost at the start and end of each level, and the error of each
+    level's pose against ground truth (its update from the previous level without one)."""
+    plt = _plt()
     from pipeline.images import resize_max, to_tensor
+    from pipeline.shard import fit_camera
 
     rgb = read_image(query.path)
+    query, _ = fit_camera(query, rgb)
     dbs = [reader.index[n] for n in record["references"] if n in reader.index]
     obs = reader.observations(dbs, 1)
     xyz = reader.xyz[np.unique(obs.point)]
-    xyz = xyz[np.random.default_rng(0).permutation(len(xyz))[:800]]
-    fig, axes = plt.subplots(1, 3, figsize=(15, 4))
-    axes[0].imshow(rgb)
-    for T, color, label in ((record["prior"], "red", "prior"), (record_pose(record), "lime", "refined")):
+    xyz = xyz[np.random.default_rng(0).permutation(len(xyz))[:600]]
+    fig = plt.figure(figsize=(14, 7.4))
+    grid = fig.add_gridspec(2, 3, height_ratios=(1.25, 1))
+    ax = fig.add_subplot(grid[0, 0])
+    ax.imshow(rgb)
+    for T, color, label in ((record["prior"], "red", "prior"), (record["refined"], "lime", "refined"),
+                            (T_gt, "deepskyblue", "ground truth")):
         if T is not None:
             p = _project(query.camera, np.asarray(T), xyz)
-            axes[0].scatter(p[:, 0] + 0.5, p[:, 1] + 0.5, s=2, c=color, label=label)
-    axes[0].legend(loc="lower right", fontsize=7)
-    axes[0].set_title(f"{record['name']} ({'refined' if record['success'] else 'failed: ' + record['reason'][:40]})",
-                      fontsize=8)
+            ax.scatter(p[:, 0] + 0.5, p[:, 1] + 0.5, s=3, c=color, label=label, lw=0)
+    ax.set_xlim(0, rgb.shape[1])
+    ax.set_ylim(rgb.shape[0], 0)
+    ax.legend(loc="lower right", fontsize=7, markerscale=3)
+    ax.axis("off")
+    e = query_errors(record, T_gt)
+    err = (f"error {fmt(e['t'], '.3f')} {units} / {fmt(e['R'], '.2f')} deg, prior {fmt(e['prior_t'], '.3f')} / "
+           f"{fmt(e['prior_R'], '.2f')}" if T_gt is not None else "no ground truth")
+    status = outcome(record) + (f": {record['reason'].removeprefix(REJECTED)[:90]}" if record["reason"] else "")
+    fig.suptitle(f"{status}; confidence {fmt(record.get('confidence'), '.2f')}; {err}",
+                 fontsize=10)
     with torch.no_grad():
         pred = net(to_tensor(resize_max(rgb, 512)[0])[None])
     f = pred["features"][0][0]
@@ -88,57 +422,129 @@ def example_figure(record: Dict, query: QueryRecord, reader: MapReader, net) -> 
     _, _, V = torch.pca_lowrank(flat, q=3)
     pca = (flat @ V).reshape(f.shape[1], f.shape[2], 3).numpy()
     pca = (pca - pca.min((0, 1))) / (np.ptp(pca, (0, 1)) + 1e-9)
-    axes[1].imshow(pca)
-    axes[1].set_title("finest features (PCA)", fontsize=8)
+    ax = fig.add_subplot(grid[0, 1])
+    ax.imshow(pca)
+    ax.set_title("finest features (3 PCA components)", fontsize=9)
+    ax.axis("off")
+    ax = fig.add_subplot(grid[0, 2])
     if "confidences" in pred:
-        axes[2].imshow(pred["confidences"][0][0, 0].numpy(), cmap="viridis", vmin=0, vmax=1)
-        axes[2].set_title("finest confidence", fontsize=8)
+        im = ax.imshow(pred["confidences"][0][0, 0].numpy(), cmap="viridis", vmin=0, vmax=1)
+        fig.colorbar(im, ax=ax, fraction=0.035, pad=0.02, label="confidence")
+        ax.set_title("finest confidence", fontsize=9)
     else:
-        axes[2].set_title("(this model has no confidences)", fontsize=8)
-    for ax in axes:
-        ax.axis("off")
-    return _png(fig)
+        ax.set_title("(this model has no confidences)", fontsize=9)
+    ax.axis("off")
+
+    levels = record.get("per_level") or []
+    ax = fig.add_subplot(grid[1, 0])
+    if levels:
+        x = np.arange(len(levels))
+        ax.plot(x, [lv.get("cost_start", np.nan) for lv in levels], "o--", color="0.5", label="start of level")
+        ax.plot(x, [lv.get("cost_end", np.nan) for lv in levels], "o-", color="C0", label="end of level")
+        ax.set_xticks(x, [f"s{lv['scale']} L{lv['level']}\n{lv['iterations']} it" for lv in levels], fontsize=8)
+        ax.set_yscale("log")
+        ax.legend(fontsize=7)
+    ax.set_title("robust cost per level (coarse to fine)", fontsize=9)
+    ax.grid(alpha=0.3)
+    ax = fig.add_subplot(grid[1, 1])
+    steps = _level_poses(record)
+    if steps:
+        x = np.arange(len(steps))
+        if T_gt is not None:
+            errs = np.array([pose_errors(T, T_gt) for _, T in steps])
+            what = "error against ground truth"
+        else:
+            errs = np.array([(0.0, 0.0)] + [pose_errors(b, a) for (_, a), (_, b) in zip(steps, steps[1:])])
+            what = "update from the previous level"
+        ax.plot(x, errs[:, 0], "o-", color="C1", label=f"t ({units})")
+        ax.set_ylabel(f"t ({units})", color="C1", fontsize=8)
+        twin = ax.twinx()
+        twin.plot(x, errs[:, 1], "s-", color="C2", label="R (deg)")
+        twin.set_ylabel("R (deg)", color="C2", fontsize=8)
+        ax.set_xticks(x, [s for s, _ in steps], fontsize=8)
+        ax.set_title(f"pose per level: {what}", fontsize=9)
+    ax.grid(alpha=0.3)
+    ax = fig.add_subplot(grid[1, 2])
+    ax.axis("off")
+    ev = record.get("evidence") or {}
+    lines = [f"{k}: {v:.3g}" for k, v in ev.items() if isinstance(v, (int, float)) and k in (
+        "contrast_3px", "valid", "inliers", "weighted_inliers", "move_t", "move_R", "last_t", "last_R")]
+    lines += [f"points: {record.get('num_points')}", f"references: {', '.join(record['references'][:3])}",
+              f"time: {fmt(record.get('timings', {}).get('total'), '.2f')} s"]
+    ax.text(0, 1, "evidence\n" + "\n".join(lines), va="top", fontsize=8, family="monospace")
+    fig.tight_layout()
+    return _png(fig, "jpeg")
+
+
+def _job_text(job: Dict, reader: MapReader, units: str, records: List[Dict]) -> str:
+    times = [r["timings"]["total"] for r in records if r.get("timings", {}).get("total") is not None]
+    rows = [("map store", job["store"]),
+            ("map", f"{len(reader.names)} reference images, {len(reader.xyz)} points, units: {units}"),
+            ("model", job["model"]),
+            ("prior", f"{job['prior']} from {job['retrieval']['method']} retrieval (k={job['retrieval']['k']})"
+                      + (f", references sharing the tag {job['retrieval']['same_tag']!r}"
+                         if job["retrieval"].get("same_tag") else "")),
+            ("verification", "on, min confidence {}".format(job["localizer"]["verification"]["min_confidence"])
+             if job["localizer"]["verification"]["enabled"] else "off"),
+            ("time per query", f"median {fmt(float(np.median(times)) if times else None, '.2f')} s "
+                               f"(one worker thread)")]
+    return "<table id='job'>" + "".join(f"<tr><th>{k}</th><td style='text-align:left'>{html.escape(str(v))}</td></tr>"
+                                        for k, v in rows) + "</table>"
 
 
 def make_report(output: Path, queries: List[QueryRecord], num_examples: int = 3,
-                thresholds=None, ground_truth: Optional[Dict] = None) -> Path:
-    """Write ``output/report.html`` from ``records.jsonl`` (and the run's ``job.json``);
-    ``ground_truth`` (name -> cam_from_world or None) defaults to the queries' own."""
+                thresholds=None, ground_truth: Optional[Dict] = None, units: Optional[str] = None) -> Path:
+    """Write ``output/report.html`` from ``records.jsonl`` (and the run's ``job.json``).
+
+    ``ground_truth`` (name -> cam_from_world or None) defaults to the queries' own; ``units``
+    to those of the map's source; ``num_examples`` queries per condition (best, median, worst)."""
     from pipeline.shard import localization_model
 
+    output = Path(output)
+    thresholds = tuple(thresholds or DEFAULT_THRESHOLDS)
     records = read_records(output / "records.jsonl")
     gt = ground_truth if ground_truth is not None else {q.name: q.cam_from_world_gt for q in queries}
-    gt = {k: v for k, v in gt.items() if v is not None}
-    by = Counter(outcome(r) for r in records)
-    parts = [f"<h1>PixLoc localization report</h1><p>{len(records)} queries: {by['refined']} refined, "
-             f"{by['rejected']} rejected by verification, {by['failed']} failed (those keep their prior).</p>"]
-    if gt:
-        summary = evaluate(records, gt, **({"thresholds": thresholds} if thresholds else {}))
-        keys = [k for k in summary["all"]["refined"] if k.startswith("recall@")]
-        rows = "".join(
-            f"<tr><td>{html.escape(name)}</td><td>{which}</td><td>{s[which]['count']}</td>"
-            f"<td>{fmt(s[which]['median_t'], '.3f')}</td><td>{fmt(s[which]['median_R'], '.2f')}</td>"
-            + "".join(f"<td>{fmt(100 * s[which][k] if s[which][k] is not None else None, '.1f')}%</td>"
-                      for k in keys) + "</tr>"
-            for name, s in summary.items() for which in ("prior", "refined"))
-        parts.append("<h2>Accuracy per condition</h2><table border=1 cellpadding=4><tr><th>condition</th>"
-                     "<th>poses</th><th>n</th><th>median t</th><th>median R (deg)</th>"
-                     + "".join(f"<th>{html.escape(k)}</th>" for k in keys) + f"</tr>{rows}</table>")
-        parts.append(f'<h2>Cumulative errors</h2><img src="data:image/png;base64,{error_curves(summary)}">')
+    gt = {k: np.asarray(v, np.float64) for k, v in gt.items() if v is not None and np.isfinite(v).all()}
     job = json.loads((output / "job.json").read_text())["job"]
     fconf = dict(job["features"])
     fconf["image_scales"] = tuple(fconf["image_scales"])
     refiner, digest = localization_model(job["model"], "cpu")
     reader = MapReader(job["store"], FeatureConfig(**fconf), digest)
+    if units is None:
+        import zarr
+        units = map_units(dict(zarr.open_group(job["store"], mode="r").attrs["pixloc_map"]).get("source", {}))
+    errors = {r["name"]: query_errors(r, gt.get(r["name"])) for r in records}
+    counts = {o: sum(outcome(r) == o for r in records) for o in OUTCOME_ORDER}
+    families = sorted({k for r in records for k in r.get("tags", {})})
+    family = "condition" if "condition" in families else (families[0] if families else None)
+
+    parts = [f"<h1>PixLoc localization report</h1><p id='counts'>{len(records)} queries: "
+             f"<b>{counts['refined']} refined</b> and verified, {counts['rejected']} rejected by verification, "
+             f"{counts['failed']} failed (those two keep their prior). Ground truth for "
+             f"{sum(r['name'] in gt for r in records)} of them.</p>", _job_text(job, reader, units, records)]
+    parts.append("<h2 id='accuracy'>Accuracy</h2>")
+    if gt:
+        summary = evaluate(records, gt, thresholds)
+        parts.append("<p class='note'>result: the refined pose where verification accepted it, else the prior. "
+                     "Medians over the queries with a pose; recall over all queries. Curves: result solid, prior "
+                     "dashed.</p>" + accuracy_tables(summary, thresholds, units))
+    else:
+        parts.append("<p>No ground truth: accuracy is not evaluated (pass --ground-truth POSES).</p>")
+    parts.append(f"<h2 id='failures-section'>Failures and rejections</h2>{failure_summary(records)}")
+    parts.append(f"<h2 id='queries-section'>Queries</h2><p class='note'>{len(records)} rows: failed (red) and "
+                 "rejected (yellow) first, then by error, largest first. Click a header to sort.</p>"
+                 f"<div class='scroll'>{query_table(records, errors, thresholds, units)}</div>")
+    parts.append("<h2 id='map'>Top view of the map</h2>" + _img(top_view(reader, records, gt, family, units), "top view"))
+    parts.append("<h2 id='examples'>Examples</h2><p class='note'>Points of the query's references projected at the "
+                 "prior (red), refined (green) and ground-truth (blue) poses.</p>")
     by_name = {q.name: q for q in queries}
-    parts.append("<h2>Examples</h2>")
-    for rec in [r for r in records if r["name"] in by_name and r["references"]][:num_examples]:
-        figure = example_figure(rec, by_name[rec["name"]], reader, refiner.extractor)
-        parts.append(f'<img src="data:image/png;base64,{figure}">')
+    for rec, why in choose_examples([r for r in records if r["name"] in by_name], errors, family, num_examples,
+                                    thresholds):
+        figure = example_figure(rec, why, by_name[rec["name"]], reader, refiner.extractor, gt.get(rec["name"]), units)
+        parts.append(f"<div class='example'><h3>{html.escape(rec['name'])} ({html.escape(why)})</h3>"
+                     f"{_img(figure, rec['name'], 'jpeg')}</div>")
     path = output / "report.html"
     path.write_text("<!doctype html><html><head><meta charset='utf-8'><title>PixLoc report</title>"
-                    "<style>body{font-family:sans-serif;max-width:1200px;margin:auto}img{max-width:100%}"
-                    "</style></head><body>" + "".join(parts) + "</body></html>")
+                    f"<style>{STYLE}</style></head><body>" + "".join(parts)
+                    + f"<script>{SORT_SCRIPT}</script></body></html>")
     return path
-
-

@@ -18,7 +18,7 @@ from pipeline.evaluate import INDOOR_THRESHOLDS, evaluate, pose_errors
 from pipeline.features import FeatureConfig
 from pipeline.localize import LocalizerConfig
 from pipeline.readers.rgbd import read_7scenes
-from pipeline.results import read_records
+from pipeline.results import read_records, record_pose
 from pipeline.shard import LocalizationJob, RetrievalConfig
 from tests.workflows.test_build_map import cluster, wait_for  # noqa: F401  (fixture)
 from workflows.localize import plan_localization, run_dask, run_sync
@@ -83,6 +83,13 @@ def test_outputs(seven_scenes, sync_records, tmp_path):
     q = np.array(values[:4], float)
     assert abs(np.linalg.norm(q) - 1) < 1e-6 and q[0] >= 0
     assert without_timings(read_records(tmp_path / "records.jsonl")) == without_timings(sync_records)
+    # the same poses as a kapture folder (device_from_world), read back by the kapture reader
+    from pipeline.readers.kapture import read_kapture
+    back = {im.name: im for im in read_kapture(tmp_path / "kapture")}
+    assert sorted(back) == sorted(q.name for q in queries)
+    for r in sync_records:
+        assert np.allclose(back[r["name"]].cam_from_world, record_pose(r), atol=1e-4)  # priors: float32 rotations
+        assert back[r["name"]].camera == next(q.camera for q in queries if q.name == r["name"])
 
 
 def test_distributed_equals_sync_and_survives_a_killed_worker(seven_scenes, sync_records, cluster, tmp_path):  # noqa: F811
@@ -158,18 +165,33 @@ def test_interrupted_run_resumes_by_shard(seven_scenes, tmp_path):
 
 
 def test_html_report(seven_scenes, tmp_path):
+    """The report's sections and their contents, checked in the HTML (the browser test renders the demo's)."""
     import base64
     import re
 
     from workflows.report import make_report
     job, queries = seven_scenes
-    run_sync(plan_localization(job, queries, tmp_path, shard_size=3))
-    path = make_report(tmp_path, queries, num_examples=2, thresholds=INDOOR_THRESHOLDS)
+    records = run_sync(plan_localization(job, queries, tmp_path, shard_size=3))
+    path = make_report(tmp_path, queries, num_examples=2, thresholds=INDOOR_THRESHOLDS, units="m")
     page = path.read_text()
-    images = re.findall(r'src="data:image/png;base64,([A-Za-z0-9+/=]+)"', page)
-    assert len(images) == 3  # error curves + 2 examples
-    assert all(base64.b64decode(b)[:8] == b"\x89PNG\r\n\x1a\n" for b in images)
-    assert "sequence=seq-01" in page and "recall@0.05m,5.0deg" in page
+    images = re.findall(r'src="data:image/(png|jpeg);base64,([A-Za-z0-9+/=]+)"', page)
+    magic = {"png": b"\x89PNG\r\n\x1a\n", "jpeg": b"\xff\xd8\xff"}
+    assert all(base64.b64decode(b)[:len(magic[f])] == magic[f] for f, b in images)
+    # curves of 'all' and of the 'sequence' family (two values), and the top view; no curves for 'split' (one value)
+    assert sum(f == "png" for f, _ in images) == 3
+    # per sequence the best and the worst query, then failures of other kinds
+    assert 4 <= sum(f == "jpeg" for f, _ in images) <= 7
+    assert page.count("(sequence=seq-01: best by error)") == 1 and "(sequence=seq-04: worst by error)" in page
+    for section in ("id='accuracy'", "id='family-all'", "id='family-sequence'", "id='failures-section'",
+                    "id='queries'", "id='map'", "id='examples'"):
+        assert section in page
+    assert "within 0.05 m, 5&deg;" in page and "nan" not in re.sub(r"base64,[^\"]+", "", page).lower()
+    table = page[page.index("<table id='queries'"):]
+    rows = re.findall(r"<tr class='(refined|rejected|failed)'><td>([^<]+)</td>", table[:table.index("</table>")])
+    assert sorted(n for _, n in rows) == sorted(q.name for q in queries)
+    order = [{"failed": 0, "rejected": 1, "refined": 2}[o] for o, _ in rows]
+    assert order == sorted(order)  # failures first
+    assert sum(o != "refined" for o, _ in rows) == sum(not r["success"] for r in records)
 
 
 def test_hloc_descriptors_and_refinement_mode(seven_scenes, sync_records, tmp_path):

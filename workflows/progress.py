@@ -1,0 +1,67 @@
+"""Progress of a long stage, counted in the items a user cares about (queries, images).
+
+On a terminal: a tqdm bar with rate and ETA. Otherwise (a log file, CI, a batch system):
+one line when the stage starts, a one-line status at most every ``every`` seconds, and one
+line when it ends, instead of a flood of carriage-return bars.
+"""
+
+import sys
+import time
+from typing import Optional, TextIO
+
+
+def _duration(seconds: float) -> str:
+    seconds = int(round(seconds))
+    if seconds < 60:
+        return f"{seconds} s"
+    if seconds < 3600:
+        return f"{seconds // 60} min {seconds % 60:02d} s"
+    return f"{seconds // 3600} h {seconds % 3600 // 60:02d} min"
+
+
+class Progress:
+    """``with Progress(total, "localize", "query") as p: ... p.update(n)``."""
+
+    def __init__(self, total: int, desc: str, unit: str, plural: Optional[str] = None, stream: Optional[TextIO] = None,
+                 every: float = 30.0, terminal: Optional[bool] = None):
+        self.total, self.desc, self.unit, self.every = total, desc, unit, every
+        self.units = plural or unit + "s"
+        self.stream = stream or sys.stderr
+        self.terminal = self.stream.isatty() if terminal is None else terminal
+        self.done = 0
+        self.t0 = self.last = time.perf_counter()
+        self.bar = None
+
+    def __enter__(self) -> "Progress":
+        if self.terminal:
+            from tqdm import tqdm
+            self.bar = tqdm(total=self.total, desc=self.desc, unit=self.unit, file=self.stream, smoothing=0.1)
+        else:
+            self._line(f"{self.desc}: {self.total} {self.unit if self.total == 1 else self.units} to do")
+        return self
+
+    def update(self, n: int = 1) -> None:
+        self.done += n
+        if self.bar is not None:
+            self.bar.update(n)
+            return
+        now = time.perf_counter()
+        if now - self.last >= self.every and self.done < self.total:
+            self.last = now
+            self._line(self.status())
+
+    def status(self) -> str:
+        elapsed = time.perf_counter() - self.t0
+        rate = self.done / elapsed if elapsed > 0 else 0.0
+        eta = f", ETA {_duration((self.total - self.done) / rate)}" if rate > 0 and self.done < self.total else ""
+        return (f"{self.desc}: {self.done}/{self.total} {self.units} ({100 * self.done / max(self.total, 1):.0f} %), "
+                f"{rate:.2f} {self.units}/s, elapsed {_duration(elapsed)}{eta}")
+
+    def __exit__(self, *exc) -> None:
+        if self.bar is not None:
+            self.bar.close()
+        else:
+            self._line(self.status() if exc[0] is None else f"{self.desc}: stopped at {self.done}/{self.total}")
+
+    def _line(self, text: str) -> None:
+        print(text, file=self.stream, flush=True)
