@@ -33,9 +33,19 @@ def dask_client(scheduler: Optional[str] = None, workers: int = 2, device: str =
             check_resources(client, resources)
             yield client
         return
-    with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, resources=resources,
-                      dashboard_address=":0" if dashboard else None) as cluster, Client(cluster) as client:
-        yield client
+    nanny = logging.getLogger("distributed.nanny")
+    level = nanny.level
+    try:
+        with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, resources=resources,
+                          dashboard_address=":0" if dashboard else None) as cluster, Client(cluster) as client:
+            try:
+                yield client
+            finally:
+                # closing: a worker still releasing torch is killed after the timeout, and the nanny's
+                # "Worker process still alive ... killing" is noise once every task has finished
+                nanny.setLevel(logging.ERROR)
+    finally:
+        nanny.setLevel(level)
 
 
 def check_resources(client, resources: Optional[Dict[str, float]]) -> None:

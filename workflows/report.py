@@ -17,6 +17,7 @@ import html
 import io
 import json
 import re
+import textwrap
 from pathlib import Path
 from typing import Dict, List, Optional, Sequence, Tuple
 
@@ -147,6 +148,11 @@ def _score(err: Dict, thresholds) -> float:
     return max(err["t"] / t0, err["R"] / r0)
 
 
+def _confidence(rec: Dict) -> Optional[float]:
+    """Verification confidence of a refinement (None for a query that was not refined)."""
+    return rec.get("confidence") if rec.get("refined") is not None else None
+
+
 def _tags_text(tags: Dict) -> str:
     return ", ".join(f"{k}={v}" for k, v in sorted(tags.items()))
 
@@ -167,7 +173,7 @@ def query_table(records: List[Dict], errors: Dict[str, Dict], thresholds, units:
         out.append(
             f"<tr class='{o}'><td>{html.escape(r['name'])}</td><td class='text'>{html.escape(_tags_text(r.get('tags', {})))}</td>"
             f"<td data-v='{OUTCOME_ORDER[o]}'>{o}</td>" + num(e["t"], ".3f") + num(e["R"], ".2f")
-            + num(e["prior_t"], ".3f") + num(e["prior_R"], ".2f") + num(r.get("confidence"), ".2f")
+            + num(e["prior_t"], ".3f") + num(e["prior_R"], ".2f") + num(_confidence(r), ".2f")
             + f"<td class='text'>{html.escape(r['reason'])}</td>"
             f"<td class='text'>{html.escape(', '.join(r['references'][:3]) + (' ...' if len(r['references']) > 3 else ''))}</td>"
             + num(r.get("num_points"), "d") + num(r.get("iterations"), "d")
@@ -206,7 +212,7 @@ STYLE = """
 body{font-family:sans-serif;max-width:1280px;margin:auto;padding:0 1em;color:#222}
 img{max-width:100%} h2{border-bottom:1px solid #ccc;margin-top:1.6em}
 table{border-collapse:collapse;font-size:13px;margin:0.5em 0}
-td,th{border:1px solid #ccc;padding:3px 6px;text-align:right} th{background:#f2f2f2}
+td,th{border:1px solid #ccc;padding:3px 6px;text-align:right} th{background:#f2f2f2;text-align:left}
 td:first-child,th:first-child,td.text,th[data-type=text]{text-align:left}
 tr.failed td{background:#fde2e2} tr.rejected td{background:#fff3d6}
 th[data-order=asc]::after{content:' \\25B2'} th[data-order=desc]::after{content:' \\25BC'}
@@ -245,7 +251,7 @@ def failure_summary(records: List[Dict]) -> str:
                    f"<td class='text'>{html.escape(', '.join(r['name'] for r in rs[:5]))}"
                    f"{' ...' if len(rs) > 5 else ''}</td></tr>" for o, _, rs in groups)
     return ("<table id='failures'><tr><th>queries</th><th>outcome</th><th>reason (first of its kind)</th>"
-            f"<th>queries</th></tr>{rows}</table><p class='note'>Rejected: refined, but the evidence did not "
+            f"<th>examples</th></tr>{rows}</table><p class='note'>Rejected: refined, but the evidence did not "
             "support the pose (docs/verification.md); failed: not refined. Both report their prior.</p>")
 
 
@@ -411,8 +417,8 @@ def example_figure(record: Dict, why: str, query: QueryRecord, reader: MapReader
     e = query_errors(record, T_gt)
     err = (f"error {fmt(e['t'], '.3f')} {units} / {fmt(e['R'], '.2f')} deg, prior {fmt(e['prior_t'], '.3f')} / "
            f"{fmt(e['prior_R'], '.2f')}" if T_gt is not None else "no ground truth")
-    status = outcome(record) + (f": {record['reason'].removeprefix(REJECTED)[:90]}" if record["reason"] else "")
-    fig.suptitle(f"{status}; confidence {fmt(record.get('confidence'), '.2f')}; {err}",
+    status = outcome(record) + (f": {record['reason'].removeprefix(REJECTED)}" if record["reason"] else "")
+    fig.suptitle(textwrap.fill(f"{status}; confidence {fmt(_confidence(record), '.2f')}; {err}", 150),
                  fontsize=10)
     with torch.no_grad():
         pred = net(to_tensor(resize_max(rgb, 512)[0])[None])
@@ -442,7 +448,9 @@ def example_figure(record: Dict, why: str, query: QueryRecord, reader: MapReader
         ax.plot(x, [lv.get("cost_start", np.nan) for lv in levels], "o--", color="0.5", label="start of level")
         ax.plot(x, [lv.get("cost_end", np.nan) for lv in levels], "o-", color="C0", label="end of level")
         ax.set_xticks(x, [f"s{lv['scale']} L{lv['level']}\n{lv['iterations']} it" for lv in levels], fontsize=8)
-        ax.set_yscale("log")
+        costs = [lv.get(k) for lv in levels for k in ("cost_start", "cost_end")]
+        if all(c is not None and c > 0 for c in costs):
+            ax.set_yscale("log")
         ax.legend(fontsize=7)
     ax.set_title("robust cost per level (coarse to fine)", fontsize=9)
     ax.grid(alpha=0.3)
@@ -456,9 +464,11 @@ def example_figure(record: Dict, why: str, query: QueryRecord, reader: MapReader
         else:
             errs = np.array([(0.0, 0.0)] + [pose_errors(b, a) for (_, a), (_, b) in zip(steps, steps[1:])])
             what = "update from the previous level"
+        ax.ticklabel_format(axis="y", useOffset=False)
         ax.plot(x, errs[:, 0], "o-", color="C1", label=f"t ({units})")
         ax.set_ylabel(f"t ({units})", color="C1", fontsize=8)
         twin = ax.twinx()
+        twin.ticklabel_format(axis="y", useOffset=False)
         twin.plot(x, errs[:, 1], "s-", color="C2", label="R (deg)")
         twin.set_ylabel("R (deg)", color="C2", fontsize=8)
         ax.set_xticks(x, [s for s, _ in steps], fontsize=8)
