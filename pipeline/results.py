@@ -83,16 +83,26 @@ def pose_name(name: str, names: str = "full") -> str:
     return {"full": name, "basename": path.name, "camera": f"{path.parent.name}/{path.name}"}[names]
 
 
-def write_poses(records: Iterable[Dict], path, names: str = "full") -> int:
-    """``name qw qx qy qz tx ty tz`` (cam_from_world) per query with a pose; returns the count.
-    ``names``: see ``pose_name``; names that it would make ambiguous are refused."""
-    if names not in POSE_NAMES:
-        raise ValueError(f"Pose names {names!r}: choose one of {', '.join(POSE_NAMES)}.")
-    records = list(records)
-    written = [pose_name(r["name"], names) for r in records]
+def pose_names_problem(names: List[str], how: str) -> Optional[str]:
+    """Why ``how`` cannot name these queries in a poses file (unknown, or it makes two alike), or None."""
+    if how not in POSE_NAMES:
+        return f"pose names {how!r}: choose one of {', '.join(POSE_NAMES)}"
+    written = [pose_name(n, how) for n in names]
     if len(set(written)) < len(written):
         dup = sorted({n for n in written if written.count(n) > 1})
-        raise ValueError(f"Pose names {names!r} make query names ambiguous ({', '.join(dup[:3])}): use 'full'.")
+        other = [h for h in POSE_NAMES if h != how and len({pose_name(n, h) for n in names}) == len(names)]
+        return f"--pose-names {how} makes query names alike ({', '.join(dup[:3])}): use {' or '.join(other)}"
+    return None
+
+
+def write_poses(records: Iterable[Dict], path, names: str = "full") -> int:
+    """``name qw qx qy qz tx ty tz`` (cam_from_world) per query with a pose; returns the count.
+    ``names``: see ``pose_name``; names that it would make alike are refused (ValueError)."""
+    records = list(records)
+    problem = pose_names_problem([r["name"] for r in records], names)
+    if problem:
+        raise ValueError(problem)
+    written = [pose_name(r["name"], names) for r in records]
     lines = []
     for rec, name in zip(records, written):
         T = record_pose(rec)

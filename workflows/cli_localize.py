@@ -17,7 +17,7 @@ import numpy as np
 from pipeline.evaluate import DEFAULT_THRESHOLDS, INDOOR_THRESHOLDS, evaluate, fmt, parse_thresholds, to_json
 from pipeline.features import FeatureConfig
 from pipeline.localize import LocalizerConfig
-from pipeline.results import POSE_NAMES, outcome, read_records, reason_groups
+from pipeline.results import POSE_NAMES, outcome, pose_names_problem, read_records, reason_groups
 from pipeline.shard import POINT_SELECTIONS, PRIORS, LocalizationJob, RetrievalConfig
 from pipeline.store import StoreError, open_store
 from pipeline.verify import VerificationConfig
@@ -156,6 +156,9 @@ def main(args: argparse.Namespace) -> int:
     output = Path(_absolute(args.output))
     plan = plan_localization(job, queries, output, args.shard_size, workers=1 if args.sync else args.workers,
                              keep_failures=args.keep_failures, overwrite=args.overwrite)
+    problem = pose_names_problem([q.name for q in queries], args.pose_names)
+    if problem:
+        raise ValueError(problem[0].upper() + problem[1:] + ".")
     plan.pose_names = args.pose_names
     print(plan.describe())
     if args.dry_run:

@@ -233,7 +233,10 @@ def merge(plan: LocalizationPlan) -> List[Dict]:
     write_records(records, plan.output / "records.jsonl")
     write_poses(records, plan.output / "poses.txt")
     if plan.pose_names != "full":
-        write_poses(records, plan.output / f"poses_{plan.pose_names}.txt", plan.pose_names)
+        try:
+            write_poses(records, plan.output / f"poses_{plan.pose_names}.txt", plan.pose_names)
+        except ValueError as e:  # checked before running (cli); a library caller still gets poses.txt
+            logger.error("poses_%s.txt not written: %s", plan.pose_names, e)
     cameras = {q.name: q.camera for s in plan.shards for q in s}
     write_kapture([r for r in records if cameras.get(r["name"]) is not None], cameras, plan.output / "kapture")
     write_failed(records, plan.output / "failed.txt")

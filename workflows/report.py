@@ -64,10 +64,11 @@ def _plt():
     return plt
 
 
-def _png(fig, fmt: str = "png") -> str:
+def _png(fig, fmt: str = "png", tight: bool = True) -> str:
     """The figure as base64 PNG (plots), or JPEG (figures with photos: a tenth of the bytes)."""
     buf = io.BytesIO()
-    fig.savefig(buf, format=fmt, dpi=80, bbox_inches="tight", **({"pil_kwargs": {"quality": 85}} if fmt == "jpeg" else {}))
+    fig.savefig(buf, format=fmt, dpi=80, bbox_inches="tight" if tight else None,
+                **({"pil_kwargs": {"quality": 85}} if fmt == "jpeg" else {}))
     _plt().close(fig)
     return base64.b64encode(buf.getvalue()).decode()
 
@@ -482,8 +483,8 @@ def example_figure(record: Dict, why: str, query: QueryRecord, reader: MapReader
     lines += [f"points: {record.get('num_points')}", f"references: {', '.join(record['references'][:3])}",
               f"time: {fmt(record.get('timings', {}).get('total'), '.2f')} s"]
     ax.text(0, 1, "evidence\n" + "\n".join(lines), va="top", fontsize=8, family="monospace")
-    fig.tight_layout()
-    return _png(fig, "jpeg")
+    fig.subplots_adjust(left=0.05, right=0.95, top=0.9, bottom=0.08, wspace=0.3, hspace=0.25)  # tight_layout: 4x slower
+    return _png(fig, "jpeg", tight=False)
 
 
 def _job_text(job: Dict, reader: MapReader, units: str, records: List[Dict]) -> str:

@@ -83,6 +83,13 @@ def test_outputs(seven_scenes, sync_records, tmp_path):
     q = np.array(values[:4], float)
     assert abs(np.linalg.norm(q) - 1) < 1e-6 and q[0] >= 0
     assert without_timings(read_records(tmp_path / "records.jsonl")) == without_timings(sync_records)
+    # benchmark names: 7-Scenes basenames repeat across sequences, so only parentdir/basename is refused nothing
+    from pipeline.results import pose_names_problem
+    assert "makes query names alike" in pose_names_problem([q.name for q in queries], "basename")
+    assert pose_names_problem([q.name for q in queries], "camera") is None
+    plan.pose_names = "camera"
+    run_sync(plan)  # a finished run: merges again, with the extra file
+    assert (tmp_path / "poses_camera.txt").read_text() == (tmp_path / "poses.txt").read_text()  # seq-XX/frame...
     # the same poses as a kapture folder (device_from_world), read back by the kapture reader
     from pipeline.readers.kapture import read_kapture
     back = {im.name: im for im in read_kapture(tmp_path / "kapture")}
@@ -192,6 +199,16 @@ def test_html_report(seven_scenes, tmp_path):
     order = [{"failed": 0, "rejected": 1, "refined": 2}[o] for o, _ in rows]
     assert order == sorted(order)  # failures first
     assert sum(o != "refined" for o, _ in rows) == sum(not r["success"] for r in records)
+    # one query without ground truth: its errors are '-', the medians are over the others, never 'nan'
+    from workflows.report import accuracy_tables, query_errors, query_table
+    gt = {q.name: q.cam_from_world_gt for q in queries}
+    gt[queries[0].name] = None
+    summary = evaluate(records, gt, INDOOR_THRESHOLDS)
+    errors = {r["name"]: query_errors(r, gt[r["name"]]) for r in records}
+    part = accuracy_tables(summary, INDOOR_THRESHOLDS, "m") + query_table(records, errors, INDOOR_THRESHOLDS, "m")
+    assert "nan" not in re.sub(r"base64,[^\"]+", "", part).lower() and "<td>all</td><td>5</td>" in part
+    missing = part[part.index(f"<td>{queries[0].name}</td>"):]
+    assert missing.split("</tr>")[0].count("<td data-v=''>-</td>") >= 4
 
 
 def test_hloc_descriptors_and_refinement_mode(seven_scenes, sync_records, tmp_path):
