@@ -90,10 +90,13 @@ class Localizer:
 
     def __init__(self, net: UNet, solvers: Sequence[LevenbergMarquardt], reader: MapReader,
                  conf: LocalizerConfig, device: str = "cpu", levels: Optional[Sequence[int]] = None,
-                 scales: Optional[Sequence[int]] = None):
+                 scales: Optional[Sequence[int]] = None, max_points: Optional[int] = None):
         """levels: the levels to optimise, e.g. (0, 1) for the paper's refinement mode; default all.
-        scales: the image scales of the store to run (e.g. (1,)); default all, coarse to fine."""
+        scales: the image scales of the store to run (e.g. (1,)); default all, coarse to fine.
+        max_points: a seeded subset of at most this many points per query (the search's coarse
+        screening: at stride 16 many points share a feature-map cell)."""
         self.net, self.solvers, self.reader, self.conf, self.device = net, list(solvers), reader, conf, device
+        self.max_points = max_points
         self.levels = sorted(set(levels if levels is not None else range(len(net.strides))), reverse=True)
         stored = list(reader.conf.image_scales)
         missing = sorted(set(scales or ()) - set(stored))
@@ -168,6 +171,11 @@ class Localizer:
                 seen = self.reader.observations(dbs, 1, selected)
                 keep = self.reader.track_length[seen.point] >= self.conf.min_track_length
                 st["obs"] = Observations(seen.point[keep], seen.db[keep], seen.rows[keep])
+                points = np.unique(st["obs"].point)
+                if self.max_points and len(points) > self.max_points:
+                    chosen = np.random.default_rng(0).choice(points, self.max_points, replace=False)
+                    sub = np.isin(st["obs"].point, chosen)
+                    st["obs"] = Observations(st["obs"].point[sub], st["obs"].db[sub], st["obs"].rows[sub])
                 result.num_points = int(len(np.unique(st["obs"].point)))
                 result.filters["short_tracks"] = int(len(np.unique(seen.point))) - result.num_points
                 if result.num_points < self.conf.min_points:

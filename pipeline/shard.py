@@ -24,6 +24,7 @@ from .priors import covisibility_clusters, pose_approximation
 from .queries import QueryRecord
 from .readers.hloc import PnPLog, read_hloc_logs
 from .results import read_records, result_to_record, write_records
+from .search import SearchConfig, hypotheses
 from .runtime import restore_malloc_thresholds, torch_threads
 from .store import StoreError
 
@@ -51,7 +52,9 @@ class LocalizationJob:
 
     prior: ``top1``, ``average`` (covisibility cluster, similarity-weighted), or
     ``hypotheses`` (each of the top ``num_hypotheses`` reference poses refined; the
-    lowest final featuremetric cost wins), or ``poses`` (refinement mode: the poses of
+    highest verification confidence wins), or ``search`` (the top references' poses and
+    perturbations of them screened at the coarsest level, the best ``search.keep`` refined:
+    ``pipeline.search``), or ``poses`` (refinement mode: the poses of
     another pipeline, file ``prior_poses`` in the visuallocalization.net format), or
     ``hloc`` (refinement mode as the paper's: the PnP poses of an hloc ``_logs.pkl``,
     file ``hloc_logs``; its references reranked by PnP inliers, those with more than
@@ -79,9 +82,15 @@ class LocalizationJob:
     min_matches_db: int = 10
     min_inliers: int = 10
     scales: Optional[Tuple[int, ...]] = None
+    search: SearchConfig = SearchConfig()
 
     def to_dict(self) -> Dict:
-        return asdict(self)
+        """The job as recorded in job.json (and compared by reruns); the search settings only
+        with the prior that reads them."""
+        d = asdict(self)
+        if self.prior != "search":
+            del d["search"]
+        return d
 
     def validate(self) -> None:
         """Refuse a job that cannot run, before any query does: unknown prior, retrieval method
@@ -99,6 +108,7 @@ class LocalizationJob:
                              "from its logs); use --point-selection all with other priors.")
         if self.num_hypotheses < 1 or self.localizer.num_dbs < 1 or self.retrieval.k < 1:
             raise ValueError("num_hypotheses, num_dbs and retrieval k must be at least 1.")
+        self.search.validate()
         needed = {"poses": ("prior_poses", "--prior poses needs --prior-poses FILE"),
                   "hloc": ("hloc_logs", "--prior hloc needs --hloc-logs FILE (hloc's <results>_logs.pkl)")}
         files = []
@@ -120,7 +130,7 @@ class LocalizationJob:
                 raise ValueError(f"Input file {f} does not exist.")
 
 
-PRIORS = ("top1", "average", "hypotheses", "poses", "hloc")
+PRIORS = ("top1", "average", "hypotheses", "search", "poses", "hloc")
 RETRIEVAL_METHODS = ("global", "pairs", "hloc")
 POINT_SELECTIONS = ("all", "inliers", "matched")
 
@@ -265,6 +275,9 @@ def prepare_query(job: LocalizationJob, reader: MapReader, localizer: Localizer,
         return [(query, cluster, prior, rgb, cache)]
     if job.prior == "hypotheses":
         return [(query, dbs[:num], reader.cam_from_world[i], rgb, cache) for i in dbs[:job.num_hypotheses]]
+    if job.prior == "search":
+        starts = hypotheses(reader, dbs, job.search)
+        return _Hypotheses([(query, dbs[:num], T, rgb, cache) for T, _ in starts], [label for _, label in starts])
     if job.prior == "poses":
         prior = find_by_name(read_poses_file(job.prior_poses), query.name)
         if prior is None:
@@ -306,6 +319,21 @@ def _prepare_hloc(job: LocalizationJob, reader: MapReader, query: QueryRecord, r
     return [(query, dbs, prior, rgb, cache, selected)]
 
 
+class _Hypotheses(list):
+    """The localize_batch items of one query's search, with a label per starting pose."""
+
+    def __init__(self, items, labels):
+        super().__init__(items)
+        self.labels = labels
+
+
+def _rank(results: List[QueryResult]) -> List[int]:
+    """Indices of the refined results, best first: verification confidence, then the
+    confidence-weighted inlier fraction."""
+    done = [j for j, r in enumerate(results) if r.refined is not None and r.evidence]
+    return sorted(done, key=lambda j: (results[j].confidence, results[j].evidence["weighted_inliers"]), reverse=True)
+
+
 def localize_queries(job: LocalizationJob, reader: MapReader, localizer: Localizer,
                      queries: List[QueryRecord]) -> List[QueryResult]:
     """Localize ``queries`` together: one LM batch per level and group of compatible queries.
@@ -314,7 +342,8 @@ def localize_queries(job: LocalizationJob, reader: MapReader, localizer: Localiz
     verification confidence (the sharpness of the cost there, ``pipeline.verify``), ties broken
     by the confidence-weighted inlier fraction. All hypotheses of a query use the same points
     and features, so this compares like with like, which the final costs (means over different
-    sets of valid points) do not."""
+    sets of valid points) do not. ``search`` screens its hypotheses so at the coarsest level
+    first (``_search``)."""
     prepared = []
     for q in queries:
         try:
@@ -322,6 +351,8 @@ def localize_queries(job: LocalizationJob, reader: MapReader, localizer: Localiz
         except (OSError, ValueError, RuntimeError) as e:  # recorded, never dropped
             logger.warning("Query %s failed: %s", q.name, e)
             prepared.append(_failure(q, f"{type(e).__name__}: {e}"))
+    if job.prior == "search":
+        prepared = _search(job, reader, localizer, prepared)
     items = [it for p in prepared if isinstance(p, list) for it in p]
     solved = iter(localizer.localize_batch(items)) if items else iter(())
     results = []
@@ -330,10 +361,40 @@ def localize_queries(job: LocalizationJob, reader: MapReader, localizer: Localiz
             results.append(p)
             continue
         candidates = [next(solved) for _ in p]
-        refined = [r for r in candidates if r.evidence]
-        results.append(max(refined, key=lambda r: (r.confidence, r.evidence["weighted_inliers"])) if refined
-                       else candidates[0])
+        ranked = _rank(candidates)
+        j = ranked[0] if ranked else 0
+        best = candidates[j]
+        if isinstance(p, _Hypotheses):  # a search: report the top-1 reference's pose when rejected
+            best.prior = np.asarray(p.top1, np.float64)
+            best.notes.append(f"search: {p.screened} starting poses screened at the coarsest level, {len(p)} "
+                              f"refined; the winner started from {p.labels[j]}")
+        results.append(best)
     return results
+
+
+def _search(job: LocalizationJob, reader: MapReader, localizer: Localizer, prepared: List) -> List:
+    """Screen every query's starting poses at the coarsest level (one batch), and replace them by
+    the ``job.search.keep`` best coarse results, to be refined through every level."""
+    conf = job.search
+    coarse = Localizer(localizer.net, localizer.solvers, reader, dataclasses.replace(localizer.conf, num_iters=conf.iters),
+                       localizer.device, levels=[localizer.levels[0]],
+                       scales=[reader.conf.image_scales[localizer.scales[0]]], max_points=conf.max_points)
+    items = [it for p in prepared if isinstance(p, list) for it in p]
+    screened = iter(coarse.localize_batch(items)) if items else iter(())
+    out = []
+    for p in prepared:
+        if isinstance(p, QueryResult):
+            out.append(p)
+            continue
+        results = [next(screened) for _ in p]
+        kept = _rank(results)[:job.search.keep]
+        if not kept:  # no start converged at the coarsest level: the top-1 start fails with its reason
+            out.append(results[0])
+            continue
+        refined = _Hypotheses([(*p[j][:2], results[j].refined, *p[j][3:]) for j in kept], [p.labels[j] for j in kept])
+        refined.top1, refined.screened = p[0][2], len(p)
+        out.append(refined)
+    return out
 
 
 def localize_shard(job: LocalizationJob, queries: List[QueryRecord], out_path) -> List[Dict]:

@@ -63,8 +63,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--retrieval-k", type=int, help=f"references retrieved (default {d['retrieval_k']})")
     p.add_argument("--same-tag", help="restrict references to those sharing this tag with the query")
     p.add_argument("--descriptors", type=Path, help="hloc HDF5 global descriptors for retrieval (e.g. NetVLAD)")
-    p.add_argument("--prior", choices=PRIORS, help=f"pose prior (default {d['prior']}); hloc: refinement mode "
-                   "from an hloc _logs.pkl (its PnP poses and inliers)")
+    p.add_argument("--prior", choices=PRIORS, help=f"pose prior (default {d['prior']}); search: many starts around the top "
+                   "references, screened at the coarsest level; hloc: refinement mode from an hloc _logs.pkl "
+                   "(its PnP poses and inliers)")
     p.add_argument("--prior-poses", type=Path, help="refinement mode: poses file of another pipeline")
     p.add_argument("--hloc-logs", type=Path, help="refinement mode: hloc localization logs (_logs.pkl); "
                    "the store must be built from the SfM model hloc localized against")

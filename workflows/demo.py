@@ -120,7 +120,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--queries-per-condition", type=int, default=5)
     p.add_argument("--workers", type=int, default=2, help="Dask workers (processes)")
     p.add_argument("--sync", action="store_true", help="localize in this process, without Dask")
-    p.add_argument("--prior", choices=["top1", "average", "hypotheses"], default="top1")
+    p.add_argument("--prior", choices=["top1", "average", "hypotheses", "search"], default="top1")
     p.set_defaults(func=main)
 
 

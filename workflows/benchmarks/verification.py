@@ -55,10 +55,19 @@ def _strecha(shared: Path, work: Path, folder: str, held_out: List[str], fconf: 
     images = read_strecha(root)
     for name in held_out:
         store = work / f"{folder}-{name}.zarr"
-        scene = triangulate_known_poses([im for im in images if im.name != name], root / "images",
-                                        work / f"{folder}-{name}.work")
-        build_sync(plan_build(scene, store, fconf))
+        if not _complete(store, fconf):  # a finished map is reused as it is
+            scene = triangulate_known_poses([im for im in images if im.name != name], root / "images",
+                                            work / f"{folder}-{name}.work")
+            build_sync(plan_build(scene, store, fconf))
         yield f"{folder}/{name}", store, [q for q in load_queries("strecha", root) if q.name == name]
+
+
+def _complete(store: Path, fconf: FeatureConfig) -> bool:
+    from pipeline.build import pending_images
+    try:
+        return store.exists() and not pending_images(store, fconf)
+    except (OSError, ValueError, KeyError):
+        return False
 
 
 def _demo(work: Path, fconf: FeatureConfig):

@@ -1,0 +1,93 @@
+"""Wide-basin search (the ``search`` prior): many starting poses, screened at the coarsest level.
+
+PixLoc's LM converges only inside a basin around the true pose; a retrieved reference's pose
+can lie outside it (metres and tens of degrees off). The search starts from the poses of the
+top retrieved references and from perturbations of each (turns left/right and up/down about
+the camera centre, moves forward/backward along the viewing direction, scaled to the scene by
+the reference's median point depth), runs only the coarsest level for all of them as one LM
+batch, keeps the best few per query, and refines those through every level. All hypotheses of
+a query use the same references, hence the same points and features, so their verification
+confidences (the sharpness of the cost, ``pipeline.verify``) compare like with like.
+"""
+
+from dataclasses import dataclass
+from typing import List, Tuple
+
+import numpy as np
+
+from .map_reader import MapReader
+
+
+@dataclass(frozen=True)
+class SearchConfig:
+    """references: top retrieved references whose poses seed hypotheses; yaw, pitch: +- turns
+    (degrees) about the camera's vertical and horizontal axes; shift: +- moves along the viewing
+    direction, as a fraction of the reference's median point depth; keep: hypotheses per query
+    refined through the finer levels after the coarse screening; iters, max_points: LM iterations
+    and points (a seeded subset) of the screening."""
+
+    references: int = 3
+    yaw: float = 15.0
+    pitch: float = 10.0
+    shift: float = 0.25
+    keep: int = 2
+    iters: int = 15
+    max_points: int = 1024
+
+    def validate(self) -> None:
+        if min(self.references, self.keep, self.iters, self.max_points) < 1:
+            raise ValueError("search: references, keep, iters and max_points must be at least 1.")
+        if min(self.yaw, self.pitch, self.shift) < 0:
+            raise ValueError("search: yaw, pitch and shift must not be negative.")
+
+    def size(self) -> int:
+        """Hypotheses per reference."""
+        return 1 + 2 * (self.yaw > 0) + 2 * (self.pitch > 0) + 2 * (self.shift > 0)
+
+
+def _turn(axis: int, degrees: float) -> np.ndarray:
+    a = np.deg2rad(degrees)
+    c, s = np.cos(a), np.sin(a)
+    i, j = [k for k in range(3) if k != axis]
+    R = np.eye(3)
+    R[i, i], R[i, j], R[j, i], R[j, j] = c, -s, s, c
+    return R
+
+
+def perturbations(T: np.ndarray, depth: float, conf: SearchConfig) -> List[Tuple[np.ndarray, str]]:
+    """(cam_from_world, label) of the pose ``T`` and its perturbations. Turns keep the camera
+    centre (R' = dR R, t' = dR t); a shift by d moves the centre along the optical axis (t' = t - d z)."""
+    T = np.asarray(T, np.float64)
+    out = [(T, "reference")]
+    for axis, angle, name in ((1, conf.yaw, "yaw"), (0, conf.pitch, "pitch")):
+        if angle > 0:
+            for sign in (1, -1):
+                dR = _turn(axis, sign * angle)
+                out.append((np.concatenate([dR @ T[:, :3], (dR @ T[:, 3])[:, None]], 1),
+                            f"{name} {sign * angle:+g} deg"))
+    if conf.shift > 0:
+        for sign in (1, -1):
+            d = sign * conf.shift * depth
+            out.append((np.concatenate([T[:, :3], (T[:, 3] - np.array([0.0, 0.0, d]))[:, None]], 1),
+                        f"{'forward' if d > 0 else 'backward'} {abs(d):.3g}"))
+    return out
+
+
+def median_depth(reader: MapReader, i: int) -> float:
+    """Median depth of the points that reference image ``i`` observes (1 if it sees none)."""
+    obs = reader.observations([i], 1)
+    if not len(obs.point):
+        return 1.0
+    T = reader.cam_from_world[i]
+    z = reader.xyz[np.unique(obs.point)] @ T[2, :3] + T[2, 3]  # depth along the optical axis
+    z = z[z > 0]
+    return float(np.median(z)) if len(z) else 1.0
+
+
+def hypotheses(reader: MapReader, dbs: List[int], conf: SearchConfig) -> List[Tuple[np.ndarray, str]]:
+    """Starting poses from the top ``conf.references`` of ``dbs`` (retrieval order)."""
+    out = []
+    for i in dbs[:conf.references]:
+        depth = median_depth(reader, i)
+        out += [(T, f"{reader.names[i]}: {label}") for T, label in perturbations(reader.cam_from_world[i], depth, conf)]
+    return out

@@ -1,0 +1,43 @@
+"""Starting poses of the search prior: turns about the camera centre, moves along the optical axis."""
+
+import numpy as np
+import pytest
+
+from pipeline.evaluate import pose_errors
+from pipeline.search import SearchConfig, perturbations
+
+
+def _pose(seed=0):
+    rng = np.random.default_rng(seed)
+    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    R = q * np.sign(np.linalg.det(q))
+    return np.concatenate([R, rng.normal(size=(3, 1))], 1)
+
+
+def _centre(T):
+    return -T[:, :3].T @ T[:, 3]
+
+
+def test_turns_keep_the_centre_and_shifts_move_along_the_optical_axis():
+    T = _pose()
+    conf = SearchConfig(yaw=15.0, pitch=10.0, shift=0.25)
+    starts = perturbations(T, depth=8.0, conf=conf)
+    assert len(starts) == conf.size() == 7 and starts[0][1] == "reference" and np.allclose(starts[0][0], T)
+    view = T[2, :3]  # the optical axis in world coordinates
+    for P, label in starts[1:]:
+        assert np.allclose(P[:, :3] @ P[:, :3].T, np.eye(3))
+        t, R = pose_errors(P, T)
+        if label.startswith(("yaw", "pitch")):
+            assert t == pytest.approx(0, abs=1e-9) and R == pytest.approx(15.0 if label.startswith("yaw") else 10.0)
+            axis = 1 if label.startswith("yaw") else 0  # the camera's own y (down) or x (right) axis
+            assert np.allclose(P[axis, :3], T[axis, :3])
+        else:
+            assert R == pytest.approx(0, abs=1e-6) and t == pytest.approx(2.0)
+            move = _centre(P) - _centre(T)
+            assert np.allclose(move, (2.0 if label.startswith("forward") else -2.0) * view)
+
+
+def test_a_search_without_perturbations_is_the_reference_poses():
+    assert [label for _, label in perturbations(_pose(), 1.0, SearchConfig(yaw=0, pitch=0, shift=0))] == ["reference"]
+    with pytest.raises(ValueError, match="at least 1"):
+        SearchConfig(keep=0).validate()

@@ -1,0 +1,99 @@
+"""Benchmark: the ``search`` prior against ``top1``, ``average`` and ``hypotheses``, from retrieval.
+
+On the scenes of the verification benchmark (Strecha fountain-P11 and Herz-Jesus-P8 leave-one-out,
+the demo scene, 7scenes_stairs; their maps are built once in ``--work`` and shared with it), every
+query is localized from retrieval with each prior, verification on (the reported pose: the refined
+one if verified, else the prior). Per scene and prior: the median error of the prior (top-1
+reference), recall at (5 cm, 1 deg), (25 cm, 2 deg), (1 m, 5 deg), and wall time per query in this
+process (one thread), with its ratio to ``top1``. Runs are kept in ``--work``: a rerun reprints.
+"""
+
+import argparse
+import dataclasses
+import os
+import time
+from pathlib import Path
+from typing import Dict, List
+
+from pipeline.evaluate import evaluate, fmt
+from pipeline.localize import LocalizerConfig
+from pipeline.shard import LocalizationJob, RetrievalConfig
+
+from ..localize import plan_localization, run_sync
+from .verification import _demo, _seven_scenes, _strecha
+
+THRESHOLDS = ((0.05, 1.0), (0.25, 2.0), (1.0, 5.0))
+HELD_OUT = {"fountain": ("fountain-P11", ["0002.jpg", "0004.jpg", "0006.jpg", "0008.jpg"]),
+            "herzjesus": ("Herz-Jesus-P8", ["0002.jpg", "0003.jpg", "0004.jpg", "0005.jpg"])}
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--shared", type=Path, default=Path(os.environ.get("PIXLOC_SHARED", "../shared")))
+    p.add_argument("--work", type=Path, default=Path("outputs/benchmark-verification"),
+                   help="maps and runs (default: the verification benchmark's folder, whose maps it reuses)")
+    p.add_argument("--scenes", nargs="+", default=["fountain", "herzjesus", "demo", "7scenes"])
+    p.add_argument("--priors", nargs="+", default=["top1", "average", "hypotheses", "search"])
+
+
+def _sources(args, fconf):
+    for key in args.scenes:
+        if key in HELD_OUT:
+            folder, names = HELD_OUT[key]
+            yield key, list(_strecha(args.shared, args.work, folder, names, fconf))
+        elif key == "demo":
+            yield key, list(_demo(args.work, fconf))
+        elif key == "7scenes":
+            yield key, list(_seven_scenes(args.shared, args.work, fconf))
+        else:
+            raise ValueError(f"Unknown scene {key!r}: use fountain, herzjesus, demo, 7scenes.")
+
+
+def main(args: argparse.Namespace) -> int:
+    from pipeline.features import FeatureConfig
+    from pixloc.nets.registry import DEFAULT_MODEL
+    from workflows.cli_localize import store_feature_config
+    fconf = FeatureConfig(model=DEFAULT_MODEL, resize=512, image_scales=(1,))
+    lconf = LocalizerConfig(num_dbs=3, num_iters=50)
+    rows: List[Dict] = []
+    for key, parts in _sources(args, fconf):
+        per_prior: Dict[str, Dict] = {p: {"records": [], "time": 0.0} for p in args.priors}
+        gt = {}
+        for name, store, queries in parts:
+            conf = store_feature_config(store)
+            gt.update({q.name: q.cam_from_world_gt for q in queries})
+            base = LocalizationJob(str(store), conf, conf.model, lconf,
+                                   RetrievalConfig(k=5, same_tag="area" if key == "demo" else None))
+            for prior in args.priors:
+                out = args.work / "search-runs" / name.replace("/", "-") / prior
+                plan = plan_localization(dataclasses.replace(base, prior=prior), queries, out, shard_size=8)
+                t0 = time.perf_counter()
+                records = run_sync(plan)
+                elapsed = time.perf_counter() - t0
+                if plan.todo:  # timed now; a rerun reads the time of the run that made them
+                    (out / "wall_s.txt").write_text(f"{elapsed:.3f}\n")
+                per_prior[prior]["records"] += records
+                per_prior[prior]["time"] += float((out / "wall_s.txt").read_text())
+        for prior, v in per_prior.items():
+            s = evaluate(v["records"], gt, THRESHOLDS)["all"]
+            rows.append({"scene": key, "prior": prior, "n": s["refined"]["count"],
+                         "prior_t": s["prior"]["median_t"], "prior_R": s["prior"]["median_R"],
+                         **{k: s["refined"][k] for k in s["refined"] if k.startswith("recall@")},
+                         "s_per_query": v["time"] / max(len(v["records"]), 1)})
+    print(table(rows))
+    return 0
+
+
+def table(rows: List[Dict]) -> str:
+    keys = [k for k in rows[0] if k.startswith("recall@")]
+    lines = ["| scene | prior | queries | its start: median t, R | " + " | ".join(k[len("recall@"):] for k in keys)
+             + " | s / query | x top1 |", "| --- | --- | ---: | --- | " + " | ".join("---:" for _ in keys)
+             + " | ---: | ---: |"]
+    top1 = {r["scene"]: r["s_per_query"] for r in rows if r["prior"] == "top1"}
+    for r in rows:
+        ratio = r["s_per_query"] / top1[r["scene"]] if top1.get(r["scene"]) else None
+        lines.append(f"| {r['scene']} | {r['prior']} | {r['n']} | {fmt(r['prior_t'], '.2f')} m, "
+                     f"{fmt(r['prior_R'], '.1f')} deg | "
+                     + " | ".join(f"{fmt(100 * r[k] if r[k] is not None else None, '.0f')} %" for k in keys)
+                     + f" | {r['s_per_query']:.2f} | {fmt(ratio, '.2f')} |")
+    return "\n".join(lines)
+
