@@ -387,7 +387,10 @@ def _search(job: LocalizationJob, reader: MapReader, localizer: Localizer, prepa
             out.append(p)
             continue
         results = [next(screened) for _ in p]
-        kept = _rank(results)[:job.search.keep]
+        # the top-1 start always goes on (the search then loses nothing where top1 converges), with
+        # the best of the others by their coarse confidence
+        kept = ([0] if results[0].refined is not None else []) + [j for j in _rank(results) if j != 0]
+        kept = kept[:job.search.keep]
         if not kept:  # no start converged at the coarsest level: the top-1 start fails with its reason
             out.append(results[0])
             continue
