@@ -53,7 +53,8 @@ class LocalizationJob:
     prior: ``top1``, ``average`` (covisibility cluster, similarity-weighted), or
     ``hypotheses`` (each of the top ``num_hypotheses`` reference poses refined; the
     highest verification confidence wins), or ``search`` (the top references' poses and
-    perturbations of them screened at the coarsest level, the best ``search.keep`` refined:
+    perturbations of them screened at the coarsest level, the top-1 start and the best others
+    (``search.keep`` in all) refined:
     ``pipeline.search``), or ``poses`` (refinement mode: the poses of
     another pipeline, file ``prior_poses`` in the visuallocalization.net format), or
     ``hloc`` (refinement mode as the paper's: the PnP poses of an hloc ``_logs.pkl``,
@@ -320,11 +321,20 @@ def _prepare_hloc(job: LocalizationJob, reader: MapReader, query: QueryRecord, r
 
 
 class _Hypotheses(list):
-    """The localize_batch items of one query's search, with a label per starting pose."""
+    """The localize_batch items of one query's search, with a label per starting pose; after the
+    screening, also the top-1 start (the prior a rejected search reports) and how many were screened."""
 
-    def __init__(self, items, labels):
+    def __init__(self, items, labels, top1=None, screened=None):
         super().__init__(items)
-        self.labels = labels
+        self.labels, self.top1, self.screened = labels, top1, screened
+
+
+def _solve(localizer: Localizer, prepared: List) -> List[Tuple]:
+    """(prepared, its results) per query: one localize_batch for every query's items; a failure
+    (QueryResult) comes with None."""
+    items = [it for p in prepared if isinstance(p, list) for it in p]
+    solved = iter(localizer.localize_batch(items)) if items else iter(())
+    return [(p, None if isinstance(p, QueryResult) else [next(solved) for _ in p]) for p in prepared]
 
 
 def _rank(results: List[QueryResult]) -> List[int]:
@@ -342,8 +352,8 @@ def localize_queries(job: LocalizationJob, reader: MapReader, localizer: Localiz
     verification confidence (the sharpness of the cost there, ``pipeline.verify``), ties broken
     by the confidence-weighted inlier fraction. All hypotheses of a query use the same points
     and features, so this compares like with like, which the final costs (means over different
-    sets of valid points) do not. ``search`` screens its hypotheses so at the coarsest level
-    first (``_search``)."""
+    sets of valid points) do not. ``search`` screens its hypotheses at the coarsest level first
+    (``_search``)."""
     prepared = []
     for q in queries:
         try:
@@ -353,14 +363,11 @@ def localize_queries(job: LocalizationJob, reader: MapReader, localizer: Localiz
             prepared.append(_failure(q, f"{type(e).__name__}: {e}"))
     if job.prior == "search":
         prepared = _search(job, reader, localizer, prepared)
-    items = [it for p in prepared if isinstance(p, list) for it in p]
-    solved = iter(localizer.localize_batch(items)) if items else iter(())
     results = []
-    for p in prepared:
-        if isinstance(p, QueryResult):
+    for p, candidates in _solve(localizer, prepared):
+        if candidates is None:
             results.append(p)
             continue
-        candidates = [next(solved) for _ in p]
         ranked = _rank(candidates)
         j = ranked[0] if ranked else 0
         best = candidates[j]
@@ -379,14 +386,11 @@ def _search(job: LocalizationJob, reader: MapReader, localizer: Localizer, prepa
     coarse = Localizer(localizer.net, localizer.solvers, reader, dataclasses.replace(localizer.conf, num_iters=conf.iters),
                        localizer.device, levels=[localizer.levels[0]],
                        scales=[reader.conf.image_scales[localizer.scales[0]]], max_points=conf.max_points)
-    items = [it for p in prepared if isinstance(p, list) for it in p]
-    screened = iter(coarse.localize_batch(items)) if items else iter(())
     out = []
-    for p in prepared:
-        if isinstance(p, QueryResult):
+    for p, results in _solve(coarse, prepared):
+        if results is None:
             out.append(p)
             continue
-        results = [next(screened) for _ in p]
         # the top-1 start always goes on (the search then loses nothing where top1 converges), with
         # the best of the others by their coarse confidence
         kept = ([0] if results[0].refined is not None else []) + [j for j in _rank(results) if j != 0]
@@ -394,9 +398,8 @@ def _search(job: LocalizationJob, reader: MapReader, localizer: Localizer, prepa
         if not kept:  # no start converged at the coarsest level: the top-1 start fails with its reason
             out.append(results[0])
             continue
-        refined = _Hypotheses([(*p[j][:2], results[j].refined, *p[j][3:]) for j in kept], [p.labels[j] for j in kept])
-        refined.top1, refined.screened = p[0][2], len(p)
-        out.append(refined)
+        out.append(_Hypotheses([(*p[j][:2], results[j].refined, *p[j][3:]) for j in kept],
+                               [p.labels[j] for j in kept], top1=p[0][2], screened=len(p)))
     return out
 
 
