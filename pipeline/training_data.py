@@ -32,12 +32,16 @@ logger = logging.getLogger(__name__)
 class PairConfig:
     """max_size: longer image side after resizing. num_points: points per pair (fewer are
     padded and masked). min_covisible: shared points for a pair. init_range: fraction of
-    the way from the reference pose to the truth where the initial pose is sampled."""
+    the way from the reference pose to the truth where the initial pose is sampled.
+    far_init_prob, far_init_range: the share of pairs whose initial pose is drawn from
+    ``far_init_range`` instead (farther from the truth: the basin a search must survive)."""
 
     max_size: int = 320
     num_points: int = 512
     min_covisible: int = 50
     init_range: Tuple[float, float] = (0.75, 1.0)
+    far_init_prob: float = 0.0
+    far_init_range: Tuple[float, float] = (0.25, 0.75)
 
 
 def initial_pose(query_from_ref: Pose, fraction: float) -> Pose:
@@ -110,7 +114,11 @@ class PairDataset:
         p3d_pad[:len(pick)] = p3d
         mask = torch.arange(n) < len(pick)
         query_from_ref = T_q @ T_ref.inv()
-        fraction = init_fraction if init_fraction is not None else float(rng.uniform(*self.conf.init_range))
+        if init_fraction is not None:
+            fraction = init_fraction
+        else:
+            far = self.conf.far_init_prob > 0 and rng.uniform() < self.conf.far_init_prob
+            fraction = float(rng.uniform(*(self.conf.far_init_range if far else self.conf.init_range)))
         init = initial_pose(query_from_ref, fraction)
         image_ref, cam_ref = self.image(k, i)
         image_q, cam_q = self.image(k, j)

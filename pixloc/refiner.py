@@ -9,6 +9,7 @@ of the previous one (Sarlin et al. 2021, Sec. 3.3; official
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Dict, List, Sequence
 
+import torch
 from torch import Tensor, nn
 from torch.nn.functional import normalize
 
@@ -37,6 +38,23 @@ class PairBatch:
     query_from_ref_gt: Pose
     mask_points: Tensor | None = None
 
+    def to(self, device) -> "PairBatch":
+        return PairBatch(*(None if v is None else v.to(device) for v in (
+            self.image_ref, self.image_query, self.camera_ref, self.camera_query, self.p3d_ref,
+            self.query_from_ref_init, self.query_from_ref_gt, self.mask_points)))
+
+    @staticmethod
+    def stack(batches: Sequence["PairBatch"]) -> "PairBatch":
+        """One batch of several, all with the same image sizes and number of points."""
+        cat = lambda k: torch.cat([getattr(b, k) for b in batches])
+        wrapped = lambda k: type(getattr(batches[0], k))(torch.cat([getattr(b, k)._data for b in batches]))
+        return PairBatch(cat("image_ref"), cat("image_query"), wrapped("camera_ref"), wrapped("camera_query"),
+                         cat("p3d_ref"), wrapped("query_from_ref_init"), wrapped("query_from_ref_gt"),
+                         cat("mask_points") if batches[0].mask_points is not None else None)
+
+    def shape_key(self) -> tuple:
+        return tuple(self.image_ref.shape[1:]) + tuple(self.image_query.shape[1:]) + tuple(self.p3d_ref.shape[1:])
+
 
 def masked_mean(x: Tensor, mask: Tensor, dim: int) -> Tensor:
     mask = mask.to(x.dtype)
@@ -62,11 +80,19 @@ class TwoViewRefiner(nn.Module):
         self.normalize_features = normalize_features
         self.success_thresh = success_thresh
         self.clamp_error = clamp_error
+        self.autocast_dtype = None  # e.g. torch.bfloat16: the network (not the LM) in mixed precision
+
+    def extract(self, image: Tensor) -> Dict[str, List[Tensor]]:
+        if self.autocast_dtype is None:
+            return self.extractor(image)
+        with torch.autocast(image.device.type, dtype=self.autocast_dtype):
+            pred = self.extractor(image)
+        return {k: [x.float() for x in v] if isinstance(v, list) else v for k, v in pred.items()}
 
     def forward(self, batch: PairBatch) -> Dict[str, List]:
         """Returns ``query_from_ref`` (poses after each level, coarse to fine) and ``failed``."""
-        pred_ref = self.extractor(batch.image_ref)
-        pred_q = self.extractor(batch.image_query)
+        pred_ref = self.extract(batch.image_ref)
+        pred_q = self.extract(batch.image_query)
         T = batch.query_from_ref_init
         poses, failed, inits = [], [], []
         for level in reversed(range(len(self.extractor.strides))):

@@ -8,7 +8,7 @@ no file paths: callers save ``state_dict()`` where they want and resume with
 
 import math
 from dataclasses import dataclass
-from typing import Dict
+from typing import Dict, List, Sequence, Union
 
 import torch
 
@@ -21,7 +21,11 @@ class TrainConfig:
     """lr: base learning rate (official MegaDepth 5e-6, CMU 1e-5). damping_lr_scale: official 100.
     clip_grad: max gradient norm (official 1.0). num_iters: LM iterations per level (official 15).
     freeze_batchnorm: keep BatchNorm statistics fixed (batches of one or two pairs are too small
-    to estimate them). grad_checkpointing: recompute the network's activations in backward."""
+    to estimate them). grad_checkpointing: recompute the network's activations in backward.
+    lr_schedule: ``constant``, or ``cosine`` from ``lr`` at step ``decay_start`` down to
+    ``lr * lr_min_factor`` at ``total_steps`` (a function of the step alone, so a resumed
+    run follows the same schedule). device: where the model trains (``cuda`` on a GPU).
+    amp: the network in bfloat16 autocast on a GPU (the LM and the loss stay in float32)."""
 
     lr: float = 1e-5
     damping_lr_scale: float = 100.0
@@ -29,6 +33,22 @@ class TrainConfig:
     num_iters: int = 15
     freeze_batchnorm: bool = True
     grad_checkpointing: bool = False
+    lr_schedule: str = "constant"
+    total_steps: int = 0
+    decay_start: int = 0
+    lr_min_factor: float = 0.1
+    device: str = "cpu"
+    amp: bool = False
+
+    def lr_factor(self, step: int) -> float:
+        """The learning rate of ``step`` (counted from 0) as a fraction of ``lr``."""
+        if self.lr_schedule == "constant":
+            return 1.0
+        if self.lr_schedule != "cosine":
+            raise ValueError(f"Unknown lr_schedule {self.lr_schedule!r}: constant or cosine.")
+        span = max(1, self.total_steps - self.decay_start)
+        progress = min(1.0, max(0.0, (step - self.decay_start) / span))
+        return self.lr_min_factor + (1 - self.lr_min_factor) * 0.5 * (1 + math.cos(math.pi * progress))
 
 
 def reprojection_px(T: Pose, batch: PairBatch) -> torch.Tensor:
@@ -45,7 +65,10 @@ def reprojection_px(T: Pose, batch: PairBatch) -> torch.Tensor:
 
 class Trainer:
     def __init__(self, model: TwoViewRefiner, conf: TrainConfig = TrainConfig()):
-        self.model, self.conf = model, conf
+        self.model, self.conf = model.to(conf.device), conf
+        self.device = torch.device(conf.device)
+        if conf.amp and self.device.type == "cuda":
+            model.autocast_dtype = torch.bfloat16
         damping = [p for n, p in model.named_parameters() if n.startswith("solvers.")]
         others = [p for n, p in model.named_parameters() if not n.startswith("solvers.")]
         self.optimizer = torch.optim.Adam([
@@ -64,19 +87,37 @@ class Trainer:
                 if isinstance(m, torch.nn.modules.batchnorm._BatchNorm):
                     m.eval()
 
-    def step(self, batch: PairBatch) -> Dict[str, float]:
-        """One optimisation step; returns the batch's metrics (losses in pixels)."""
+    def step(self, batch: Union[PairBatch, Sequence[PairBatch]]) -> Dict[str, float]:
+        """One optimisation step on one batch, or on several pairs (stacked where their image sizes
+        agree, gradients accumulated across sizes: the mean loss over all pairs); returns the
+        metrics (means over the pairs; losses in pixels)."""
         self.train_mode()
-        pred = self.model(batch)
-        losses = self.model.loss(pred, batch)
-        loss = losses["total"].mean()
-        metrics = {k: float(v.detach().mean()) for k, v in losses.items()}
-        with torch.no_grad():
-            metrics["error_px/init"] = float(reprojection_px(batch.query_from_ref_init, batch).mean())
-            metrics["error_px"] = float(reprojection_px(pred["query_from_ref"][-1], batch).mean())
+        groups: Dict[tuple, List[PairBatch]] = {}
+        for b in ([batch] if isinstance(batch, PairBatch) else batch):
+            groups.setdefault(b.shape_key(), []).append(b)
+        total = sum(len(b.image_ref) for g in groups.values() for b in g)
+        factor = self.conf.lr_factor(self.step_count)
+        for group, base in zip(self.optimizer.param_groups, (1.0, self.conf.damping_lr_scale)):
+            group["lr"] = self.conf.lr * base * factor
         self.optimizer.zero_grad()
-        if torch.isfinite(loss) and loss.requires_grad:
-            loss.backward()
+        sums: Dict[str, float] = {}
+        finite = True
+        for parts in groups.values():
+            b = (parts[0] if len(parts) == 1 else PairBatch.stack(parts)).to(self.device)
+            pred = self.model(b)
+            losses = self.model.loss(pred, b)
+            with torch.no_grad():
+                losses["error_px/init"] = reprojection_px(b.query_from_ref_init, b)
+                losses["error_px"] = reprojection_px(pred["query_from_ref"][-1], b)
+            for k, v in losses.items():
+                sums[k] = sums.get(k, 0.0) + float(v.detach().sum())
+            loss = losses["total"].sum() / total
+            finite &= bool(torch.isfinite(loss))
+            if finite and loss.requires_grad:
+                loss.backward()
+        metrics = {k: v / total for k, v in sums.items()}
+        metrics["lr"] = self.conf.lr * factor
+        if finite and any(p.grad is not None for p in self.model.parameters()):
             norm = torch.nn.utils.clip_grad_norm_(self.model.parameters(), self.conf.clip_grad)
             metrics["grad_norm"] = float(norm)
             if math.isfinite(metrics["grad_norm"]):

@@ -7,13 +7,16 @@ Output folder::
     metrics.csv        one row per step: losses, reprojection errors in pixels, gradient norm, time
     validation.csv     one row per validation: median reprojection error and recall of fixed pairs
     curves.png         training loss and validation error against steps
-    checkpoint.pt      the last checkpoint (model, optimiser, step, random states, wall time)
+    checkpoint.pt      the last checkpoint (model, optimiser, step, torch random state, wall time);
+                       the pairs of step k are drawn from a generator seeded by (seed, k)
     model.pt           the model in the project's format, loadable with --model PATH
+    model_best.pt      the model at the validation with the lowest median error (best.json: which)
     data/              generated synthetic scenes and triangulations
 """
 
 import argparse
 import csv
+import json
 import logging
 import os
 import platform
@@ -37,7 +40,7 @@ from .sources import MapSource, load_scene
 
 logger = logging.getLogger(__name__)
 TRAIN_KEYS = ("error_px/init", "error_px", "total", "reprojection_error/init", "reprojection_error/0",
-              "reprojection_error/1", "reprojection_error/2", "grad_norm")
+              "reprojection_error/1", "reprojection_error/2", "grad_norm", "lr")
 VAL_KEYS = ("error_px_init_median", "error_px_median", "recall_1px", "recall_5px", "loss")
 
 
@@ -124,12 +127,50 @@ def load_sources(entries: List[Dict], data_root: Path, work_dir: Path, camera: C
     return sources, skipped
 
 
+class StepSampler:
+    """The pairs of each training step, drawn from a generator seeded by (seed, step) alone: the
+    same pairs in-process or in any worker process, and after a resume."""
+
+    def __init__(self, datasets: List[PairDataset], p: np.ndarray, seed: int, batch_size: int = 1):
+        self.datasets, self.p, self.seed, self.batch_size = datasets, p, seed, batch_size
+
+    def __call__(self, step: int):
+        """(source index, pairs) of step ``step`` (counted from 0); one source per step."""
+        rng = np.random.default_rng([self.seed, step])
+        k = int(rng.choice(len(self.datasets), p=self.p))
+        return k, [self.datasets[k].sample(rng) for _ in range(self.batch_size)]
+
+
+class _Steps(torch.utils.data.IterableDataset):
+    def __init__(self, sampler: StepSampler, start: int, stop: int):
+        self.sampler, self.start, self.stop = sampler, start, stop
+
+    def __iter__(self):
+        info = torch.utils.data.get_worker_info()
+        n, i = (info.num_workers, info.id) if info else (1, 0)
+        for step in range(self.start + i, self.stop, n):  # the loader takes workers in turn: steps in order
+            yield self.sampler(step)
+
+
+def _as_is(x):
+    return x
+
+
+def step_batches(sampler: StepSampler, start: int, stop: int, workers: int = 0):
+    """The batches of steps [start, stop), read in ``workers`` processes (0: in this one)."""
+    if workers <= 0:
+        return (sampler(step) for step in range(start, stop))
+    return torch.utils.data.DataLoader(_Steps(sampler, start, stop), batch_size=None, num_workers=workers,
+                                       collate_fn=_as_is, prefetch_factor=4, persistent_workers=False)
+
+
 def validate(trainer: Trainer, pairs) -> Dict[str, float]:
     """Median reprojection errors (pixels) and recall at 1 and 5 px of fixed pairs."""
     model = trainer.model.eval()
     init, final, losses = [], [], []
     with torch.no_grad():
         for batch in pairs:
+            batch = batch.to(trainer.device)
             pred = model(batch)
             losses.append(float(model.loss(pred, batch)["total"].mean()))
             init.append(float(reprojection_px(batch.query_from_ref_init, batch).mean()))
@@ -207,7 +248,9 @@ def train(config: Dict, out: Path, data_root: Path, resume: bool = True, threads
     model, arch = config.get("model", "lite0-imagenet"), config.get("architecture", "lite0")
     pconf = PairConfig(max_size=int(config.get("max_size", 320)), num_points=int(config.get("num_points", 512)),
                        min_covisible=int(config.get("min_covisible", 50)),
-                       init_range=tuple(config.get("init_range", (0.75, 1.0))))
+                       init_range=tuple(config.get("init_range", (0.75, 1.0))),
+                       far_init_prob=float(config.get("far_init_prob", 0.0)),
+                       far_init_range=tuple(config.get("far_init_range", (0.25, 0.75))))
     m, w, h, params = config.get("synthetic_camera", ["PINHOLE", 320, 240, [250.0, 250.0, 160.0, 120.0]])
     camera = CameraRecord(m, int(w), int(h), tuple(params))
     sources, skipped = load_sources(config["data"], data_root, out / "data", camera)
@@ -215,22 +258,27 @@ def train(config: Dict, out: Path, data_root: Path, resume: bool = True, threads
         raise ValueError("No training data: every source of the config is missing.")
     datasets = [s.dataset(pconf) for s in sources]
     p = np.array([s.weight for s in sources]) / np.sum([s.weight for s in sources])
+    sampler = StepSampler(datasets, p, int(config.get("seed", 0)), int(config.get("batch_size", 1)))
+    workers = int(config.get("workers", 0))
     val_sources, _ = load_sources(config.get("validation", []), data_root, out / "data", camera)
     val_pairs = [b for s in val_sources for b in s.dataset(pconf).fixed(int(config.get("val_pairs", 24)), seed=0)]
 
     refiner = load_refiner(model)
     tconf = TrainConfig(lr=float(config.get("lr", 1e-4)), clip_grad=float(config.get("clip_grad", 1.0)),
                         num_iters=int(config.get("num_iters", 15)),
-                        grad_checkpointing=bool(config.get("grad_checkpointing", False)))
+                        grad_checkpointing=bool(config.get("grad_checkpointing", False)),
+                        lr_schedule=str(config.get("lr_schedule", "constant")),
+                        total_steps=int(config.get("decay_steps", config.get("steps", 1000))),
+                        decay_start=int(config.get("decay_start", 0)),
+                        lr_min_factor=float(config.get("lr_min_factor", 0.1)),
+                        device=str(config.get("device", "cpu")), amp=bool(config.get("amp", False)))
     trainer = Trainer(refiner, tconf)
-    rng = np.random.default_rng(int(config.get("seed", 0)))
     torch.manual_seed(int(config.get("seed", 0)))
     wall = 0.0
     ckpt_path = out / "checkpoint.pt"
     if resume and ckpt_path.is_file():
         state = torch.load(ckpt_path, map_location="cpu", weights_only=True)
         trainer.load_state_dict(state["trainer"])
-        rng.bit_generator.state = state["numpy_rng"]
         wall = float(state["wall_time"])
         logger.info("Resumed from %s at step %d.", ckpt_path, trainer.step_count)
     start = trainer.step_count
@@ -240,27 +288,43 @@ def train(config: Dict, out: Path, data_root: Path, resume: bool = True, threads
     val_every, ckpt_every = int(config.get("val_every", 100)), int(config.get("checkpoint_every", 100))
     info = {"architecture": arch, "init": model, "data": [s.name for s in sources], "skipped_data": skipped,
             "held_out": config.get("held_out", []), "max_size": pconf.max_size, "lr": tconf.lr,
-            "hardware": f"{platform.processor() or platform.machine()}, {torch.get_num_threads()} threads"}
+            "hardware": f"{platform.processor() or platform.machine()}, {torch.get_num_threads()} threads, "
+                        f"{tconf.device}" + (f" ({torch.cuda.get_device_name()})" if tconf.device.startswith("cuda") else "")}
 
     def checkpoint():
         tmp = ckpt_path.with_suffix(".tmp")
-        torch.save({"trainer": trainer.state_dict(), "numpy_rng": rng.bit_generator.state,
-                    "wall_time": wall}, tmp)
+        torch.save({"trainer": trainer.state_dict(), "wall_time": wall}, tmp)
         tmp.replace(ckpt_path)
         save_model(trainer.model, arch, out / "model.pt",
                    {**info, "steps": trainer.step_count, "wall_time_s": round(wall, 1), "validation": last_val})
+
+    best_path = out / "best.json"
+    best = json.loads(best_path.read_text()) if start and best_path.is_file() else {}
+    if best.get("step", 0) > start:  # the best of a future that the resume dropped
+        best = {}
+
+    def keep_if_best(step: int, val: Dict[str, float]) -> None:
+        if best and val["error_px_median"] >= best["error_px_median"]:
+            return
+        best.clear()
+        best.update({"step": step, **val})
+        save_model(trainer.model, arch, out / "model_best.pt",
+                   {**info, "steps": step, "wall_time_s": round(wall, 1), "validation": val})
+        best_path.write_text(json.dumps(best, indent=1))
 
     last_val: Dict[str, float] = {}
     if start == 0 and val_pairs:
         last_val = validate(trainer, val_pairs)
         val_log.write({"step": 0, "time": 0.0, **last_val})
+        keep_if_best(0, last_val)
     from tqdm import tqdm
     progress = tqdm(range(start, steps), initial=start, total=steps, desc="training", unit="step",
                     disable=None)
+    batches = iter(step_batches(sampler, start, steps, workers))
     for _ in progress:
         t0 = time.perf_counter()
-        k = int(rng.choice(len(datasets), p=p))
-        metrics = trainer.step(datasets[k].sample(rng))
+        k, pairs = next(batches)
+        metrics = trainer.step(pairs)
         wall += time.perf_counter() - t0
         train_log.write({**metrics, "time": round(wall, 2), "source": sources[k].name})
         progress.set_postfix(loss=f"{metrics['total']:.3g}", px=f"{metrics['error_px']:.2f}")
@@ -273,6 +337,7 @@ def train(config: Dict, out: Path, data_root: Path, resume: bool = True, threads
             logger.info("step %d: validation median error %.2f px (initial %.2f px), recall@1px %.2f",
                         step, last_val["error_px_median"], last_val["error_px_init_median"],
                         last_val["recall_1px"])
+            keep_if_best(step, last_val)
         if step % ckpt_every == 0 or step == steps:
             checkpoint()
     if trainer.step_count == start:  # nothing to do: keep the outputs consistent anyway
@@ -293,16 +358,24 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--grad-checkpointing", action="store_true", help="trade compute for memory")
     p.add_argument("--restart", action="store_true", help="ignore an existing checkpoint")
     p.add_argument("--threads", type=int, default=0, help="torch threads (default: torch's choice)")
+    p.add_argument("--device", help="cpu or cuda (overrides the config; default cpu)")
+    p.add_argument("--amp", action="store_true", help="on a GPU: the network in bfloat16 autocast")
+    p.add_argument("--batch-size", type=int, help="pairs per step (overrides the config; default 1)")
+    p.add_argument("--workers", type=int, help="data loading processes (overrides the config; default 0)")
     p.set_defaults(func=main)
 
 
 def main(args: argparse.Namespace) -> int:
     config = load_config(args.config)
-    for key in ("steps", "lr", "max_size"):
+    for key in ("steps", "lr", "max_size", "device", "batch_size", "workers"):
         if getattr(args, key) is not None:
             config[key] = getattr(args, key)
     if args.grad_checkpointing:
         config["grad_checkpointing"] = True
+    if args.amp:
+        config["amp"] = True
+    if str(config.get("device", "cpu")).startswith("cuda") and not torch.cuda.is_available():
+        raise ValueError("--device cuda: no CUDA device is available to torch here.")
     if args.synthetic_only:
         config["data"] = [d for d in config["data"] if d["kind"] == "synthetic"]
     val = train(config, args.output, args.data_root or default_data_root(), resume=not args.restart,

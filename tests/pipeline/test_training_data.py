@@ -62,3 +62,22 @@ def test_fixed_pairs_are_reproducible(scene):
 def test_a_scene_without_pairs_is_refused(scene):
     with pytest.raises(ValueError, match="no image pairs"):
         PairDataset([("syn", scene)], PairConfig(min_covisible=10 ** 7))
+
+
+def test_far_initial_poses_come_from_their_own_range(scene):
+    """With far_init_prob, that share of pairs starts in far_init_range of the way to the truth."""
+    conf = PairConfig(max_size=128, init_range=(0.9, 1.0), far_init_prob=0.5, far_init_range=(0.2, 0.3))
+    ds = PairDataset([("syn", scene)], conf)
+    rng = np.random.default_rng(2)
+    fractions = []
+    for _ in range(40):
+        b = ds.pair(3, rng)
+        dR, _ = pose_error(b.query_from_ref_init, b.query_from_ref_gt)
+        dR_0, _ = pose_error(b.query_from_ref_gt.__class__.from_Rt(torch.eye(3), torch.zeros(3)).reshape(1),
+                             b.query_from_ref_gt)
+        fractions.append(1 - float(dR) / float(dR_0))
+    fractions = np.array(fractions)
+    far = fractions < 0.5
+    assert ((fractions > 0.2 - 1e-3) & (fractions < 0.3 + 1e-3))[far].all()
+    assert ((fractions > 0.9 - 1e-3) & (fractions < 1.0 + 1e-3))[~far].all()
+    assert 10 <= far.sum() <= 30

@@ -63,3 +63,57 @@ def test_gradient_checkpointing_gives_the_same_gradients(pairs):
     assert grads[0].keys() == grads[1].keys() and len(grads[0]) > 50
     for name, g in grads[0].items():
         assert torch.allclose(g, grads[1][name], rtol=1e-4, atol=1e-6), name
+
+
+def test_cosine_schedule_decays_from_lr_to_the_floor():
+    conf = TrainConfig(lr=1e-4, lr_schedule="cosine", total_steps=100, decay_start=20, lr_min_factor=0.1)
+    factors = [conf.lr_factor(s) for s in range(0, 121, 10)]
+    assert factors[:3] == [1.0, 1.0, 1.0]
+    assert factors[6] == pytest.approx(0.55)  # half-way through the decay: half-way down
+    assert factors[-3:] == [pytest.approx(0.1)] * 3
+    assert all(a >= b for a, b in zip(factors, factors[1:]))
+    with pytest.raises(ValueError, match="lr_schedule"):
+        TrainConfig(lr_schedule="linear").lr_factor(0)
+
+
+def test_the_schedule_sets_both_learning_rates(pairs):
+    trainer = Trainer(load_refiner("lite0-imagenet"), TrainConfig(lr=1e-4, num_iters=2, lr_schedule="cosine",
+                                                                  total_steps=2, lr_min_factor=0.5))
+    trainer.step_count = 1  # the last step of two: half-way down the cosine
+    metrics = trainer.step(pairs[0])
+    assert metrics["lr"] == pytest.approx(0.75e-4)
+    assert [g["lr"] for g in trainer.optimizer.param_groups] == [pytest.approx(0.75e-4), pytest.approx(0.75e-2)]
+
+
+def test_a_stacked_batch_is_the_mean_of_its_pairs(pairs):
+    """Two pairs in one step: stacked when their sizes agree, and the same loss and gradient as
+    the pairs accumulated one by one."""
+    grads, metrics = [], []
+    for stack in (True, False):
+        trainer = Trainer(load_refiner("lite0-imagenet"), TrainConfig(num_iters=3))
+        if not stack:  # different shape keys: one forward per pair
+            trainer_pairs = pairs[:2]
+            trainer.optimizer.step = lambda: None
+            keys = iter([("a",), ("b",)])
+            for p in trainer_pairs:
+                p.shape_key = (lambda k: (lambda: k))(next(keys))
+        else:
+            trainer.optimizer.step = lambda: None
+        metrics.append(trainer.step(list(pairs[:2])))
+        grads.append(torch.cat([p.grad.flatten() for p in trainer.model.parameters() if p.grad is not None]))
+        for p in pairs[:2]:
+            p.__dict__.pop("shape_key", None)
+    assert metrics[0]["total"] == pytest.approx(metrics[1]["total"], rel=1e-4)
+    assert metrics[0]["error_px"] == pytest.approx(metrics[1]["error_px"], rel=1e-4)
+    assert torch.allclose(grads[0], grads[1], rtol=1e-3, atol=1e-6)
+
+
+@pytest.mark.gpu
+def test_training_steps_on_the_gpu_in_mixed_precision(pairs, device):
+    trainer = Trainer(load_refiner("lite0-imagenet"), TrainConfig(lr=3e-4, num_iters=5, device=str(device), amp=True))
+    assert next(trainer.model.parameters()).device.type == "cuda"
+    first = [trainer.step(list(pairs))["total"]]
+    for _ in range(9):
+        trainer.step(list(pairs))
+    last = trainer.step(list(pairs))
+    assert last["total"] < 0.8 * first[0] and last["grad_norm"] > 0

@@ -1,4 +1,6 @@
 import csv
+import json
+import math
 
 import pytest
 import torch
@@ -10,6 +12,7 @@ from workflows.cli import main
 CONFIG = {
     "model": "lite0-imagenet", "lr": 1e-3, "num_iters": 4, "max_size": 128, "num_points": 96,
     "val_every": 2, "val_pairs": 2, "checkpoint_every": 2,
+    "lr_schedule": "cosine", "decay_steps": 4, "lr_min_factor": 0.1, "far_init_prob": 0.5,
     "synthetic_camera": ["PINHOLE", 128, 96, [100.0, 100.0, 64.0, 48.0]],
     "data": [{"kind": "synthetic", "seed": 11}],
     "validation": [{"kind": "synthetic", "seed": 12}],
@@ -43,7 +46,15 @@ def test_interrupted_training_resumes_to_the_same_state(config, tmp_path):
     ra, rb = rows(tmp_path / "a" / "metrics.csv"), rows(tmp_path / "b" / "metrics.csv")
     assert [r["step"] for r in rb] == ["1", "2", "3", "4"]
     assert [r["total"] for r in ra] == [r["total"] for r in rb]
-    assert [r["step"] for r in rows(tmp_path / "b" / "validation.csv")] == ["0", "2", "4"]
+    val = rows(tmp_path / "b" / "validation.csv")
+    assert [r["step"] for r in val] == ["0", "2", "4"]
+    lrs = [float(r["lr"]) for r in rb]
+    assert lrs[0] == pytest.approx(1e-3) and lrs[-1] == pytest.approx(1e-3 * (0.1 + 0.9 * 0.5 * (1 + math.cos(0.75 * math.pi))))
+    assert [float(r["lr"]) for r in ra] == lrs  # the resumed run followed the same schedule
+    best = json.loads((tmp_path / "b" / "best.json").read_text())
+    errors = [float(r["error_px_median"]) for r in val]
+    assert best["step"] == int(val[errors.index(min(errors))]["step"])
+    assert torch.load(tmp_path / "b" / "model_best.pt", weights_only=True)["info"]["steps"] == best["step"]
     assert (tmp_path / "b" / "curves.png").stat().st_size > 10_000
     trained = torch.load(tmp_path / "b" / "model.pt", weights_only=True)
     assert trained["info"]["steps"] == 4 and trained["info"]["data"] == ["synthetic-11"]
@@ -59,3 +70,27 @@ def test_missing_training_data_is_reported(tmp_path, capsys):
     assert main(["train", "--config", str(path), "--output", str(tmp_path / "o"), "--data-root",
                  str(tmp_path)]) == 2
     assert "No training data" in capsys.readouterr().err
+
+
+def test_worker_processes_load_the_same_pairs(config, tmp_path):
+    """Batches of 2 pairs read in 2 worker processes: the same steps as read in-process."""
+    for workers in ("0", "2"):
+        assert main(["train", "--config", str(config), "--output", str(tmp_path / workers), "--steps", "2",
+                     "--batch-size", "2", "--workers", workers]) == 0
+    a, b = rows(tmp_path / "0" / "metrics.csv"), rows(tmp_path / "2" / "metrics.csv")
+    assert [r["total"] for r in a] == [r["total"] for r in b] and len(a) == 2
+
+
+def test_training_on_cuda_without_a_gpu_is_refused(config, tmp_path, capsys):
+    if torch.cuda.is_available():
+        pytest.skip("a GPU is available")
+    assert main(["train", "--config", str(config), "--output", str(tmp_path / "o"), "--device", "cuda"]) == 2
+    assert "no CUDA device" in capsys.readouterr().err
+
+
+@pytest.mark.gpu
+def test_pixloc_train_on_the_gpu(config, tmp_path, device):
+    assert main(["train", "--config", str(config), "--output", str(tmp_path / "g"), "--steps", "4",
+                 "--device", "cuda", "--amp", "--batch-size", "2", "--workers", "2"]) == 0
+    assert "cuda" in torch.load(tmp_path / "g" / "model.pt", weights_only=True)["info"]["hardware"]
+    assert [r["step"] for r in rows(tmp_path / "g" / "validation.csv")] == ["0", "2", "4"]

@@ -16,13 +16,21 @@ from pathlib import Path
 from typing import Dict, List
 
 from pipeline.evaluate import evaluate, fmt
+from pipeline.features import FeatureConfig
 from pipeline.localize import LocalizerConfig
 from pipeline.shard import LocalizationJob, RetrievalConfig
 
+from pixloc.nets.registry import DEFAULT_MODEL
+
+from ..build_map import plan_build, run_sync as build_sync
 from ..localize import plan_localization, run_sync
+from .sacre_coeur import sacre_coeur
 from .verification import _demo, _seven_scenes, _strecha
 
 THRESHOLDS = ((0.05, 1.0), (0.25, 2.0), (1.0, 5.0))
+SCENES = ("fountain", "herzjesus", "demo", "7scenes", "sacre_coeur", "sacre_coeur_night", "virtual_gallery")
+# the official localization setting of the Sacre Coeur cases (oracle/localization_cases.json, avg)
+SACRE_COEUR_FEATURES = FeatureConfig(model=DEFAULT_MODEL, resize=1024, image_scales=(4, 1))
 HELD_OUT = {"fountain": ("fountain-P11", ["0002.jpg", "0004.jpg", "0006.jpg", "0008.jpg"]),
             "herzjesus": ("Herz-Jesus-P8", ["0002.jpg", "0003.jpg", "0004.jpg", "0005.jpg"])}
 
@@ -31,7 +39,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--shared", type=Path, default=Path(os.environ.get("PIXLOC_SHARED", "../shared")))
     p.add_argument("--work", type=Path, default=Path("outputs/benchmark-verification"),
                    help="maps and runs (default: the verification benchmark's folder, whose maps it reuses)")
-    p.add_argument("--scenes", nargs="+", default=["fountain", "herzjesus", "demo", "7scenes"])
+    p.add_argument("--scenes", nargs="+", default=list(SCENES), choices=SCENES)
     p.add_argument("--priors", nargs="+", default=["top1", "average", "hypotheses", "search"])
 
 
@@ -44,13 +52,30 @@ def _sources(args, fconf):
             yield key, list(_demo(args.work, fconf))
         elif key == "7scenes":
             yield key, list(_seven_scenes(args.shared, args.work, fconf))
+        elif key in ("sacre_coeur", "sacre_coeur_night"):
+            yield key, sacre_coeur(args.shared, args.work, SACRE_COEUR_FEATURES, night=key == "sacre_coeur_night",
+                                   day=key == "sacre_coeur")
+        elif key == "virtual_gallery":
+            yield key, list(_virtual_gallery(args.shared, args.work, fconf))
         else:
-            raise ValueError(f"Unknown scene {key!r}: use fountain, herzjesus, demo, 7scenes.")
+            raise ValueError(f"Unknown scene {key!r}: use {', '.join(SCENES)}.")
+
+
+def _virtual_gallery(shared: Path, work: Path, fconf):
+    from pipeline.readers.colmap import triangulate_known_poses
+    from pipeline.readers.kapture import read_kapture
+    from workflows.sources import load_queries
+    from .verification import _complete
+    root = shared / "data" / "virtual_gallery"
+    store = work / "virtual_gallery.zarr"
+    if not _complete(store, fconf):
+        scene = triangulate_known_poses(read_kapture(root / "mapping"), root / "mapping" / "sensors" / "records_data",
+                                        work / "virtual_gallery.work")
+        build_sync(plan_build(scene, store, fconf))
+    yield "virtual_gallery", store, load_queries("kapture", root / "query")
 
 
 def main(args: argparse.Namespace) -> int:
-    from pipeline.features import FeatureConfig
-    from pixloc.nets.registry import DEFAULT_MODEL
     from workflows.cli_localize import store_feature_config
     fconf = FeatureConfig(model=DEFAULT_MODEL, resize=512, image_scales=(1,))
     lconf = LocalizerConfig(num_dbs=3, num_iters=50)
