@@ -196,15 +196,14 @@ def night(args) -> str:
     from pipeline.build import build_map
     from pipeline.queries import QueryRecord
     from pipeline.readers.colmap import read_colmap
-    from pipeline.scene import CameraRecord
+    from pipeline.exif import exif_camera
     from pixloc.nets.registry import DEFAULT_MODEL
     root = args.shared / "data" / "sacre_coeur"
     fconf = FeatureConfig(model=args.model or DEFAULT_MODEL, resize=1024, image_scales=(4, 1))
     store = args.work / "sacre_coeur.zarr"
     build_map(read_colmap(args.shared / "oracle" / "sacre_coeur_sfm", root / "mapping"), store, fconf)
-    w, h = 2816, 2112  # no EXIF focal: hloc's default guess, 1.2 x the longer side
-    query = QueryRecord("night.jpg", root / "query" / "night.jpg",
-                        CameraRecord("SIMPLE_RADIAL", w, h, (1.2 * w, w / 2, h / 2, 0.0)), {"condition": "night"})
+    path = root / "query" / "night.jpg"
+    query = QueryRecord("night.jpg", path, exif_camera(path).camera, {"condition": "night"})  # f = 2735.5 px
     job = LocalizationJob(str(store), fconf, fconf.model, LocalizerConfig(num_dbs=3), RetrievalConfig(k=5))
     (r,) = run_sync(plan_localization(job, [query], args.work / "runs" / "sacre_coeur_night", overwrite=True))
     e = r["evidence"]
