@@ -22,17 +22,24 @@ from .map_reader import MapReader
 class SearchConfig:
     """references: top retrieved references whose poses seed hypotheses; yaw, pitch: +- turns
     (degrees) about the camera's vertical and horizontal axes; shift: +- moves along the viewing
-    direction, as a fraction of the reference's median point depth; keep: hypotheses per query
-    refined through the finer levels after the coarse screening; iters, max_points: LM iterations
-    and points (a seeded subset) of the screening."""
+    direction, as a fraction of the reference's median point depth; keep: the starts per query,
+    besides the references' own poses, refined through the finer levels after the coarse screening
+    (the best by coarse verification confidence); iters, max_points: LM iterations
+    and points (a seeded subset) of the screening. keep_references: every reference's own pose
+    goes on to the finer levels whatever its coarse result (then the search loses nothing to the
+    ``hypotheses`` prior), besides the ``keep`` best other starts. average: the pose averaged over
+    the references' covisibility cluster (the ``average`` prior) is one more start, with its
+    perturbations."""
 
     references: int = 3
     yaw: float = 15.0
     pitch: float = 10.0
     shift: float = 0.25
-    keep: int = 2
+    keep: int = 1
     iters: int = 15
     max_points: int = 1024
+    keep_references: bool = True
+    average: bool = True
 
     def validate(self) -> None:
         if min(self.references, self.keep, self.iters, self.max_points) < 1:
@@ -84,10 +91,16 @@ def median_depth(reader: MapReader, i: int) -> float:
     return float(np.median(z)) if len(z) else 1.0
 
 
-def hypotheses(reader: MapReader, dbs: List[int], conf: SearchConfig) -> List[Tuple[np.ndarray, str]]:
-    """Starting poses from the top ``conf.references`` of ``dbs`` (retrieval order)."""
+def hypotheses(reader: MapReader, dbs: List[int], conf: SearchConfig, average=None
+               ) -> List[Tuple[np.ndarray, str]]:
+    """Starting poses from the top ``conf.references`` of ``dbs`` (retrieval order), labelled
+    ``NAME: reference`` for a reference's own pose; then from ``average`` (a pose, with the
+    median depth of the top reference) if given."""
     out = []
     for i in dbs[:conf.references]:
         depth = median_depth(reader, i)
         out += [(T, f"{reader.names[i]}: {label}") for T, label in perturbations(reader.cam_from_world[i], depth, conf)]
+    if average is not None:
+        depth = median_depth(reader, dbs[0])
+        out += [(T, f"average: {label}") for T, label in perturbations(average, depth, conf)]
     return out

@@ -52,9 +52,9 @@ class LocalizationJob:
 
     prior: ``top1``, ``average`` (covisibility cluster, similarity-weighted), or
     ``hypotheses`` (each of the top ``num_hypotheses`` reference poses refined; the
-    highest verification confidence wins), or ``search`` (the top references' poses and
-    perturbations of them screened at the coarsest level, the top-1 start and the best others
-    (``search.keep`` in all) refined:
+    highest verification confidence wins), or ``search`` (the top references' poses, the
+    ``average`` pose, and perturbations of each, screened at the coarsest level; the references'
+    own starts and the ``search.keep`` best others refined, the most confident wins:
     ``pipeline.search``), or ``poses`` (refinement mode: the poses of
     another pipeline, file ``prior_poses`` in the visuallocalization.net format), or
     ``hloc`` (refinement mode as the paper's: the PnP poses of an hloc ``_logs.pkl``,
@@ -267,17 +267,18 @@ def prepare_query(job: LocalizationJob, reader: MapReader, localizer: Localizer,
     if not dbs:
         return _failure(query, "no retrieval match among the map's usable reference images")
     num = job.localizer.num_dbs
-    if job.prior == "average":
+    if job.prior == "average" or (job.prior == "search" and job.search.average):
         if similarity is None:
             similarity = np.ones(len(dbs))
         sim = dict(zip(dbs, similarity))
         cluster = covisibility_clusters(dbs[:num], reader.obs_point, reader.row_start, reader.num_obs)[0]
         prior = pose_approximation([reader.cam_from_world[i] for i in cluster], [sim[i] for i in cluster])
-        return [(query, cluster, prior, rgb, cache)]
+        if job.prior == "average":
+            return [(query, cluster, prior, rgb, cache)]
     if job.prior == "hypotheses":
         return [(query, dbs[:num], reader.cam_from_world[i], rgb, cache) for i in dbs[:job.num_hypotheses]]
     if job.prior == "search":
-        starts = hypotheses(reader, dbs, job.search)
+        starts = hypotheses(reader, dbs, job.search, prior if job.search.average else None)
         return _Hypotheses([(query, dbs[:num], T, rgb, cache) for T, _ in starts], [label for _, label in starts])
     if job.prior == "poses":
         prior = find_by_name(read_poses_file(job.prior_poses), query.name)
@@ -391,10 +392,12 @@ def _search(job: LocalizationJob, reader: MapReader, localizer: Localizer, prepa
         if results is None:
             out.append(p)
             continue
-        # the top-1 start always goes on (the search then loses nothing where top1 converges), with
-        # the best of the others by their coarse confidence
-        kept = ([0] if results[0].refined is not None else []) + [j for j in _rank(results) if j != 0]
-        kept = kept[:job.search.keep]
+        # the references' own starts go on (so the search loses nothing where top1 or hypotheses
+        # converge; only the top-1 start without keep_references), with the best others by coarse confidence
+        own = [j for j, label in enumerate(p.labels) if label.endswith(": reference")] \
+            if job.search.keep_references else [0]
+        own = [j for j in own if results[j].refined is not None]
+        kept = own + [j for j in _rank(results) if j not in own][:job.search.keep]
         if not kept:  # no start converged at the coarsest level: the top-1 start fails with its reason
             out.append(results[0])
             continue

@@ -82,6 +82,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-size", type=int, help="longer image side (default: the config's)")
     p.add_argument("--iters", type=int, default=100, help="LM iterations per level")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--init-range", type=float, nargs=2, metavar=("LO", "HI"),
+                   help="initial poses this fraction of the way from the reference pose to the truth "
+                        "(default: the config's init_range, [0.75, 1]; e.g. 0.25 0.5 for far starts)")
     p.set_defaults(func=main)
 
 
@@ -98,7 +101,7 @@ def main(args: argparse.Namespace) -> int:
     pconf = PairConfig(max_size=args.max_size or int(config.get("max_size", 320)),
                        num_points=int(config.get("num_points", 512)),
                        min_covisible=int(config.get("min_covisible", 50)),
-                       init_range=tuple(config.get("init_range", (0.75, 1.0))))
+                       init_range=tuple(args.init_range or config.get("init_range", (0.75, 1.0))))
     datasets = [(s.name, s.dataset(pconf)) for s in sources]
     results = evaluate_models(args.models, datasets, args.max_pairs, args.iters, args.seed)
     args.output.mkdir(parents=True, exist_ok=True)

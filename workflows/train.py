@@ -239,6 +239,57 @@ def plot_curves(out: Path) -> Path:
     return out / "curves.png"
 
 
+def contact_sheet(config: Dict, out: Path, data_root: Path, pairs_per_source: int = 2, seed: int = 0) -> Path:
+    """``out/contact_sheet.jpg``: sampled training pairs of every source of ``config`` (and its
+    validation), each as reference | query, the pair's points at the truth in the reference
+    (green) and in the query at the initial pose (red) and at the truth (green)."""
+    import cv2
+    pconf = _pair_config(config)
+    m, w, h, params = config.get("synthetic_camera", ["PINHOLE", 320, 240, [250.0, 250.0, 160.0, 120.0]])
+    sources, _ = load_sources(config["data"] + config.get("validation", []), data_root, out / "data",
+                              CameraRecord(m, int(w), int(h), tuple(params)))
+    rng = np.random.default_rng(seed)
+    rows, size = [], int(config.get("max_size", 320))
+
+    def draw(image, camera, T, p3d, mask, colour):
+        p2d, valid = camera.cam2image(T.transform(p3d))
+        for x, y in p2d[0][(valid & mask)[0]].numpy()[::4]:
+            cv2.circle(image, (int(x), int(y)), 1, colour, -1)
+
+    for src in sources:
+        ds = src.dataset(pconf)
+        for _ in range(pairs_per_source):
+            b = ds.sample(rng)
+            tiles = []
+            for image, camera, poses in ((b.image_ref, b.camera_ref, [(None, (0, 200, 0))]),
+                                         (b.image_query, b.camera_query, [(b.query_from_ref_init, (230, 30, 30)),
+                                                                          (b.query_from_ref_gt, (0, 200, 0))])):
+                im = np.ascontiguousarray((image[0].permute(1, 2, 0).numpy() * 255).astype(np.uint8))
+                for T, colour in poses:
+                    T = T if T is not None else type(b.query_from_ref_gt).from_Rt(torch.eye(3), torch.zeros(3)).reshape(1)
+                    draw(im, camera, T, b.p3d_ref, b.mask_points, colour)
+                canvas = np.full((size, size, 3), 255, np.uint8)
+                canvas[:im.shape[0], :im.shape[1]] = im[:size, :size]
+                tiles.append(canvas)
+            row = np.concatenate(tiles, 1)
+            cv2.putText(row, src.name, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 0), 1, cv2.LINE_AA)
+            rows.append(row)
+    sheet = np.concatenate([np.concatenate(rows[k:k + 2] + [np.full_like(rows[0], 255)] * (2 - len(rows[k:k + 2])), 1)
+                            for k in range(0, len(rows), 2)], 0)
+    path = out / "contact_sheet.jpg"
+    out.mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(path), cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 80])
+    return path
+
+
+def _pair_config(config: Dict) -> PairConfig:
+    return PairConfig(max_size=int(config.get("max_size", 320)), num_points=int(config.get("num_points", 512)),
+                      min_covisible=int(config.get("min_covisible", 50)),
+                      init_range=tuple(config.get("init_range", (0.75, 1.0))),
+                      far_init_prob=float(config.get("far_init_prob", 0.0)),
+                      far_init_range=tuple(config.get("far_init_range", (0.25, 0.75))))
+
+
 def train(config: Dict, out: Path, data_root: Path, resume: bool = True, threads: int = 0) -> Dict:
     """Train (or resume) as ``config`` says; returns the final validation metrics."""
     out.mkdir(parents=True, exist_ok=True)
@@ -246,11 +297,7 @@ def train(config: Dict, out: Path, data_root: Path, resume: bool = True, threads
         torch.set_num_threads(threads)
     (out / "config.yaml").write_text(yaml.safe_dump(config, sort_keys=False))
     model, arch = config.get("model", "lite0-imagenet"), config.get("architecture", "lite0")
-    pconf = PairConfig(max_size=int(config.get("max_size", 320)), num_points=int(config.get("num_points", 512)),
-                       min_covisible=int(config.get("min_covisible", 50)),
-                       init_range=tuple(config.get("init_range", (0.75, 1.0))),
-                       far_init_prob=float(config.get("far_init_prob", 0.0)),
-                       far_init_range=tuple(config.get("far_init_range", (0.25, 0.75))))
+    pconf = _pair_config(config)
     m, w, h, params = config.get("synthetic_camera", ["PINHOLE", 320, 240, [250.0, 250.0, 160.0, 120.0]])
     camera = CameraRecord(m, int(w), int(h), tuple(params))
     sources, skipped = load_sources(config["data"], data_root, out / "data", camera)
@@ -357,6 +404,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--synthetic-only", action="store_true", help="use only the config's synthetic sources")
     p.add_argument("--grad-checkpointing", action="store_true", help="trade compute for memory")
     p.add_argument("--restart", action="store_true", help="ignore an existing checkpoint")
+    p.add_argument("--contact-sheet", action="store_true",
+                   help="only write OUTPUT/contact_sheet.jpg: sampled pairs of every source, to check them by eye")
     p.add_argument("--threads", type=int, default=0, help="torch threads (default: torch's choice)")
     p.add_argument("--device", help="cpu or cuda (overrides the config; default cpu)")
     p.add_argument("--amp", action="store_true", help="on a GPU: the network in bfloat16 autocast")
@@ -378,6 +427,9 @@ def main(args: argparse.Namespace) -> int:
         raise ValueError("--device cuda: no CUDA device is available to torch here.")
     if args.synthetic_only:
         config["data"] = [d for d in config["data"] if d["kind"] == "synthetic"]
+    if args.contact_sheet:
+        print(f"contact sheet: {contact_sheet(config, args.output, args.data_root or default_data_root())}")
+        return 0
     val = train(config, args.output, args.data_root or default_data_root(), resume=not args.restart,
                 threads=args.threads)
     print(f"model: {args.output / 'model.pt'}  curves: {args.output / 'curves.png'}")

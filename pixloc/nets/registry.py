@@ -23,7 +23,7 @@ from ..refiner import TwoViewRefiner
 
 MODEL_FORMAT = "pixloc-at-scale-model"
 DEFAULT_MODEL = "pixloc-lite0"  # the one default of every command and config
-SHIPPED = {"pixloc-lite0": "pixloc-lite0.pt", "pixloc-lite0-v1": "pixloc-lite0-v1.pt"}  # name -> file in pixloc/nets/weights
+SHIPPED = {"pixloc-lite0": "pixloc-lite0.pt"}  # name -> file in pixloc/nets/weights
 
 
 def _seeded(build: Callable[[], nn.Module], seed: int = 0) -> Callable[[], nn.Module]:
@@ -53,7 +53,6 @@ def _refiner(net: nn.Module, normalize_features: bool = True) -> TwoViewRefiner:
 def available_models() -> Dict[str, str]:
     """Name -> what it is."""
     return {"pixloc-lite0": "trained by this project (shipped)",
-            "pixloc-lite0-v1": "the first shipped model (2,500 steps), kept for comparison",
             "lite0-imagenet": "untrained initialisation",
             "photometric": "raw RGB features (baseline)"}
 

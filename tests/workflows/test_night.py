@@ -28,7 +28,7 @@ def test_the_night_reference_pose_is_well_determined():
 @pytest.mark.slow
 @pytest.mark.parametrize("prior", ["top1", "search"])
 def test_the_night_photo_is_localized_from_retrieval(shared, tmp_path_factory, prior):
-    """Measured 2026-12-02 with pixloc-lite0-v1: from the top-1 reference, 0.81 units (8 % of the
+    """Measured 2026-12-02 with pixloc-lite0: from the top-1 reference, 0.81 units (8 % of the
     median distance) and 11.7 deg off, to 0.05 units (0.5 %) and 0.75 deg; both priors."""
     work = tmp_path_factory.getbasetemp() / "night"
     ((_, store, (query,)),) = sacre_coeur(shared, work, SACRE_COEUR_FEATURES, day=False)

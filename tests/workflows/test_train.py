@@ -94,3 +94,15 @@ def test_pixloc_train_on_the_gpu(config, tmp_path, device):
                  "--device", "cuda", "--amp", "--batch-size", "2", "--workers", "2"]) == 0
     assert "cuda" in torch.load(tmp_path / "g" / "model.pt", weights_only=True)["info"]["hardware"]
     assert [r["step"] for r in rows(tmp_path / "g" / "validation.csv")] == ["0", "2", "4"]
+
+
+def test_contact_sheet_shows_pairs_of_every_source(config, tmp_path):
+    import cv2
+    assert main(["train", "--config", str(config), "--output", str(tmp_path / "s"), "--contact-sheet"]) == 0
+    sheet = cv2.imread(str(tmp_path / "s" / "contact_sheet.jpg"))[..., ::-1]
+    # 2 sources (training, validation) x 2 pairs, two pairs (4 tiles of 128 px) per row
+    assert sheet.shape == (2 * 128, 4 * 128, 3)
+    green = (sheet[..., 1] > 150) & (sheet[..., 0] < 90) & (sheet[..., 2] < 90)
+    red = (sheet[..., 0] > 170) & (sheet[..., 1] < 90) & (sheet[..., 2] < 90)
+    assert green.sum() > 50 and red.sum() > 20  # points at the truth, and at the initial pose
+    assert not (tmp_path / "s" / "checkpoint.pt").exists()  # nothing trained
