@@ -193,7 +193,16 @@ class Localizer:
             t0 = time.perf_counter()
             for st in active:
                 try:
-                    st["refs"] = self.reference_features(st["obs"], k, st["result"].filters)
+                    # the starts of one query's search share its cache, references and points:
+                    # their reference features are read and averaged once
+                    obs = st["obs"]
+                    key = ("refs", k, tuple(self.levels), hash((obs.point.tobytes(), obs.db.tobytes(),
+                                                                 obs.rows.tobytes())))
+                    if key not in st["cache"]:
+                        stats: Dict = {}
+                        st["cache"][key] = (self.reference_features(obs, k, stats), stats)
+                    st["refs"], stats = st["cache"][key]
+                    st["result"].filters.update(stats)
                     if k not in st["cache"]:
                         st["cache"][k] = self.predict(st["rgb"], k)
                 except (StoreReadError, ValueError, RuntimeError) as e:

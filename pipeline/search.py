@@ -23,13 +23,12 @@ class SearchConfig:
     """references: top retrieved references whose poses seed hypotheses; yaw, pitch: +- turns
     (degrees) about the camera's vertical and horizontal axes; shift: +- moves along the viewing
     direction, as a fraction of the reference's median point depth; keep: the starts per query,
-    besides the references' own poses, refined through the finer levels after the coarse screening
+    besides the top-1 and average poses, refined through the finer levels after the coarse screening
     (the best by coarse verification confidence); iters, max_points: LM iterations
-    and points (a seeded subset) of the screening. keep_references: every reference's own pose
-    goes on to the finer levels whatever its coarse result (then the search loses nothing to the
-    ``hypotheses`` prior), besides the ``keep`` best other starts. average: the pose averaged over
-    the references' covisibility cluster (the ``average`` prior) is one more start, with its
-    perturbations."""
+    and points (a seeded subset) of the screening. average: the pose averaged over the references'
+    covisibility cluster (the ``average`` prior) is one more start, with its perturbations. The
+    top-1 reference's pose and the average pose always go on to the finer levels (then the search
+    loses nothing where ``top1`` or ``average`` converge), besides the ``keep`` best other starts."""
 
     references: int = 3
     yaw: float = 15.0
@@ -38,7 +37,6 @@ class SearchConfig:
     keep: int = 1
     iters: int = 15
     max_points: int = 1024
-    keep_references: bool = True
     average: bool = True
 
     def validate(self) -> None:

@@ -392,10 +392,9 @@ def _search(job: LocalizationJob, reader: MapReader, localizer: Localizer, prepa
         if results is None:
             out.append(p)
             continue
-        # the references' own starts go on (so the search loses nothing where top1 or hypotheses
-        # converge; only the top-1 start without keep_references), with the best others by coarse confidence
-        own = [j for j, label in enumerate(p.labels) if label.endswith(": reference")] \
-            if job.search.keep_references else [0]
+        # the top-1 reference's pose and the average pose go on (so the search loses nothing where top1
+        # or average converge), with the best others by their coarse confidence
+        own = [0] + [j for j, label in enumerate(p.labels) if label == "average: reference"]
         own = [j for j in own if results[j].refined is not None]
         kept = own + [j for j in _rank(results) if j not in own][:job.search.keep]
         if not kept:  # no start converged at the coarsest level: the top-1 start fails with its reason
