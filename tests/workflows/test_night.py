@@ -2,8 +2,6 @@
 map at 1024 px). Its reference pose comes from SIFT and P3P (scripts/register_night.py, docs/night.md);
 lengths are in units where the median camera-to-point distance is 10."""
 
-import dataclasses
-
 import numpy as np
 import pytest
 
