@@ -53,8 +53,8 @@ class LocalizationJob:
     prior: ``top1``, ``average`` (covisibility cluster, similarity-weighted), or
     ``hypotheses`` (each of the top ``num_hypotheses`` reference poses refined; the
     highest verification confidence wins), or ``search`` (the top references' poses, the
-    ``average`` pose, and perturbations of each, screened at the coarsest level; the references'
-    own starts and the ``search.keep`` best others refined, the most confident wins:
+    ``average`` pose, and perturbations of each, screened at the coarsest level; the top-1 and
+    average poses and the ``search.keep`` best others refined, the most confident wins:
     ``pipeline.search``), or ``poses`` (refinement mode: the poses of
     another pipeline, file ``prior_poses`` in the visuallocalization.net format), or
     ``hloc`` (refinement mode as the paper's: the PnP poses of an hloc ``_logs.pkl``,
@@ -279,7 +279,10 @@ def prepare_query(job: LocalizationJob, reader: MapReader, localizer: Localizer,
         return [(query, dbs[:num], reader.cam_from_world[i], rgb, cache) for i in dbs[:job.num_hypotheses]]
     if job.prior == "search":
         starts = hypotheses(reader, dbs, job.search, prior if job.search.average else None)
-        return _Hypotheses([(query, dbs[:num], T, rgb, cache) for T, _ in starts], [label for _, label in starts])
+        # always refined: the top-1 pose (first) and the average pose (first of the last block)
+        always = [0] + ([len(starts) - job.search.size()] if job.search.average else [])
+        return _Hypotheses([(query, dbs[:num], T, rgb, cache) for T, _ in starts], [label for _, label in starts],
+                           always=always)
     if job.prior == "poses":
         prior = find_by_name(read_poses_file(job.prior_poses), query.name)
         if prior is None:
@@ -323,11 +326,12 @@ def _prepare_hloc(job: LocalizationJob, reader: MapReader, query: QueryRecord, r
 
 class _Hypotheses(list):
     """The localize_batch items of one query's search, with a label per starting pose; after the
-    screening, also the top-1 start (the prior a rejected search reports) and how many were screened."""
+    screening, also the top-1 start (the prior a rejected search reports) and how many were screened;
+    ``always``: the starts refined whatever the screening ranks them."""
 
-    def __init__(self, items, labels, top1=None, screened=None):
+    def __init__(self, items, labels, top1=None, screened=None, always=(0,)):
         super().__init__(items)
-        self.labels, self.top1, self.screened = labels, top1, screened
+        self.labels, self.top1, self.screened, self.always = labels, top1, screened, list(always)
 
 
 def _solve(localizer: Localizer, prepared: List) -> List[Tuple]:
@@ -394,8 +398,7 @@ def _search(job: LocalizationJob, reader: MapReader, localizer: Localizer, prepa
             continue
         # the top-1 reference's pose and the average pose go on (so the search loses nothing where top1
         # or average converge), with the best others by their coarse confidence
-        own = [0] + [j for j, label in enumerate(p.labels) if label == "average: reference"]
-        own = [j for j in own if results[j].refined is not None]
+        own = [j for j in p.always if results[j].refined is not None]
         kept = own + [j for j in _rank(results) if j not in own][:job.search.keep]
         if not kept:  # no start converged at the coarsest level: the top-1 start fails with its reason
             out.append(results[0])

@@ -12,6 +12,7 @@ import argparse
 import json
 import logging
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Dict, List, Sequence, Tuple
 
@@ -19,11 +20,11 @@ import torch
 
 from pipeline.evaluate import fmt, summarize
 from pipeline.scene import CameraRecord
-from pipeline.training_data import PairConfig, PairDataset
+from pipeline.training_data import PairDataset
 from pixloc.geometry import pose_error
 from pixloc.nets.registry import load_refiner
 
-from .train import default_data_root, load_config, load_sources
+from .train import default_data_root, load_config, load_sources, pair_config
 
 logger = logging.getLogger(__name__)
 THRESHOLDS = ((0.05, 2.0), (0.25, 2.0))
@@ -98,10 +99,9 @@ def main(args: argparse.Namespace) -> int:
     sources, skipped = load_sources(held_out, data_root, args.output / "data", CameraRecord(m, w, h, tuple(params)))
     if skipped:
         raise ValueError(f"Held-out data missing under {data_root}: {', '.join(skipped)}.")
-    pconf = PairConfig(max_size=args.max_size or int(config.get("max_size", 320)),
-                       num_points=int(config.get("num_points", 512)),
-                       min_covisible=int(config.get("min_covisible", 50)),
-                       init_range=tuple(args.init_range or config.get("init_range", (0.75, 1.0))))
+    pconf = replace(pair_config(config), far_init_prob=0.0,  # every pair from the one range evaluated
+                    max_size=args.max_size or int(config.get("max_size", 320)),
+                    init_range=tuple(args.init_range or config.get("init_range", (0.75, 1.0))))
     datasets = [(s.name, s.dataset(pconf)) for s in sources]
     results = evaluate_models(args.models, datasets, args.max_pairs, args.iters, args.seed)
     args.output.mkdir(parents=True, exist_ok=True)

@@ -244,7 +244,7 @@ def contact_sheet(config: Dict, out: Path, data_root: Path, pairs_per_source: in
     validation), each as reference | query, the pair's points at the truth in the reference
     (green) and in the query at the initial pose (red) and at the truth (green)."""
     import cv2
-    pconf = _pair_config(config)
+    pconf = pair_config(config)
     m, w, h, params = config.get("synthetic_camera", ["PINHOLE", 320, 240, [250.0, 250.0, 160.0, 120.0]])
     sources, _ = load_sources(config["data"] + config.get("validation", []), data_root, out / "data",
                               CameraRecord(m, int(w), int(h), tuple(params)))
@@ -282,7 +282,8 @@ def contact_sheet(config: Dict, out: Path, data_root: Path, pairs_per_source: in
     return path
 
 
-def _pair_config(config: Dict) -> PairConfig:
+def pair_config(config: Dict) -> PairConfig:
+    """The training pairs' settings of a config."""
     return PairConfig(max_size=int(config.get("max_size", 320)), num_points=int(config.get("num_points", 512)),
                       min_covisible=int(config.get("min_covisible", 50)),
                       init_range=tuple(config.get("init_range", (0.75, 1.0))),
@@ -297,7 +298,7 @@ def train(config: Dict, out: Path, data_root: Path, resume: bool = True, threads
         torch.set_num_threads(threads)
     (out / "config.yaml").write_text(yaml.safe_dump(config, sort_keys=False))
     model, arch = config.get("model", "lite0-imagenet"), config.get("architecture", "lite0")
-    pconf = _pair_config(config)
+    pconf = pair_config(config)
     m, w, h, params = config.get("synthetic_camera", ["PINHOLE", 320, 240, [250.0, 250.0, 160.0, 120.0]])
     camera = CameraRecord(m, int(w), int(h), tuple(params))
     sources, skipped = load_sources(config["data"], data_root, out / "data", camera)
