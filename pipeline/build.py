@@ -43,13 +43,15 @@ def network(model: str, device: str = "cpu"):
 
 
 def write_structure(scene: Scene, store_path, conf: FeatureConfig, *, chunk_rows: int = 256,
-                    overwrite: bool = False, source: Optional[Dict] = None, device: str = "cpu") -> Dict[int, str]:
+                    overwrite: bool = False, source: Optional[Dict] = None, device: str = "cpu",
+                    shard_rows: Optional[int] = None) -> Dict[int, str]:
     """Create the store and its feature group; record images that cannot be used as failed.
 
     Returns {image index: reason} for the images refused up front.
     """
     problems = scene.check()
-    root = create_store(store_path, scene, chunk_rows=chunk_rows, overwrite=overwrite, source=source)
+    root = create_store(store_path, scene, chunk_rows=chunk_rows, overwrite=overwrite, source=source,
+                        shard_rows=shard_rows)
     net, digest = network(conf.model, device)
     group = init_features(root, conf, digest, list(net.output_dims))
     status, reasons = group["status"][:], group["reason"][:]

@@ -22,6 +22,9 @@ from .images import read_image, resize_max, to_tensor
 from .scene import ImageRecord
 
 
+DTYPES = ("float16", "int8", "float32")
+
+
 @dataclass(frozen=True)
 class FeatureConfig:
     """How reference features are extracted; stored with them and checked on reuse.
@@ -31,8 +34,10 @@ class FeatureConfig:
     resize: longer image side in pixels at image scale 1 (images are only downscaled).
     image_scales: official ``multiscale`` factors, coarse first (e.g. (4, 1)).
     pad: interpolation margin in feature-map pixels (official ``pad``).
-    dtype: storage type of features and confidences, ``float16`` (default, half
-        the size) or ``float32`` (bit-exact with extraction, for parity studies).
+    dtype: storage type of features, ``float16`` (default), ``int8`` (a quarter of float32:
+        codes with a float16 scale per row and level, for large maps; docs/map_store.md has
+        its measured cost in recall) or ``float32`` (bit-exact with extraction, for parity
+        studies). Confidences are float16 unless ``float32``.
     descriptor: global descriptor for retrieval, from the coarsest feature map: ``gem``
         (generalised mean) or ``grid`` (mean-centred features averaged over a 2 x 3 grid:
         keeps the layout, more robust to changes of light in our synthetic tests).
@@ -46,6 +51,8 @@ class FeatureConfig:
     descriptor: str = "gem"
 
     def __post_init__(self):
+        if self.dtype not in DTYPES:
+            raise ValueError(f"Unknown feature storage type {self.dtype!r}; known: {', '.join(DTYPES)}.")
         if self.descriptor not in DESCRIPTORS:
             raise ValueError(f"Unknown global descriptor {self.descriptor!r}; known: {', '.join(DESCRIPTORS)}.")
 

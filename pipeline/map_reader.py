@@ -10,7 +10,8 @@ import numpy as np
 
 from .features import FeatureConfig
 from .scene import CameraRecord
-from .store import DONE, StoreError, StoreReadError, check_feature_group, feature_key, open_store
+from .store import (DONE, StoreError, StoreReadError, check_feature_group, dequantize_int8, feature_key,
+                    open_store)
 
 
 @dataclass
@@ -29,7 +30,8 @@ class MapReader:
     """A map store opened for localization with one feature config.
 
     Refuses a store whose features were made by another model (``digest``)
-    or config. Reference blocks are read once and cached.
+    or config. Reference blocks are read once and cached (``cache_images`` images and scales);
+    ``stats`` counts the blocks read, the cache hits and the bytes read from the store.
     """
 
     def __init__(self, path, conf: FeatureConfig, digest: Optional[str] = None, cache_images: int = 256):
@@ -66,12 +68,26 @@ class MapReader:
         self.status = read(self.group, "status")
         self.xyz = read(root, "points/xyz")
         self.track_length = read(root, "points/track_length")
-        self.obs_point = read(root, "observations/point")
+        self._obs_point = root["observations/point"]
         self.image_source_id = read(root, "images/source_id")
         self.point_source_id = read(root, "points/source_id")
         self.global_descriptors = read(self.group, "global")
         self._read = read
+        self.stats = {"blocks": 0, "hits": 0, "bytes": 0}
         self._block = functools.lru_cache(maxsize=cache_images)(self._read_block)
+        self._points = functools.lru_cache(maxsize=4 * cache_images)(self._read_points)
+
+    def _read_points(self, i: int) -> np.ndarray:
+        s = slice(int(self.row_start[i]), int(self.row_start[i] + self.num_obs[i]))
+        try:
+            return self._obs_point[s]
+        except Exception as e:  # noqa: BLE001
+            raise StoreReadError(f"map store {self.path}: array observations/point cannot be read for reference "
+                                 f"image {self.names[i]}: {type(e).__name__}: {e}") from None
+
+    def image_points(self, i: int) -> np.ndarray:
+        """The points observed by image i, in row order (read on demand and cached)."""
+        return self._points(int(i))
 
     def refresh(self) -> None:
         """Re-read which images are usable (a build may have finished more since)."""
@@ -87,7 +103,7 @@ class MapReader:
         rows = [np.arange(self.row_start[i], self.row_start[i] + self.num_obs[i]) for i in dbs]
         db = np.concatenate([np.full(len(r), i) for r, i in zip(rows, dbs)]) if rows else np.zeros(0, int)
         rows = np.concatenate(rows) if rows else np.zeros(0, int)
-        point = self.obs_point[rows]
+        point = (np.concatenate([self.image_points(i) for i in dbs]) if len(dbs) else np.zeros(0, np.int64))
         keep = self.track_length[point] >= min_track_length
         if selected is not None:
             n = len(self.names)
@@ -101,31 +117,46 @@ class MapReader:
         points = {int(s): i for i, s in enumerate(self.point_source_id) if s >= 0}
         return images, points
 
-    def _read_block(self, i: int, scale: int, level: int) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _read_block(self, i: int, scale: int) -> Tuple[List[np.ndarray], np.ndarray, np.ndarray]:
+        """Image i's rows at one image scale: per level features (N, C_l) float32, then
+        confidences (N, L) float32 and valid (N, L)."""
         s = slice(int(self.row_start[i]), int(self.row_start[i] + self.num_obs[i]))
-        g = self.group[f"s{scale}/l{level}"]
-        out = []
-        for name in ("features", "confidences", "valid"):
+        g = self.group[f"s{scale}"]
+        out = {}
+        for name in ("features", "scales", "confidences", "valid"):
+            if name == "scales" and self.conf.dtype != "int8":
+                continue
             try:
-                out.append(g[name][s])
+                out[name] = g[name][s]
             except Exception as e:  # zarr/numcodecs raise many types for a bad chunk  # noqa: BLE001
                 raise StoreReadError(f"map store {self.path}: array {g.path}/{name} cannot be read for "
                                      f"reference image {self.names[i]}: {type(e).__name__}: {e}") from None
-        return out[0].astype(np.float32), out[1].astype(np.float32), out[2]
+        self.stats["blocks"] += 1
+        self.stats["bytes"] += sum(a.nbytes for a in out.values())
+        if "scales" in out:
+            features = dequantize_int8(out["features"], out["scales"], self.dims)
+        else:
+            edges = np.cumsum([0] + self.dims)
+            features = [out["features"][:, edges[k]:edges[k + 1]].astype(np.float32) for k in range(len(self.dims))]
+        return features, out["confidences"].astype(np.float32), out["valid"]
+
+    def block(self, i: int, scale: int):
+        """The cached block of image i at ``scale`` (see ``_read_block``); counts cache hits."""
+        before = self._block.cache_info().hits
+        out = self._block(int(i), scale)
+        self.stats["hits"] += self._block.cache_info().hits - before
+        return out
 
     def features(self, obs: Observations, scale: int) -> List[Tuple[np.ndarray, np.ndarray, np.ndarray]]:
         """Per level: features (M, C) float32, confidences (M,), valid (M,) of the observations."""
-        out = []
-        for level, dim in enumerate(self.dims):
-            F = np.zeros((len(obs.rows), dim), np.float32)
-            W = np.zeros(len(obs.rows), np.float32)
-            V = np.zeros(len(obs.rows), bool)
-            for i in np.unique(obs.db):
-                sel = np.flatnonzero(obs.db == i)
-                f, w, v = self._block(int(i), scale, level)
-                local = obs.rows[sel] - self.row_start[i]
-                F[sel], W[sel], V[sel] = f[local], w[local], v[local]
-            out.append((F, W, V))
+        M = len(obs.rows)
+        out = [(np.zeros((M, dim), np.float32), np.zeros(M, np.float32), np.zeros(M, bool)) for dim in self.dims]
+        for i in np.unique(obs.db):
+            sel = np.flatnonzero(obs.db == i)
+            f, w, v = self.block(int(i), scale)
+            local = obs.rows[sel] - self.row_start[i]
+            for level, (F, W, V) in enumerate(out):
+                F[sel], W[sel], V[sel] = f[level][local], w[local, level], v[local, level]
         return out
 
 

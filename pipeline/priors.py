@@ -7,18 +7,18 @@
   (Markley et al. 2007, "Averaging Quaternions").
 """
 
-from typing import List, Sequence
+from typing import Callable, List, Sequence
 
 import numpy as np
 
 from .scene import qvec_to_rotmat, rotmat_to_qvec
 
 
-def covisibility_clusters(dbs: Sequence[int], obs_point: np.ndarray, row_start: np.ndarray,
-                          num_obs: np.ndarray) -> List[List[int]]:
-    """Connected components of ``dbs`` where two images are linked if they see a common point;
-    largest first, ties by the rank of their best image (official ``do_covisibility_clustering``)."""
-    points = {i: set(obs_point[row_start[i]:row_start[i] + num_obs[i]].tolist()) for i in dbs}
+def covisibility_clusters(dbs: Sequence[int], image_points: Callable[[int], np.ndarray]) -> List[List[int]]:
+    """Connected components of ``dbs`` where two images are linked if they see a common point
+    (``image_points(i)``: the points of image i); largest first, ties by the rank of their best
+    image (official ``do_covisibility_clustering``)."""
+    points = {i: set(image_points(i).tolist()) for i in dbs}
     clusters, visited = [], set()
     for start in dbs:
         if start in visited:

@@ -1,8 +1,8 @@
 """The zarr map store: images, points, observations and per-model reference features.
 
-Layout (version 2, documented in docs/map_store.md):
+Layout (version 3, documented in docs/map_store.md):
 
-    map.zarr/                     attrs: pixloc_map {version, chunk_rows, num_images, ...}
+    map.zarr/                     attrs: pixloc_map {version, chunk_rows, shard_rows, num_images, ...}
       images/name, camera, tags   (I,) str (camera and tags as JSON)
       images/cam_from_world       (I, 12) float64, [R row-major | t]
       images/row_start, num_obs   (I,) int64: image i owns rows [row_start, row_start + padded)
@@ -15,23 +15,27 @@ Layout (version 2, documented in docs/map_store.md):
       features/<key>/             attrs: config, model digest, level dims
         status (I,) int8 (0 pending, 1 done, 2 failed), reason (I,) str   [chunk 1]
         global (I, D) float32                                             [chunk (1, D)]
-        s{k}/l{l}/features (R, C_l) float16, confidences (R,) float16, valid (R,) bool
+        s{k}/features (R, C) every level's channels side by side (C = sum of dims):
+                      float16, float32, or int8 with s{k}/scales (R, L) float16
+        s{k}/confidences (R, L) float16, s{k}/valid (R, L) bool
 
 Rows are grouped by image and each image's block is padded to a multiple of
-``chunk_rows``, so every chunk belongs to one image: workers writing
-different images never write the same chunk, and a build resumes image by
-image from ``status``.
+``shard_rows``: every shard (one file per array, inner chunks of ``chunk_rows``
+rows) belongs to one image, so workers writing different images never write the
+same file, and a build resumes image by image from ``status``. Padding costs no
+disk: chunks of fill values are not written.
 
-Version 2 checksums every chunk (zstd, then a CRC-32C codec): a flipped byte or a truncated
-chunk is an error naming its array, never silent garbage. ``open_store`` checks the layout
-(every array present, shapes that agree with the attributes) before anything is read.
+Every chunk is checksummed (zstd, then a CRC-32C codec, and a CRC-32C of each shard
+index): a flipped byte or a truncated file is an error naming its array, never silent
+garbage. ``open_store`` checks the layout (every array present, shapes that agree
+with the attributes) before anything is read.
 """
 
 import functools
 import hashlib
 import json
 from pathlib import Path
-from typing import Dict, List, Optional
+from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 import zarr
@@ -40,7 +44,7 @@ from zarr.codecs import Crc32cCodec, ZstdCodec
 from .features import FeatureConfig, ImageFeatures
 from .scene import CameraRecord, ImageRecord, Scene
 
-VERSION = 2
+VERSION = 3
 PENDING, DONE, FAILED = 0, 1, 2
 MAX_ROWS_PER_OBSERVATION = 64  # rows are observations plus padding to whole chunks: far fewer
 
@@ -52,6 +56,21 @@ def _codecs():
 
 def _array(group: zarr.Group, name: str, shape, chunks, dtype, **kwargs) -> zarr.Array:
     return group.create_array(name, shape=shape, chunks=chunks, dtype=dtype, compressors=_codecs(), **kwargs)
+
+
+def _rows_array(group: zarr.Group, name: str, rows: int, width: Optional[int], dtype, meta: Dict,
+                **kwargs) -> zarr.Array:
+    """A per-row array: inner chunks of ``chunk_rows`` rows in shards of ``shard_rows`` (one per image block)."""
+    tail = () if width is None else (width,)
+    return _array(group, name, (rows,) + tail, (meta["chunk_rows"],) + tail, dtype,
+                  shards=(meta["shard_rows"],) + tail, **kwargs)
+
+
+def default_shard_rows(num_obs: np.ndarray, chunk_rows: int, max_chunks: int = 64) -> int:
+    """Rows per shard: the 90th percentile of the images' observation counts in whole chunks
+    (at most ``max_chunks``), so that most images fill one shard and few span several."""
+    q = float(np.quantile(num_obs, 0.9)) if len(num_obs) else 0.0
+    return chunk_rows * int(np.clip(np.ceil(q / chunk_rows), 1, max_chunks))
 
 
 class StoreError(ValueError):
@@ -68,8 +87,11 @@ def _padded(n: np.ndarray, chunk: int) -> np.ndarray:
 
 
 def create_store(path, scene: Scene, chunk_rows: int = 256, overwrite: bool = False,
-                 source: Optional[Dict] = None) -> zarr.Group:
-    """Write the scene's structure; an existing store of the same scene is reused as is."""
+                 source: Optional[Dict] = None, shard_rows: Optional[int] = None) -> zarr.Group:
+    """Write the scene's structure; an existing store of the same scene is reused as is.
+
+    ``shard_rows`` (a multiple of ``chunk_rows``; default ``default_shard_rows``) is the unit
+    each image's block of rows is padded to."""
     path = Path(path)
     names = [im.name for im in scene.images]
     if path.exists() and not overwrite:
@@ -82,7 +104,10 @@ def create_store(path, scene: Scene, chunk_rows: int = 256, overwrite: bool = Fa
     order = np.lexsort((scene.obs_point, scene.obs_image))
     obs_image, obs_point, obs_xy = scene.obs_image[order], scene.obs_point[order], scene.obs_xy[order]
     num_obs = np.bincount(obs_image, minlength=len(scene.images))
-    padded = _padded(num_obs, chunk_rows)
+    shard_rows = shard_rows or default_shard_rows(num_obs, chunk_rows)
+    if shard_rows % chunk_rows:
+        raise ValueError(f"shard_rows ({shard_rows}) must be a multiple of chunk_rows ({chunk_rows}).")
+    padded = _padded(num_obs, shard_rows)
     row_start = np.concatenate([[0], np.cumsum(padded)[:-1]])
     rows = int(padded.sum())
     # row of each observation: its image's block start + its rank inside the image
@@ -91,9 +116,10 @@ def create_store(path, scene: Scene, chunk_rows: int = 256, overwrite: bool = Fa
 
     root = zarr.open_group(str(path), mode="w")
     root.attrs["pixloc_map"] = {
-        "version": VERSION, "chunk_rows": chunk_rows, "num_images": len(names),
+        "version": VERSION, "chunk_rows": chunk_rows, "shard_rows": shard_rows, "num_images": len(names),
         "num_points": len(scene.points), "num_observations": int(len(obs_point)), "num_rows": rows,
         "source": source or {}}
+    meta = root.attrs["pixloc_map"]
     I = len(names)  # noqa: E741
     _array(root, "images/name", (I,), (I,), str)[:] = np.array(names)
     _array(root, "images/camera", (I,), (I,), str)[:] = np.array(
@@ -117,9 +143,8 @@ def create_store(path, scene: Scene, chunk_rows: int = 256, overwrite: bool = Fa
     point[row] = obs_point
     xy = np.full((rows, 2), np.nan, dtype=np.float32)
     xy[row] = obs_xy
-    chunk = max(chunk_rows * 64, 1)
-    _array(root, "observations/point", (rows,), (chunk,), "int64", fill_value=-1)[:] = point
-    _array(root, "observations/xy", (rows, 2), (chunk, 2), "float32")[:] = xy
+    _rows_array(root, "observations/point", rows, None, "int64", meta, fill_value=-1)[:] = point
+    _rows_array(root, "observations/xy", rows, 2, "float32", meta, fill_value=np.nan)[:] = xy
     return root
 
 
@@ -138,7 +163,8 @@ def open_store(path, mode: str = "r") -> zarr.Group:
         raise StoreError(f"{path} is not a PixLoc map store.")
     if meta.get("version") != VERSION:
         raise StoreError(f"{path} has map-store version {meta.get('version')}; this code reads version {VERSION} "
-                         "(version 2 added chunk checksums): rebuild it with pixloc build-map --overwrite.")
+                         "(version 2 added chunk checksums, version 3 one file per image and array, and int8 "
+                         "features): rebuild it with pixloc build-map --overwrite.")
     check_layout(root, path)
     return root
 
@@ -164,13 +190,15 @@ def check_layout(root: zarr.Group, path) -> None:
     """Refuse a store whose attributes contradict each other or its arrays (a missing array, a
     shape that disagrees, absurd sizes), before any large read or allocation."""
     meta = root.attrs["pixloc_map"]
-    keys = ("chunk_rows", "num_images", "num_points", "num_observations", "num_rows")
+    keys = ("chunk_rows", "shard_rows", "num_images", "num_points", "num_observations", "num_rows")
     if not all(isinstance(meta.get(k), int) and meta[k] >= 0 for k in keys):
         raise StoreError(f"{path}: map attributes {({k: meta.get(k) for k in keys})} must be counts (integers >= 0).")
-    I, R, chunk = meta["num_images"], meta["num_rows"], meta["chunk_rows"]  # noqa: E741
-    if chunk < 1 or not meta["num_observations"] <= R <= meta["num_observations"] + max(I, 1) * chunk:
-        raise StoreError(f"{path}: {R} rows for {meta['num_observations']} observations of {I} images in chunks "
-                         f"of {chunk}: the attributes contradict each other (a damaged store?).")
+    I, R, chunk, shard = meta["num_images"], meta["num_rows"], meta["chunk_rows"], meta["shard_rows"]  # noqa: E741
+    if (chunk < 1 or shard < chunk or shard % chunk
+            or not meta["num_observations"] <= R <= meta["num_observations"] + max(I, 1) * shard):
+        raise StoreError(f"{path}: {R} rows for {meta['num_observations']} observations of {I} images in shards "
+                         f"of {shard} rows (chunks of {chunk}): the attributes contradict each other "
+                         "(a damaged store?).")
     for name, shape in _expected_arrays(meta).items():
         array = _get(root, name, path)
         if tuple(array.shape) != shape:
@@ -184,12 +212,12 @@ def check_feature_group(group: zarr.Group, meta: Dict, path) -> None:
         scales = len(group.attrs["config"]["image_scales"])
     except (KeyError, TypeError, ValueError) as e:
         raise StoreError(f"{path}: feature group {group.path} has no readable config or dims ({e}).") from None
-    I, R = meta["num_images"], meta["num_rows"]  # noqa: E741
+    I, R, L = meta["num_images"], meta["num_rows"], len(dims)  # noqa: E741
     expected = {"status": (I,), "reason": (I,)}
     for k in range(scales):
-        for level, dim in enumerate(dims):
-            expected.update({f"s{k}/l{level}/features": (R, dim), f"s{k}/l{level}/confidences": (R,),
-                             f"s{k}/l{level}/valid": (R,)})
+        expected.update({f"s{k}/features": (R, sum(dims)), f"s{k}/confidences": (R, L), f"s{k}/valid": (R, L)})
+        if group.attrs["config"].get("dtype") == "int8":
+            expected[f"s{k}/scales"] = (R, L)
     for name, shape in expected.items():
         array = _get(group, name, path)
         if tuple(array.shape) != shape:
@@ -242,7 +270,7 @@ def init_features(root: zarr.Group, conf: FeatureConfig, digest: str, dims: List
                 "them. Use another store or feature config, or rebuild with overwrite.")
         return group
     meta = root.attrs["pixloc_map"]
-    I, R, chunk = meta["num_images"], meta["num_rows"], meta["chunk_rows"]  # noqa: E741
+    I, R, L = meta["num_images"], meta["num_rows"], len(dims)  # noqa: E741
     group = root.create_group(f"features/{key}")
     group.attrs.update(expected)
     _array(group, "status", (I,), (1,), "int8", fill_value=PENDING)
@@ -250,12 +278,35 @@ def init_features(root: zarr.Group, conf: FeatureConfig, digest: str, dims: List
     D = descriptor_dim(conf.descriptor, dims[-1])
     _array(group, "global", (I, D), (1, D), "float32", fill_value=0)
     for k in range(len(conf.image_scales)):
-        for level, dim in enumerate(dims):
-            g = f"s{k}/l{level}"
-            _array(group, f"{g}/features", (R, dim), (chunk, dim), conf.dtype, fill_value=0)
-            _array(group, f"{g}/confidences", (R,), (chunk,), conf.dtype, fill_value=0)
-            _array(group, f"{g}/valid", (R,), (chunk,), "bool", fill_value=False)
+        _rows_array(group, f"s{k}/features", R, sum(dims), conf.dtype, meta, fill_value=0)
+        if conf.dtype == "int8":
+            _rows_array(group, f"s{k}/scales", R, L, "float16", meta, fill_value=0)
+        _rows_array(group, f"s{k}/confidences", R, L, "float16" if conf.dtype == "int8" else conf.dtype, meta,
+                    fill_value=0)
+        _rows_array(group, f"s{k}/valid", R, L, "bool", meta, fill_value=False)
     return group
+
+
+def quantize_int8(features: np.ndarray, dims: List[int]) -> Tuple[np.ndarray, np.ndarray]:
+    """(N, sum(dims)) float -> int8 codes and (N, L) float16 scales, one per row and level:
+    x = code * scale, |error| <= scale / 2 = max|x| / 254 of the row's level."""
+    edges = np.cumsum([0] + list(dims))
+    codes = np.zeros(features.shape, np.int8)
+    scales = np.zeros((len(features), len(dims)), np.float16)
+    for level in range(len(dims)):
+        x = features[:, edges[level]:edges[level + 1]].astype(np.float32)
+        s = (np.abs(x).max(1) / 127).astype(np.float16)  # rounded first, so codes use the stored scale
+        safe = np.where(s > 0, s.astype(np.float32), 1)[:, None]
+        codes[:, edges[level]:edges[level + 1]] = np.clip(np.rint(x / safe), -127, 127)
+        scales[:, level] = s
+    return codes, scales
+
+
+def dequantize_int8(codes: np.ndarray, scales: np.ndarray, dims: List[int]) -> List[np.ndarray]:
+    """Per level, float32 features from int8 codes and per-row scales."""
+    edges = np.cumsum([0] + list(dims))
+    return [codes[:, edges[i]:edges[i + 1]].astype(np.float32) * scales[:, i:i + 1].astype(np.float32)
+            for i in range(len(dims))]
 
 
 def image_records(root: zarr.Group) -> List[ImageRecord]:
@@ -274,26 +325,34 @@ def image_rows(root: zarr.Group, i: int) -> slice:
 
 
 def write_image_features(group: zarr.Group, root: zarr.Group, i: int, feats: ImageFeatures) -> None:
-    """Write image i's rows (whole chunks), then mark it done: status last, so a crash leaves it pending."""
+    """Write image i's rows (whole shards), then mark it done: status last, so a crash leaves it pending."""
     rows = image_rows(root, i)
-    chunk = root.attrs["pixloc_map"]["chunk_rows"]
-    block = slice(rows.start, rows.start + int(_padded(np.array(rows.stop - rows.start), chunk)))
+    shard = root.attrs["pixloc_map"]["shard_rows"]
+    n = rows.stop - rows.start
+    block = slice(rows.start, rows.start + int(_padded(np.array(n), shard)))
     n_pad = block.stop - block.start
-    for (k, level), (f, c, v) in feats.samples.items():
-        g = group[f"s{k}/l{level}"]
-        dtype = g["features"].dtype
-        fp = np.zeros((n_pad, f.shape[1]), dtype)
-        fp[: len(f)] = f
-        cp = np.zeros(n_pad, dtype)
-        cp[: len(c)] = c
-        vp = np.zeros(n_pad, bool)
-        vp[: len(v)] = v
-        g["features"][block] = fp
-        g["confidences"][block] = cp
-        g["valid"][block] = vp
+    dims = [int(d) for d in group.attrs["dims"]]
+    for k in range(len(group.attrs["config"]["image_scales"])):
+        levels = [feats.samples[(k, level)] for level in range(len(dims))]
+        f = np.concatenate([x[0] for x in levels], 1)
+        c = np.stack([x[1] for x in levels], 1)
+        v = np.stack([x[2] for x in levels], 1)
+        g = group[f"s{k}"]
+        if "scales" in g:
+            f, scales = quantize_int8(f, dims)
+            g["scales"][block] = _pad_rows(scales, n_pad)
+        g["features"][block] = _pad_rows(f.astype(g["features"].dtype), n_pad)
+        g["confidences"][block] = _pad_rows(c.astype(g["confidences"].dtype), n_pad)
+        g["valid"][block] = _pad_rows(v.astype(bool), n_pad)
     group["global"][i] = feats.global_descriptor.astype(np.float32)
     group["reason"][i] = ""
     group["status"][i] = DONE
+
+
+def _pad_rows(x: np.ndarray, n: int) -> np.ndarray:
+    out = np.zeros((n,) + x.shape[1:], x.dtype)
+    out[: len(x)] = x
+    return out
 
 
 def mark_failed(group: zarr.Group, i: int, reason: str) -> None:

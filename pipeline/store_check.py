@@ -1,8 +1,8 @@
 """Verify every chunk of a map store: ``pixloc check-store``.
 
-Each chunk is read and decoded, which checks its CRC-32C (layout version 2); a chunk that is
-corrupt, truncated or missing where it should hold data is reported with its array and the
-reference images whose rows it holds.
+Each chunk is read and decoded, which checks its CRC-32C (and that of its shard's index); a
+chunk (or shard: one file) that is corrupt, truncated or missing where it should hold data is
+reported with its array and the reference images whose rows it holds.
 """
 
 import itertools
@@ -87,10 +87,11 @@ def check_store(path, progress: Optional[Callable[[str], None]] = None) -> Store
         out.arrays += 1
         if progress:
             progress(name)
-        grid = [range(math.ceil(s / c)) for s, c in zip(array.shape, array.chunks)]
+        unit = array.shards or array.chunks  # a shard is one file: it is read (and reported) whole
+        grid = [range(math.ceil(s / c)) for s, c in zip(array.shape, unit)]
         for index in itertools.product(*grid):
             out.chunks += 1
-            sl = tuple(slice(i * c, min((i + 1) * c, s)) for i, c, s in zip(index, array.chunks, array.shape))
+            sl = tuple(slice(i * c, min((i + 1) * c, s)) for i, c, s in zip(index, unit, array.shape))
             try:
                 array[sl]
             except Exception as e:  # the codec's error names the problem  # noqa: BLE001

@@ -13,7 +13,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, List, Optional
 
-import numpy as np
 
 from pipeline.build import ImageResult, extract_features, network, pending_images, write_structure
 from pipeline.features import FeatureConfig
@@ -37,14 +36,19 @@ class BuildPlan:
     chunk_rows: int = 256
     source: Dict = field(default_factory=dict)
     overwrite: bool = False
+    shard_rows: Optional[int] = None
 
     def expected_bytes(self) -> int:
-        """Approximate store size: padded rows x (features f16 + confidence f16 + valid) per scale and level."""
-        num_obs = np.bincount(self.scene.obs_image, minlength=len(self.scene.images))
-        rows = int((np.maximum(1, -(-num_obs // self.chunk_rows)) * self.chunk_rows).sum())
+        """Approximate store size before compression: per observation and scale, the features
+        (2 bytes per channel in float16, 1 in int8 plus a scale per level, 4 in float32), then a
+        confidence and a valid flag per level; padding rows are not stored."""
+        n_obs = len(self.scene.obs_point)
         dims = self.dims
-        per_row = len(self.conf.image_scales) * sum(2 * d + 3 for d in dims) + 8 + 8
-        return rows * per_row + len(self.scene.points) * 28 + len(self.scene.images) * (4 * dims[-1] + 200)
+        width = {"float16": 2, "int8": 1, "float32": 4}[self.conf.dtype]
+        conf = 4 if self.conf.dtype == "float32" else 2
+        per_level = conf + 1 + (2 if self.conf.dtype == "int8" else 0)
+        per_obs = len(self.conf.image_scales) * (width * sum(dims) + per_level * len(dims)) + 8 + 8
+        return n_obs * per_obs + len(self.scene.points) * 28 + len(self.scene.images) * (4 * dims[-1] + 200)
 
     def describe(self) -> str:
         n_obs = len(self.scene.obs_point)
@@ -63,14 +67,15 @@ class BuildPlan:
 
 
 def plan_build(scene: Scene, store, conf: FeatureConfig, *, batch_size: int = 1, device: str = "cpu",
-               chunk_rows: int = 256, source: Optional[Dict] = None, overwrite: bool = False) -> BuildPlan:
+               chunk_rows: int = 256, shard_rows: Optional[int] = None, source: Optional[Dict] = None,
+               overwrite: bool = False) -> BuildPlan:
     """Plan a build; images already done in an existing store are not planned again (all are
     with ``overwrite``, which rebuilds the store)."""
     store = Path(store)
     todo = pending_images(store, conf) if store.exists() and not overwrite else list(range(len(scene.images)))
     batches = [todo[i:i + batch_size] for i in range(0, len(todo), batch_size)]
     dims = list(network(conf.model, "cpu")[0].output_dims)
-    return BuildPlan(scene, store, conf, batches, dims, device, chunk_rows, source or {}, overwrite)
+    return BuildPlan(scene, store, conf, batches, dims, device, chunk_rows, source or {}, overwrite, shard_rows)
 
 
 def run_sync(plan: BuildPlan, progress: bool = False) -> List[ImageResult]:
@@ -95,8 +100,8 @@ def _progress(batches: List[List[int]], progress: bool):
 
 def prepare_structure(plan: BuildPlan) -> None:
     """Write (or check) the store structure; refused images whose problem is gone become pending."""
-    write_structure(plan.scene, plan.store, plan.conf, chunk_rows=plan.chunk_rows, source=plan.source,
-                    device=plan.device, overwrite=plan.overwrite)
+    write_structure(plan.scene, plan.store, plan.conf, chunk_rows=plan.chunk_rows, shard_rows=plan.shard_rows,
+                    source=plan.source, device=plan.device, overwrite=plan.overwrite)
     plan.overwrite = False  # done once: the tasks then resume like any build
 
 

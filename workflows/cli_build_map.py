@@ -6,7 +6,8 @@ import time
 from collections import Counter
 from pathlib import Path
 
-from pipeline.features import FeatureConfig
+from pipeline.features import DTYPES, FeatureConfig
+from pipeline.pairs import METHODS as PAIR_METHODS, PairsConfig
 from pixloc.nets.registry import DEFAULT_MODEL
 
 from . import executor
@@ -38,7 +39,19 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--pad", type=int, help=f"interpolation margin in feature pixels (default {_F.pad})")
     p.add_argument("--descriptor", choices=["gem", "grid"], default="gem",
                    help="global descriptor for retrieval (gem pooling, or a 2x3 grid of mean-centred features)")
-    p.add_argument("--chunk-rows", type=int, default=256)
+    p.add_argument("--dtype", choices=list(DTYPES), default=_F.dtype,
+                   help="feature storage: float16 (default), int8 (codes and a scale per row and level: "
+                        "smaller, for large maps) or float32")
+    p.add_argument("--chunk-rows", type=int, default=256, help="rows per chunk (the unit of a partial read)")
+    p.add_argument("--shard-rows", type=int,
+                   help="rows per shard file (a multiple of --chunk-rows; default: fits 90%% of the images)")
+    p.add_argument("--pairs", choices=list(PAIR_METHODS), default="auto",
+                   help="image pairs matched for sfm, strecha and kapture sources: auto (exhaustive below "
+                        f"{PairsConfig().exhaustive_below} images, then spatial for known poses and retrieval "
+                        "otherwise), exhaustive, spatial, sequential, retrieval or file")
+    p.add_argument("--pairs-file", type=Path, help="an hloc pairs file (name0 name1 per line): --pairs file")
+    p.add_argument("--pairs-neighbors", type=int, default=PairsConfig().num_neighbors,
+                   help="spatial/retrieval: neighbours per image")
     p.add_argument("--batch-size", type=int, default=1, help="images per task")
     p.add_argument("--device", default="cpu")
     p.add_argument("--work-dir", type=Path, help="SfM/triangulation files (default: STORE.work)")
@@ -58,12 +71,15 @@ def main(args: argparse.Namespace) -> int:
     store = absolute(args.store)
     source = MapSource(args.kind, absolute(args.path), absolute(args.images), tuple(args.sequences),
                        args.rgbd_points, args.densify, tuple(args.intrinsics), args.depth_scale, args.depth_ext)
-    conf = FeatureConfig(model, args.resize, tuple(args.image_scales), args.pad, descriptor=args.descriptor)
+    conf = FeatureConfig(model, args.resize, tuple(args.image_scales), args.pad, args.dtype, args.descriptor)
+    pairs = PairsConfig("file" if args.pairs_file and args.pairs == "auto" else args.pairs,
+                        args.pairs_neighbors, path=str(absolute(args.pairs_file)) if args.pairs_file else None)
     work_dir = absolute(args.work_dir) or store.with_suffix(".work")
     t0 = time.time()
-    scene = load_scene(source, work_dir)
+    scene = load_scene(source, work_dir, pairs)
     plan = plan_build(scene, store, conf, batch_size=args.batch_size, device=args.device,
-                      chunk_rows=args.chunk_rows, source=source.to_dict(), overwrite=args.overwrite)
+                      chunk_rows=args.chunk_rows, shard_rows=args.shard_rows, source=source.to_dict(),
+                      overwrite=args.overwrite)
     print(plan.describe())
     if args.dry_run:
         return 0

@@ -7,6 +7,7 @@ from typing import List, Optional, Tuple
 import numpy as np
 
 from pipeline.depth import densify, rgbd_scene
+from pipeline.pairs import PairsConfig
 from pipeline.queries import QueryRecord, read_queries_with_intrinsics
 from pipeline.readers.colmap import read_colmap, run_sfm, triangulate_known_poses
 from pipeline.readers.kapture import read_kapture
@@ -46,18 +47,20 @@ class MapSource:
                 "intrinsics": list(self.intrinsics), "depth_scale": self.depth_scale, "depth_ext": self.depth_ext}
 
 
-def load_scene(source: MapSource, work_dir: Path) -> Scene:
-    """The Scene of ``source``; SfM and triangulation write their COLMAP files under ``work_dir``."""
+def load_scene(source: MapSource, work_dir: Path, pairs: PairsConfig = PairsConfig()) -> Scene:
+    """The Scene of ``source``; SfM and triangulation write their COLMAP files under ``work_dir``
+    and match the image pairs of ``pairs``."""
     path = Path(source.path)
     if source.kind == "colmap":
         scene = read_colmap(path, source.images or path.parent / "images")
     elif source.kind == "sfm":
-        scene = run_sfm(path, work_dir / "sfm")
+        scene = run_sfm(path, work_dir / "sfm", pairs=pairs)
     elif source.kind == "strecha":
-        scene = triangulate_known_poses(read_strecha(path), path / "images", work_dir / "triangulation")
+        scene = triangulate_known_poses(read_strecha(path), path / "images", work_dir / "triangulation",
+                                        pairs=pairs)
     elif source.kind == "kapture":
         scene = triangulate_known_poses(read_kapture(path), path / "sensors" / "records_data",
-                                        work_dir / "triangulation")
+                                        work_dir / "triangulation", pairs=pairs)
     elif source.kind == "7scenes":
         if not source.sequences:
             raise ValueError("A 7scenes source needs --sequences (e.g. 2 3, the official training split).")

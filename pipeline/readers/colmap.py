@@ -2,12 +2,16 @@
 
 import json
 import logging
+from dataclasses import asdict
 from pathlib import Path
 from typing import Dict, List, Optional, Sequence
 
 import numpy as np
 import pycolmap
 
+from pixloc.nets.registry import DEFAULT_MODEL
+
+from ..pairs import PairsConfig, match
 from ..scene import CameraRecord, ImageRecord, Scene, SceneError
 
 logger = logging.getLogger(__name__)
@@ -52,9 +56,11 @@ def read_colmap(model_dir, image_dir, tags=None) -> Scene:
     return scene_from_reconstruction(rec, image_dir, tags)
 
 
-def _extract_and_match(database: Path, image_dir: Path, names: Sequence[str],
-                       cameras: Optional[Sequence[CameraRecord]] = None) -> None:
-    """SIFT features and exhaustive matches into ``database``; known intrinsics if given."""
+def _extract_and_match(database: Path, image_dir: Path, names: Sequence[str], pairs: PairsConfig,
+                       cameras: Optional[Sequence[CameraRecord]] = None,
+                       cam_from_world: Optional[Sequence[np.ndarray]] = None) -> None:
+    """SIFT features, and matches over the pairs of ``pairs``, into ``database``; known
+    intrinsics if given."""
     options = pycolmap.ImageReaderOptions()
     if cameras is not None:
         options.camera_model = "PINHOLE"
@@ -72,7 +78,20 @@ def _extract_and_match(database: Path, image_dir: Path, names: Sequence[str],
                 known.params = list(rec.params)
                 known.has_prior_focal_length = True
                 db.update_camera(known)
-    pycolmap.match_exhaustive(database, device=pycolmap.Device.cpu)
+    match(database, names, pairs, database.parent, cam_from_world=cam_from_world, image_dir=image_dir,
+          model=DEFAULT_MODEL)
+
+
+def _pairs_fingerprint(pairs: PairsConfig, num_images: int, posed: bool) -> dict:
+    """What the pairs change in a reconstruction (nothing to record for exhaustive matching, so
+    that models made before pairs were configurable are still reused)."""
+    method = pairs.resolve(num_images, posed)
+    if method == "exhaustive":
+        return {}
+    out = {"pairs": {"method": method, **{k: v for k, v in asdict(pairs).items() if k not in ("method",)}}}
+    if method == "file":
+        out["pairs"]["file"] = Path(pairs.path).read_text()
+    return out
 
 
 def _fingerprint(image_dir: Path, names: Sequence[str], **extra) -> dict:
@@ -111,8 +130,9 @@ def _finish(rec: pycolmap.Reconstruction, work_dir: Path, marker: str, model: st
     return pycolmap.Reconstruction(str(work_dir / model))
 
 
-def run_sfm(image_dir, work_dir, names: Optional[Sequence[str]] = None, tags=None) -> Scene:
-    """Structure-from-motion with pycolmap (SIFT, exhaustive matching, incremental mapping).
+def run_sfm(image_dir, work_dir, names: Optional[Sequence[str]] = None, tags=None,
+            pairs: PairsConfig = PairsConfig()) -> Scene:
+    """Structure-from-motion with pycolmap (SIFT, matching of ``pairs``, incremental mapping).
 
     Keeps the largest model; images it could not register are left out and logged. A model
     finished in ``work_dir`` from the same images is reused.
@@ -121,7 +141,7 @@ def run_sfm(image_dir, work_dir, names: Optional[Sequence[str]] = None, tags=Non
     work_dir.mkdir(parents=True, exist_ok=True)
     names = sorted(p.name for p in image_dir.iterdir() if p.suffix.lower() in {".jpg", ".jpeg", ".png"}) \
         if names is None else list(names)
-    fingerprint = _fingerprint(image_dir, names, kind="sfm")
+    fingerprint = _fingerprint(image_dir, names, kind="sfm", **_pairs_fingerprint(pairs, len(names), False))
     rec = _cached(work_dir, "sfm.json", "model", fingerprint)
     if rec is not None:
         return scene_from_reconstruction(rec, image_dir, tags)
@@ -129,7 +149,7 @@ def run_sfm(image_dir, work_dir, names: Optional[Sequence[str]] = None, tags=Non
     database = work_dir / "database.db"
     if database.exists():
         database.unlink()
-    _extract_and_match(database, image_dir, names)
+    _extract_and_match(database, image_dir, names, pairs)
     options = pycolmap.IncrementalPipelineOptions()
     options.random_seed = 0
     options.num_threads = 2
@@ -145,8 +165,10 @@ def run_sfm(image_dir, work_dir, names: Optional[Sequence[str]] = None, tags=Non
 
 
 def triangulate_known_poses(images: List[ImageRecord], image_root, work_dir, *,
-                            min_track_length: int = 2, max_reprojection_error: float = 2.0) -> Scene:
-    """Extract and match SIFT, then triangulate with the given poses and intrinsics held fixed.
+                            min_track_length: int = 2, max_reprojection_error: float = 2.0,
+                            pairs: PairsConfig = PairsConfig()) -> Scene:
+    """Extract and match SIFT (over ``pairs``: exhaustive for small maps, nearby cameras with
+    overlapping views above that), then triangulate with the given poses and intrinsics held fixed.
 
     image names must be paths relative to ``image_root``. Tracks shorter than
     ``min_track_length`` or with a mean reprojection error above
@@ -159,7 +181,8 @@ def triangulate_known_poses(images: List[ImageRecord], image_root, work_dir, *,
     fingerprint = _fingerprint(image_root, names, kind="triangulation", min_track_length=min_track_length,
                                max_reprojection_error=max_reprojection_error,
                                cameras=[im.camera.to_json() for im in images],
-                               poses=[np.round(np.asarray(im.cam_from_world, np.float64), 12).tolist() for im in images])
+                               poses=[np.round(np.asarray(im.cam_from_world, np.float64), 12).tolist() for im in images],
+                               **_pairs_fingerprint(pairs, len(images), True))
     rec = _cached(work_dir, "triangulation.json", "model", fingerprint)
     if rec is not None:
         return _known_pose_scene(rec, image_root, by_name)
@@ -167,7 +190,8 @@ def triangulate_known_poses(images: List[ImageRecord], image_root, work_dir, *,
     database = work_dir / "database.db"
     if database.exists():
         database.unlink()
-    _extract_and_match(database, image_root, names, [im.camera for im in images])
+    _extract_and_match(database, image_root, names, pairs, [im.camera for im in images],
+                       [im.cam_from_world for im in images])
     rec = pycolmap.Reconstruction()
     with pycolmap.Database.open(database) as db:
         for image in db.read_all_images():

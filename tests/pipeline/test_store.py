@@ -28,8 +28,9 @@ def test_structure(built, maupertuis):
     root = open_store(path)
     meta = root.attrs["pixloc_map"]
     assert meta["num_observations"] == 3355 and meta["num_points"] == 1039
-    # Each image's block starts on a chunk boundary: workers never share a chunk.
-    assert (root["images/row_start"][:] % meta["chunk_rows"] == 0).all()
+    # Each image's block starts on a shard boundary: workers never share a file.
+    assert meta["shard_rows"] % meta["chunk_rows"] == 0
+    assert (root["images/row_start"][:] % meta["shard_rows"] == 0).all()
     for i in range(4):
         rows = image_rows(root, i)
         pts = root["observations/point"][rows]
@@ -51,6 +52,7 @@ def test_stored_features_equal_the_network_at_projections(built, maupertuis):
     p = xyz @ T[:, :3].T + T[:, 3]
     uv_colmap = f * p[:, :2] / p[:, 2:] + [cx, cy]  # COLMAP pixel-corner convention
     rgb = read_image(image.path)
+    edges = np.cumsum([0] + list(group.attrs["dims"]))
     for k, s in enumerate(CONF.image_scales):
         resized, (sx, _) = resize_max(rgb, CONF.resize // s)
         with torch.no_grad():
@@ -64,8 +66,8 @@ def test_stored_features_equal_the_network_at_projections(built, maupertuis):
             grid = torch.from_numpy(uv / [w - 1, h - 1] * 2 - 1).float()[None, None]
             expected = grid_sample(fmap, grid, align_corners=True)[0, :, 0].T.numpy()
             inside = (uv >= 2).all(1) & (uv <= [w - 3, h - 3]).all(1)
-            stored = group[f"s{k}/l{level}/features"][rows].astype(np.float32)
-            valid = group[f"s{k}/l{level}/valid"][rows]
+            stored = group[f"s{k}/features"][rows, edges[level]:edges[level + 1]].astype(np.float32)
+            valid = group[f"s{k}/valid"][rows, level]
             assert np.array_equal(valid, inside)
             np.testing.assert_allclose(stored[valid], expected[valid], rtol=2e-3, atol=2e-3)
 
@@ -122,3 +124,40 @@ def test_empty_model_is_a_clear_error(tmp_path, maupertuis):
     empty = Scene(maupertuis.images, np.zeros((0, 3)), [], [], np.zeros((0, 2)))
     with pytest.raises(SceneError, match="no 3D points"):
         build_map(empty, tmp_path / "map.zarr", CONF)
+
+
+def test_one_file_per_image_and_array(built):
+    """Layout 3 shards every per-row array by image block: version 2 wrote one file per chunk
+    (~155 files per image on the demo)."""
+    path, _ = built
+    root = open_store(path)
+    files = [f for f in path.rglob("*") if f.is_file()]
+    data = [f for f in files if f.name != "zarr.json"]
+    per_row = [f for f in data if "s0" in f.parts or "s1" in f.parts]
+    num_images = root.attrs["pixloc_map"]["num_images"]
+    # 2 scales x (features, confidences, valid), one shard each per image (the images fit one shard)
+    assert len(per_row) == 2 * 3 * num_images
+    # plus status, global, observations/point and xy per image, and a fixed number of small arrays
+    assert len(data) <= 10 * num_images + 12
+
+
+def test_int8_features_are_within_their_quantisation_step(built, maupertuis, tmp_path):
+    """int8 codes with a float16 scale per row and level: within half a step of float16 storage."""
+    from pipeline.map_reader import MapReader
+    conf8 = dataclasses.replace(CONF, dtype="int8")
+    build_map(maupertuis, tmp_path / "int8.zarr", conf8)
+    path, _ = built
+    half, small = MapReader(path, CONF), MapReader(tmp_path / "int8.zarr", conf8)
+    assert feature_key(conf8).endswith("_int8")
+    obs = half.observations([0, 1, 2, 3], 1)
+    for k in range(len(CONF.image_scales)):
+        for (F, W, V), (F8, W8, V8) in zip(half.features(obs, k), small.features(obs, k)):
+            step = np.abs(F).max(1, keepdims=True) / 127
+            assert np.array_equal(V, V8) and np.array_equal(W, W8)
+            assert (np.abs(F8 - F) <= 0.5 * step + 2e-3 * np.abs(F) + 1e-6).all()
+            assert np.abs(F8 - F).mean() > 0  # it is quantised
+    sizes = {c: sum(f.stat().st_size for f in (p / "features" / feature_key(c)).rglob("*") if f.is_file())
+             for c, p in ((CONF, path), (conf8, tmp_path / "int8.zarr"))}
+    assert sizes[conf8] < 0.6 * sizes[CONF]
+    with pytest.raises(ValueError, match="Unknown feature storage type"):
+        FeatureConfig(dtype="int4")

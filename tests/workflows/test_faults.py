@@ -122,9 +122,9 @@ def _copy_store(job, tmp_path) -> Path:
 
 def _feature_chunk(store: Path, image: int) -> Path:
     root = open_store(store)
-    chunk = root.attrs["pixloc_map"]["chunk_rows"]
+    shard = root.attrs["pixloc_map"]["shard_rows"]
     row = int(root["images/row_start"][image])
-    return store / "features" / feature_key(FCONF) / "s0" / "l0" / "features" / "c" / str(row // chunk) / "0"
+    return store / "features" / feature_key(FCONF) / "s0" / "features" / "c" / str(row // shard) / "0"
 
 
 @pytest.mark.parametrize("damage", ["flip", "truncate"])
@@ -146,7 +146,7 @@ def test_damaged_chunk_fails_the_queries_that_need_it(stairs, tmp_path, damage):
     map_reader._OPEN.clear()  # the damage happens between runs: a new process would not have read the block
     records = run_sync(plan_localization(dataclasses.replace(job, store=str(store)), queries[:1], tmp_path / "b"))
     assert not records[0]["success"]
-    assert "s0/l0/features" in records[0]["reason"] and ref in records[0]["reason"]
+    assert "s0/features" in records[0]["reason"] and ref in records[0]["reason"]
     report = check_store(store)
     assert not report.ok and len(report.bad) == 1 and ref in report.bad[0].images
     out = pixloc("check-store", store)

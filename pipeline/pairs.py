@@ -1,0 +1,180 @@
+"""Which image pairs SIFT matching compares when a map is triangulated or reconstructed.
+
+Exhaustive matching is O(n^2) pairs: fine for a few dozen images, hours for thousands.
+Above ``exhaustive_below`` images the ``auto`` method picks a scalable one:
+
+- ``spatial`` (known poses): each image with its ``num_neighbors`` nearest camera centres
+  among those whose optical axes differ by less than ``max_angle`` degrees (frusta that can
+  overlap); matched with pycolmap's ``match_image_pairs``.
+- ``sequential`` (ordered frames): pycolmap's ``match_sequential``, ``overlap`` neighbours
+  in name order.
+- ``retrieval`` (unposed, unordered): the top ``num_neighbors`` of each image by cosine
+  similarity of global descriptors (GeM of the network's coarsest features).
+- ``file``: an hloc pairs file (``name0 name1`` per line), as given.
+
+Pairs are written to ``pairs.txt`` in the work folder, so a user can see what was matched.
+"""
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+from typing import List, Optional, Sequence, Tuple
+
+import numpy as np
+
+logger = logging.getLogger(__name__)
+
+METHODS = ("auto", "exhaustive", "spatial", "sequential", "retrieval", "file")
+Pair = Tuple[str, str]
+
+
+@dataclass(frozen=True)
+class PairsConfig:
+    """How image pairs are chosen (see the module docstring)."""
+
+    method: str = "auto"
+    num_neighbors: int = 10
+    max_angle: float = 90.0
+    overlap: int = 10
+    exhaustive_below: int = 60
+    path: Optional[str] = None
+
+    def __post_init__(self):
+        if self.method not in METHODS:
+            raise ValueError(f"Unknown pairs method {self.method!r}; known: {', '.join(METHODS)}.")
+        if self.method == "file" and not self.path:
+            raise ValueError("Pairs method 'file' needs a pairs file (--pairs-file).")
+        if self.num_neighbors < 1 or self.overlap < 1:
+            raise ValueError("num_neighbors and overlap must be >= 1.")
+
+    def resolve(self, num_images: int, posed: bool) -> str:
+        """The method ``auto`` stands for with ``num_images`` images (``posed``: known poses)."""
+        if self.method != "auto":
+            return self.method
+        if self.path:
+            return "file"
+        if num_images < self.exhaustive_below:
+            return "exhaustive"
+        return "spatial" if posed else "retrieval"
+
+
+def _unique(pairs) -> List[Pair]:
+    seen, out = set(), []
+    for a, b in pairs:
+        key = (a, b) if a < b else (b, a)
+        if a != b and key not in seen:
+            seen.add(key)
+            out.append(key)
+    return out
+
+
+def spatial_pairs(names: Sequence[str], cam_from_world: Sequence[np.ndarray], num_neighbors: int = 10,
+                  max_angle: float = 90.0) -> List[Pair]:
+    """Each image with its ``num_neighbors`` nearest camera centres among the images whose
+    optical axes are within ``max_angle`` degrees of its own."""
+    T = np.asarray(cam_from_world, np.float64)
+    R, t = T[:, :, :3], T[:, :, 3]
+    centres = -np.einsum("nji,nj->ni", R, t)  # -R^T t
+    axes = R[:, 2, :]  # the camera z axis in world coordinates
+    cos_max = np.cos(np.radians(max_angle))
+    pairs = []
+    for i in range(len(names)):
+        d = np.linalg.norm(centres - centres[i], axis=1)
+        d[i] = np.inf
+        d[axes @ axes[i] < cos_max] = np.inf
+        for j in np.argsort(d, kind="stable")[:num_neighbors]:
+            if np.isfinite(d[j]):
+                pairs.append((names[i], names[j]))
+    return _unique(pairs)
+
+
+def retrieval_pairs(names: Sequence[str], descriptors: np.ndarray, num_neighbors: int = 10) -> List[Pair]:
+    """Each image with its top ``num_neighbors`` others by cosine similarity of (L2-normalised)
+    global descriptors."""
+    D = np.asarray(descriptors, np.float32)
+    sim = D @ D.T
+    np.fill_diagonal(sim, -np.inf)
+    k = min(num_neighbors, len(names) - 1)
+    pairs = []
+    for i in range(len(names)):
+        for j in np.argsort(-sim[i], kind="stable")[:k]:
+            pairs.append((names[i], names[j]))
+    return _unique(pairs)
+
+
+def read_pairs(path, names: Sequence[str]) -> List[Pair]:
+    """An hloc pairs file; a line that is not two names, or a name not among ``names``, is an error
+    that names the line."""
+    known = set(names)
+    pairs = []
+    for n, line in enumerate(Path(path).read_text().splitlines(), 1):
+        if not line.strip() or line.lstrip().startswith("#"):
+            continue
+        parts = line.split()
+        if len(parts) != 2:
+            raise ValueError(f"{path}:{n}: expected 'name0 name1', got {line!r}.")
+        missing = [p for p in parts if p not in known]
+        if missing:
+            raise ValueError(f"{path}:{n}: image {missing[0]!r} is not among the map's {len(names)} images.")
+        pairs.append((parts[0], parts[1]))
+    if not pairs:
+        raise ValueError(f"{path} lists no image pairs.")
+    return _unique(pairs)
+
+
+def write_pairs(pairs: Sequence[Pair], path) -> Path:
+    path = Path(path)
+    path.write_text("".join(f"{a} {b}\n" for a, b in pairs))
+    return path
+
+
+def image_descriptors(paths: Sequence[Path], model: str, resize: int = 320) -> np.ndarray:
+    """GeM global descriptors of the network's coarsest features at a small size (for ``retrieval``)."""
+    import torch
+
+    from .build import network
+    from .features import global_descriptor
+    from .images import read_image, resize_max, to_tensor
+    net, _ = network(model)
+    out = []
+    with torch.inference_mode():
+        for p in paths:
+            image, _ = resize_max(read_image(p), resize)
+            out.append(global_descriptor(net(to_tensor(image)[None])["features"][-1][0]).numpy())
+    return np.stack(out)
+
+
+def match(database: Path, names: Sequence[str], conf: PairsConfig, work_dir: Path, *,
+          cam_from_world: Optional[Sequence[np.ndarray]] = None, image_dir: Optional[Path] = None,
+          model: Optional[str] = None) -> str:
+    """Match the features in ``database`` over the pairs of ``conf``; returns the method used."""
+    import pycolmap
+    method = conf.resolve(len(names), cam_from_world is not None)
+    cpu = pycolmap.Device.cpu
+    if method == "exhaustive":
+        pycolmap.match_exhaustive(database, device=cpu)
+        logger.info("Matched %d images exhaustively (%d pairs).", len(names), len(names) * (len(names) - 1) // 2)
+        return method
+    if method == "sequential":
+        options = pycolmap.SequentialPairingOptions()
+        options.overlap = conf.overlap
+        pycolmap.match_sequential(database, pairing_options=options, device=cpu)
+        logger.info("Matched %d images sequentially (overlap %d).", len(names), conf.overlap)
+        return method
+    if method == "spatial":
+        if cam_from_world is None:
+            raise ValueError("Pairs method 'spatial' needs known poses; use 'retrieval' or 'sequential'.")
+        pairs = spatial_pairs(names, cam_from_world, conf.num_neighbors, conf.max_angle)
+    elif method == "retrieval":
+        if image_dir is None or model is None:
+            raise ValueError("Pairs method 'retrieval' needs the images and a network.")
+        pairs = retrieval_pairs(names, image_descriptors([Path(image_dir) / n for n in names], model),
+                                conf.num_neighbors)
+    else:
+        pairs = read_pairs(conf.path, names)
+    path = write_pairs(pairs, Path(work_dir) / "pairs.txt")
+    options = pycolmap.ImportedPairingOptions()
+    options.match_list_path = str(path)
+    pycolmap.match_image_pairs(database, pairing_options=options, device=cpu)
+    logger.info("Matched %d pairs of %d images (%s, listed in %s).", len(pairs), len(names), method, path)
+    return method
