@@ -14,7 +14,7 @@ import dataclasses
 import json
 import os
 from pathlib import Path
-from typing import Dict, List
+from typing import Dict, List, Optional
 
 import numpy as np
 
@@ -50,11 +50,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    default=[0.0, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9])
 
 
-def _strecha(shared: Path, work: Path, folder: str, held_out: List[str], fconf: FeatureConfig):
+def _strecha(shared: Path, work: Path, folder: str, held_out: List[str], fconf: FeatureConfig,
+             stores: Optional[Path] = None):
+    """Leave-one-out maps of a Strecha scene (stores in ``stores``, default ``work``; the
+    triangulations in ``work`` are shared by every store of the same held-out image)."""
     root = shared / "data" / "strecha" / folder
     images = read_strecha(root)
     for name in held_out:
-        store = work / f"{folder}-{name}.zarr"
+        store = (stores or work) / f"{folder}-{name}.zarr"
         if not _complete(store, fconf):  # a finished map is reused as it is
             scene = triangulate_known_poses([im for im in images if im.name != name], root / "images",
                                             work / f"{folder}-{name}.work")
@@ -70,22 +73,22 @@ def _complete(store: Path, fconf: FeatureConfig) -> bool:
         return False
 
 
-def _demo(work: Path, fconf: FeatureConfig):
+def _demo(work: Path, fconf: FeatureConfig, stores: Optional[Path] = None):
     from pipeline.synthetic import SyntheticConfig, ensure_generated, read_synthetic
 
     from ..demo import DEMO_CAMERA, DEMO_SEED
     root = work / "demo-scene"
     ensure_generated(root, SyntheticConfig(seed=DEMO_SEED), 30, 5, DEMO_CAMERA, query_spread=0.5)
     mapping, queries = read_synthetic(root)
-    store = work / "demo.zarr"
+    store = (stores or work) / "demo.zarr"
     conf = dataclasses.replace(fconf, resize=320, descriptor="grid")
     build_sync(plan_build(rgbd_scene(mapping, method="frames", stride=8, min_track_length=3), store, conf))
     yield "demo", store, queries
 
 
-def _seven_scenes(shared: Path, work: Path, fconf: FeatureConfig):
+def _seven_scenes(shared: Path, work: Path, fconf: FeatureConfig, stores: Optional[Path] = None):
     root = shared / "data" / "7scenes_stairs"
-    store = work / "7scenes.zarr"
+    store = (stores or work) / "7scenes.zarr"
     build_sync(plan_build(rgbd_scene(read_7scenes(root, [2, 3]), method="frames", stride=24), store,
                           dataclasses.replace(fconf, resize=320)))
     yield "7scenes", store, load_queries("7scenes", root, sequences=(1, 4))
