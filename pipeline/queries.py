@@ -22,6 +22,8 @@ class QueryRecord:
     cam_from_world_gt: Optional[np.ndarray] = None
     error: Optional[str] = None  # why this query cannot run (a bad line of its list): it fails with it
     notes: tuple = ()  # what was adjusted to run it (e.g. intrinsics rescaled to the file), into its record
+    # references found by a retrieval stage run before sharding: {"dbs": [names], "similarity": [..] or None}
+    retrieved: Optional[Dict] = None
 
 
 def read_queries_with_intrinsics(path, image_dir, tags=None) -> List[QueryRecord]:

@@ -7,6 +7,7 @@ Every query gets exactly one record; a query that cannot be localized gets
 
 import dataclasses
 import functools
+import json
 import logging
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -216,6 +217,11 @@ def _failure(query: QueryRecord, reason: str, prior=None, refs=None) -> QueryRes
 
 def _retrieve(job: LocalizationJob, reader: MapReader, localizer: Localizer, query: QueryRecord,
               rgb: np.ndarray, cache: Dict):
+    if query.retrieved is not None:  # found by the retrieval stage (``retrieve_queries``)
+        dbs, _ = by_name(reader, query.retrieved["dbs"])
+        sim = query.retrieved.get("similarity")
+        keep = [j for j, i in enumerate(dbs) if reader.usable(i)]
+        return [dbs[j] for j in keep], None if sim is None else np.asarray(sim, np.float64)[keep]
     candidates = None
     if job.retrieval.same_tag:
         value = query.tags.get(job.retrieval.same_tag)
@@ -271,7 +277,7 @@ def prepare_query(job: LocalizationJob, reader: MapReader, localizer: Localizer,
         if similarity is None:
             similarity = np.ones(len(dbs))
         sim = dict(zip(dbs, similarity))
-        cluster = covisibility_clusters(dbs[:num], reader.obs_point, reader.row_start, reader.num_obs)[0]
+        cluster = covisibility_clusters(dbs[:num], reader.image_points)[0]
         prior = pose_approximation([reader.cam_from_world[i] for i in cluster], [sim[i] for i in cluster])
         if job.prior == "average":
             return [(query, cluster, prior, rgb, cache)]
@@ -408,6 +414,38 @@ def _search(job: LocalizationJob, reader: MapReader, localizer: Localizer, prepa
     return out
 
 
+def retrieve_queries(job: LocalizationJob, queries: List[QueryRecord], out_path) -> Dict[str, Dict]:
+    """The retrieval stage of a run sharded by map region: each query's ranked references
+    ({name: {"dbs": [reference names], "similarity": [...] or None}}), written to ``out_path``
+    (JSON, atomically; a finished file is read back). A query that cannot be read is left out:
+    its shard then fails it with the reason."""
+    out_path = Path(out_path)
+    if out_path.exists():
+        return json.loads(out_path.read_text())
+    restore_malloc_thresholds()
+    out = {}
+    with torch_threads(1):
+        refiner, digest = localization_model(job.model, job.device)
+        reader = open_reader(job.store, job.features, digest)
+        localizer = Localizer(refiner.extractor, refiner.solvers, reader, job.localizer, job.device,
+                              levels=job.levels, scales=job.scales)
+        for q in queries:
+            try:
+                if q.error or q.camera is None or q.camera.check():
+                    continue
+                rgb = read_image(q.path) if job.retrieval.method == "global" else None
+                dbs, sim = _retrieve(job, reader, localizer, q, rgb, {})
+            except (OSError, ValueError, RuntimeError, ImageReadError) as e:
+                logger.warning("Retrieval of %s failed: %s", q.name, e)
+                continue
+            out[q.name] = {"dbs": [reader.names[i] for i in dbs],
+                           "similarity": None if sim is None else [float(x) for x in sim]}
+    tmp = out_path.with_suffix(".tmp")
+    tmp.write_text(json.dumps(out))
+    tmp.replace(out_path)
+    return out
+
+
 def localize_shard(job: LocalizationJob, queries: List[QueryRecord], out_path) -> List[Dict]:
     """Localize ``queries`` and write their records to ``out_path``; a finished shard is read back."""
     out_path = Path(out_path)
@@ -416,6 +454,7 @@ def localize_shard(job: LocalizationJob, queries: List[QueryRecord], out_path) -
     restore_malloc_thresholds()
     with torch_threads(1):  # one thread per task: parallelism comes from workers
         refiner, digest = localization_model(job.model, job.device)
+        io = None
         try:
             reader = open_reader(job.store, job.features, digest)
             localizer = Localizer(refiner.extractor, refiner.solvers, reader, job.localizer, job.device,
@@ -425,7 +464,13 @@ def localize_shard(job: LocalizationJob, queries: List[QueryRecord], out_path) -
         except ValueError as e:  # a job setting the store cannot serve (image scales)
             results = [_failure(q, f"job does not fit the map store: {e}") for q in queries]
         else:
+            before = dict(reader.stats)
             results = localize_queries(job, reader, localizer, queries)
+            io = {k: reader.stats[k] - before[k] for k in before}
     records = [result_to_record(r, q.tags) for r, q in zip(results, queries)]
+    if io is not None:  # the shard's reads of the map store (shared by its queries)
+        for rec in records:
+            rec["store_io"] = {"shard_queries": len(queries), "bytes_read": io["bytes"],
+                               "blocks_read": io["blocks"], "cache_hits": io["hits"]}
     write_records(records, out_path)
     return records

@@ -23,7 +23,7 @@ from pipeline.store import StoreError, open_store
 from pipeline.verify import VerificationConfig
 
 from . import executor
-from .localize import plan_localization, run_dask, run_sync
+from .localize import ORDERS, REGION_MIN_QUERIES, plan_localization, run_dask, run_sync
 from .sources import QUERY_KINDS, load_queries
 
 logger = logging.getLogger(__name__)
@@ -92,6 +92,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "Cambridge); poses.txt always has the full names (default: the preset's, else none)")
     p.add_argument("--shard-size", type=int, help="queries per task (default: a rerun keeps its own; a new run "
                    "takes enough tasks for every worker to get several, at most 8 queries each)")
+    p.add_argument("--order", choices=list(ORDERS), default="auto",
+                   help="how queries are sharded: region (by the map region of their top-1 reference, after a "
+                        "retrieval stage: each worker reads a bounded part of the store), list (query order), or "
+                        f"auto (region from {REGION_MIN_QUERIES} queries on; default)")
     p.add_argument("--device", default="cpu")
     p.add_argument("--scheduler", help="address of an existing Dask scheduler")
     p.add_argument("--workers", type=int, default=2, help="worker processes of the local cluster (default 2)")
@@ -156,7 +160,7 @@ def main(args: argparse.Namespace) -> int:
     queries = _load_queries(args)
     output = Path(_absolute(args.output))
     plan = plan_localization(job, queries, output, args.shard_size, workers=1 if args.sync else args.workers,
-                             keep_failures=args.keep_failures, overwrite=args.overwrite)
+                             keep_failures=args.keep_failures, overwrite=args.overwrite, order=args.order)
     problem = pose_names_problem([q.name for q in queries], args.pose_names)
     if problem:
         raise ValueError(problem[0].upper() + problem[1:] + ".")
@@ -185,6 +189,10 @@ def main(args: argparse.Namespace) -> int:
           + (f", {output / f'poses_{plan.pose_names}.txt'}" if plan.pose_names != "full" else ""))
     for kind, _, group in reason_groups(records)[:5]:  # reasons that differ only in their figures count as one
         print(f"  {len(group)} {kind}: {group[0]['reason']}" + (f" (and {len(group) - 1} like it)" if len(group) > 1 else ""))
+    io = store_io(records)
+    if io:
+        print(f"  map store reads: {io['bytes_per_query'] / 2**20:.2f} MiB per query, {io['blocks']} reference "
+              f"blocks read, block-cache hit rate {100 * io['hit_rate']:.0f} % (per worker process)")
     dropped = Counter()
     for r in records:
         dropped.update(r.get("filters", {}))
@@ -198,6 +206,19 @@ def main(args: argparse.Namespace) -> int:
         args.thresholds, args.indoor = None, False  # localize has no such options: the preset's, or defaults
         print("\n" + format_summary(evaluate(records, gt, thresholds_of(args))))
     return 0
+
+
+def store_io(records) -> Optional[Dict]:
+    """Store reads of the run's shards (each record carries its shard's): bytes per query, blocks
+    read and the hit rate of the workers' block caches."""
+    with_io = [r["store_io"] for r in records if r.get("store_io")]
+    if not with_io:
+        return None
+    share = [1 / max(x["shard_queries"], 1) for x in with_io]  # each shard counted once
+    total = {k: sum(x[k] * w for x, w in zip(with_io, share)) for k in ("bytes_read", "blocks_read", "cache_hits")}
+    lookups = total["blocks_read"] + total["cache_hits"]
+    return {"bytes_per_query": total["bytes_read"] / len(with_io), "blocks": round(total["blocks_read"]),
+            "hit_rate": total["cache_hits"] / lookups if lookups else 0.0}
 
 
 def add_evaluate_arguments(p: argparse.ArgumentParser) -> None:

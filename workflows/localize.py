@@ -1,6 +1,10 @@
 """Batch localization workflow: shard the queries, localize shards (sync or Dask), merge.
 
-Planning writes nothing (``--dry-run`` shows the plan). Running takes a lock on the output
+Planning writes nothing (``--dry-run`` shows the plan). With ``order="region"`` (the default
+``auto`` for runs of ``REGION_MIN_QUERIES`` queries or more that retrieve their references), a
+retrieval stage runs first (``retrieval/part-XXXXX.json``, resumable) and the queries are then
+sharded by the map region of their top-1 reference (``pipeline.regions``), so that a worker
+reads a bounded part of the store. Running takes a lock on the output
 folder (a second run into it is refused), records the job in ``job.json`` and runs what is
 pending. Each shard writes ``shards/shard-XXXXX.jsonl`` atomically when done, so an
 interrupted run resumes without redoing or losing work, and a finished run reruns as a
@@ -11,6 +15,7 @@ elsewhere by Dask.
 """
 
 import contextlib
+import dataclasses
 import json
 import logging
 import os
@@ -20,14 +25,20 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, List, Optional
 
+import numpy as np
+
 from pipeline.queries import QueryRecord
+from pipeline.regions import camera_centres, region_order
 from pipeline.results import is_retryable, read_records, write_failed, write_kapture, write_poses, write_records
-from pipeline.shard import LocalizationJob, localize_shard
+from pipeline.shard import LocalizationJob, localize_shard, retrieve_queries
 
 from . import executor
 
 logger = logging.getLogger(__name__)
 LOCK = ".pixloc.lock"
+ORDERS = ("auto", "list", "region")
+REGION_MIN_QUERIES = 64  # ``auto`` shards by region from this many queries on
+RETRIEVAL_PART = 32  # queries per task of the retrieval stage
 
 
 class OutputLocked(ValueError):
@@ -48,6 +59,36 @@ class LocalizationPlan:
     keep_failures: bool = False
     whole: set = field(default_factory=set)  # shards of ``todo`` that run whole (not written yet)
     pose_names: str = "full"  # names of an extra poses file for benchmarks (pipeline.results.pose_name)
+    order: str = "list"  # ``list`` (query order) or ``region`` (by the map region of the top-1 reference)
+    queries: List[QueryRecord] = field(default_factory=list)  # in list order
+
+    def retrieval_path(self, part: int) -> Path:
+        return self.output / "retrieval" / f"part-{part:05d}.json"
+
+    def retrieval_parts(self) -> List[List[QueryRecord]]:
+        return [self.queries[i:i + RETRIEVAL_PART] for i in range(0, len(self.queries), RETRIEVAL_PART)]
+
+    def needs_retrieval(self) -> bool:
+        """Region order whose retrieval stage has not finished (the shards are not known yet)."""
+        return self.order == "region" and (self.overwrite or not all(
+            self.retrieval_path(k).exists() for k in range(len(self.retrieval_parts()))))
+
+    def apply_regions(self) -> None:
+        """Shard the queries by region, from the finished retrieval stage; each query carries its
+        references, so the shards do not retrieve again."""
+        retrieved = {}
+        for k in range(len(self.retrieval_parts())):
+            retrieved.update(json.loads(self.retrieval_path(k).read_text()))
+        from pipeline.store import open_store
+        root = open_store(self.job.store)
+        names = [str(n) for n in root["images/name"][:]]
+        T = root["images/cam_from_world"][:]
+        centres = camera_centres(np.concatenate([T[:, :9].reshape(-1, 3, 3), T[:, 9:, None]], 2))
+        top1 = {n: (r["dbs"][0] if r["dbs"] else None) for n, r in retrieved.items()}
+        order = region_order([q.name for q in self.queries], top1, names, centres)
+        queries = [dataclasses.replace(self.queries[k], retrieved=retrieved.get(self.queries[k].name))
+                   for k in order]
+        self.shards = [queries[i:i + self.shard_size] for i in range(0, len(queries), self.shard_size)]
 
     def refresh(self) -> None:
         """Recompute what is to run from the shards on disk (run again under the lock: an
@@ -81,7 +122,9 @@ class LocalizationPlan:
 
     def describe(self) -> str:
         c = self.counts()
-        return (f"localize {c['queries']} queries in {c['shards']} shards against {self.job.store}\n"
+        order = ("list order" if self.order == "list" else
+                 "grouped by map region after a retrieval stage" + (" (to run)" if self.needs_retrieval() else ""))
+        return (f"localize {c['queries']} queries in {c['shards']} shards ({order}) against {self.job.store}\n"
                 f"  to run  {c['to_run']} queries ({c['retried']} failures retried); reused {c['reused_queries']} "
                 f"queries, {c['reused_shards']} finished shards\n"
                 f"  output  {self.output}\n  model   {self.job.model}\n  job     {self.job.to_dict()}")
@@ -99,18 +142,35 @@ def auto_shard_size(num_queries: int, workers: int) -> int:
     return max(1, min(8, -(-num_queries // (4 * max(workers, 1)))))
 
 
+def resolve_order(order: str, job: LocalizationJob, num_queries: int) -> str:
+    """``list`` or ``region`` for ``order`` (``auto``: region from ``REGION_MIN_QUERIES`` queries,
+    when the prior comes from retrieval)."""
+    if order not in ORDERS:
+        raise ValueError(f"Unknown query order {order!r}; known: {', '.join(ORDERS)}.")
+    retrieves = job.prior not in ("poses", "hloc")
+    if order == "region" and not retrieves:
+        raise ValueError(f"--order region groups queries by their retrieved references; prior {job.prior!r} "
+                         "retrieves none.")
+    if order == "auto":
+        return "region" if retrieves and num_queries >= REGION_MIN_QUERIES else "list"
+    return order
+
+
 def plan_localization(job: LocalizationJob, queries: List[QueryRecord], output, shard_size: Optional[int] = None, *,
-                      workers: int = 2, keep_failures: bool = False, overwrite: bool = False) -> LocalizationPlan:
+                      workers: int = 2, keep_failures: bool = False, overwrite: bool = False,
+                      order: str = "auto") -> LocalizationPlan:
     """Plan a run into ``output``; writes nothing. A folder holding another job is refused
     (unless ``overwrite``, which redoes everything). Without ``shard_size``, a run of the same
-    job and queries keeps its shard size, and a new one gets ``auto_shard_size``."""
+    job and queries keeps its shard size, and a new one gets ``auto_shard_size``. ``order``:
+    ``list``, ``region`` or ``auto`` (``resolve_order``)."""
     if not queries:
         raise ValueError("The query list is empty: nothing to localize.")
     names = [q.name for q in queries]
+    order = resolve_order(order, job, len(queries))
     stored = _stored_job(Path(output))
     if shard_size is None:
         same = stored is not None and not overwrite and stored.get("queries") == names \
-            and stored.get("job") == _job_json(job, names, 1)["job"]
+            and stored.get("job") == _job_json(job, names, 1, order)["job"] and stored.get("order", "list") == order
         shard_size = stored["shard_size"] if same else auto_shard_size(len(queries), workers)
     if shard_size < 1:
         raise ValueError(f"--shard-size must be at least 1, got {shard_size}.")
@@ -119,18 +179,27 @@ def plan_localization(job: LocalizationJob, queries: List[QueryRecord], output, 
         raise ValueError(f"Query names must be unique; repeated: {dup[:5]}.")
     job.validate()
     output = Path(output)
-    if stored is not None and not overwrite and stored != _job_json(job, names, shard_size):
-        raise ValueError(f"{output} holds a run with another job or query list: use another --output, "
+    if stored is not None and not overwrite and stored != _job_json(job, names, shard_size, order):
+        raise ValueError(f"{output} holds a run with another job, query list or order: use another --output, "
                          "or --overwrite to redo it.")
     shards = [queries[i:i + shard_size] for i in range(0, len(queries), shard_size)]
     plan = LocalizationPlan(job, shards, output, overwrite=overwrite, shard_size=shard_size,
-                            keep_failures=keep_failures)
-    plan.refresh()
+                            keep_failures=keep_failures, order=order, queries=list(queries))
+    if not plan.needs_retrieval():
+        if order == "region":
+            plan.apply_regions()
+        plan.refresh()
+    else:  # every shard is to run, once the retrieval stage has placed its queries
+        plan.whole = set(range(len(shards)))
+        plan.todo = dict(enumerate(shards))
     return plan
 
 
-def _job_json(job: LocalizationJob, names: List[str], shard_size: int) -> Dict:
-    return json.loads(json.dumps({"job": job.to_dict(), "queries": names, "shard_size": shard_size}))
+def _job_json(job: LocalizationJob, names: List[str], shard_size: int, order: str = "list") -> Dict:
+    out = {"job": job.to_dict(), "queries": names, "shard_size": shard_size}
+    if order != "list":
+        out["order"] = order
+    return json.loads(json.dumps(out))
 
 
 @contextlib.contextmanager
@@ -169,14 +238,29 @@ def _alive(pid: int) -> bool:
     return True
 
 
-def _start(plan: LocalizationPlan) -> None:
-    names = [q.name for s in plan.shards for q in s]
-    if plan.overwrite and (plan.output / "shards").exists():
-        shutil.rmtree(plan.output / "shards")
+def _start(plan: LocalizationPlan, run_calls) -> None:
+    """Under the lock: clear an overwritten run, record the job, run the retrieval stage of a
+    region-ordered run (``run_calls(fn, calls, name)`` runs tasks), and shard by region."""
+    names = [q.name for q in plan.queries] or [q.name for s in plan.shards for q in s]
+    if plan.overwrite:
+        for folder in ("shards", "retrieval"):
+            if (plan.output / folder).exists():
+                shutil.rmtree(plan.output / folder)
     plan.overwrite = False  # done once: from here on the run resumes like any other
-    plan.refresh()
     (plan.output / "shards").mkdir(parents=True, exist_ok=True)
-    (plan.output / "job.json").write_text(json.dumps(_job_json(plan.job, names, plan.shard_size), indent=1))
+    (plan.output / "job.json").write_text(json.dumps(_job_json(plan.job, names, plan.shard_size, plan.order),
+                                                     indent=1))
+    if plan.order == "region":
+        parts = plan.retrieval_parts()
+        todo = [k for k in range(len(parts)) if not plan.retrieval_path(k).exists()]
+        if todo:
+            (plan.output / "retrieval").mkdir(exist_ok=True)
+            logger.info("Retrieval stage: %d queries in %d tasks, before sharding by map region.",
+                        sum(len(parts[k]) for k in todo), len(todo))
+            run_calls(retrieve_queries, [(plan.job, parts[k], str(plan.retrieval_path(k))) for k in todo],
+                      "retrieve")
+        plan.apply_regions()
+    plan.refresh()
 
 
 def _calls(plan: LocalizationPlan):
@@ -194,7 +278,7 @@ def _progress(plan: LocalizationPlan, progress: bool):
 def run_sync(plan: LocalizationPlan, progress: bool = False) -> List[Dict]:
     """Run the plan in this process; returns every query's record, in query order."""
     with output_lock(plan.output):
-        _start(plan)
+        _start(plan, lambda fn, calls, name: executor.run_sync(fn, calls))
         with _progress(plan, progress) as bar:
             executor.run_sync(localize_shard, _calls(plan), on_done=(lambda r: bar.update(len(r))) if bar else None)
         return merge(plan)
@@ -203,7 +287,7 @@ def run_sync(plan: LocalizationPlan, progress: bool = False) -> List[Dict]:
 def run_dask(plan: LocalizationPlan, client, progress: bool = False) -> List[Dict]:
     """Run the plan's shards as tasks of ``client``'s cluster; returns every query's record."""
     with output_lock(plan.output):
-        _start(plan)
+        _start(plan, lambda fn, calls, name: executor.run_dask(client, fn, calls, name, plan.job.device))
         with _progress(plan, progress) as bar:
             executor.run_dask(client, localize_shard, _calls(plan), "localize-shard", plan.job.device,
                               on_done=(lambda r: bar.update(len(r))) if bar else None)
@@ -225,11 +309,14 @@ def _shard_records(plan: LocalizationPlan, k: int, commit: bool = True) -> List[
 
 
 def merge(plan: LocalizationPlan) -> List[Dict]:
-    """All shard records, in query order, written to records.jsonl, poses.txt (full names; and
+    """All shard records, in query (list) order, written to records.jsonl, poses.txt (full names; and
     ``poses_{names}.txt`` with the plan's ``pose_names`` for a benchmark), kapture/ and failed.txt."""
     records = []
     for k in range(len(plan.shards)):
         records += _shard_records(plan, k)
+    if plan.queries:  # region order: back to the order of the query list
+        rank = {q.name: i for i, q in enumerate(plan.queries)}
+        records.sort(key=lambda r: rank.get(r["name"], len(rank)))
     write_records(records, plan.output / "records.jsonl")
     write_poses(records, plan.output / "poses.txt")
     if plan.pose_names != "full":

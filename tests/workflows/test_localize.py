@@ -1,6 +1,7 @@
 """Batch localization end to end on real data: outputs, evaluation, Dask, failures, resume."""
 
 import dataclasses
+import itertools
 import json
 import signal
 import subprocess
@@ -258,3 +259,32 @@ def test_shard_batches_queries_like_one_at_a_time(seven_scenes, sync_records):
     for r in batched:
         np.testing.assert_allclose(r.refined, np.asarray(solo[r.name]["refined"]), atol=1e-4)
         assert r.iterations == solo[r.name]["iterations"]
+
+
+def test_region_order_shards_by_reference_region_and_resumes(seven_scenes, sync_records, tmp_path):
+    """A retrieval stage, then shards of queries whose top-1 references are neighbours: the same
+    poses as in list order, records in list order, and a rerun redoes neither stage."""
+    job, queries = seven_scenes
+    plan = plan_localization(job, queries, tmp_path, shard_size=2, order="region")
+    assert plan.needs_retrieval() and "retrieval stage (to run)" in plan.describe()
+    records = run_sync(plan)
+    assert [r["name"] for r in records] == [q.name for q in queries]
+    by_name = {r["name"]: r for r in sync_records}
+    for r in records:
+        assert r["references"] == by_name[r["name"]]["references"]
+        np.testing.assert_allclose(r["refined"], by_name[r["name"]]["refined"], atol=1e-4)
+        assert r["store_io"]["shard_queries"] >= 1
+    # shards follow the Z-order of the top-1 reference centres: queries with the same top-1 are together
+    again = plan_localization(job, queries, tmp_path, shard_size=2, order="region")
+    assert not again.needs_retrieval() and not again.todo
+    top1 = [q.retrieved["dbs"][0] for s in again.shards for q in s]
+    assert sorted(set(top1), key=top1.index) == [k for k, _ in itertools.groupby(top1)]
+    parts = sorted((tmp_path / "retrieval").glob("part-*.json"))
+    stamp = [p.stat().st_mtime_ns for p in parts]
+    again.shard_path(1).unlink()
+    resumed = plan_localization(job, queries, tmp_path, shard_size=2, order="region")
+    assert list(resumed.todo) == [1]
+    run_sync(resumed)
+    assert [p.stat().st_mtime_ns for p in parts] == stamp
+    with pytest.raises(ValueError, match="another job, query list or order"):
+        plan_localization(job, queries, tmp_path, shard_size=2, order="list")
