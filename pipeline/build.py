@@ -19,7 +19,7 @@ from .features import FeatureConfig, extract_image_features
 from .runtime import restore_malloc_thresholds, torch_threads
 from .scene import Scene
 from .store import (DONE, FAILED, PENDING, create_store, feature_key, image_records, init_features, mark_failed,
-                    open_store, write_image_features)
+                    open_store, read, write_image_features)
 
 logger = logging.getLogger(__name__)
 REFUSED = "refused: "  # reason prefix of images that cannot be used at all (not retried)
@@ -54,7 +54,8 @@ def write_structure(scene: Scene, store_path, conf: FeatureConfig, *, chunk_rows
                         shard_rows=shard_rows)
     net, digest = network(conf.model, device)
     group = init_features(root, conf, digest, list(net.output_dims))
-    status, reasons = group["status"][:], group["reason"][:]
+    meta = root.attrs["pixloc_map"]
+    status, reasons = read(group, "status", meta), read(group, "reason", meta)
     for i in range(len(scene.images)):
         if i in problems and status[i] != DONE:
             mark_failed(group, i, f"{REFUSED}{problems[i]}")
@@ -113,8 +114,9 @@ def pending_images(store_path, conf: FeatureConfig) -> List[int]:
     key = f"features/{feature_key(conf)}"
     if key not in root:
         return list(range(root.attrs["pixloc_map"]["num_images"]))
-    status = root[f"{key}/status"][:]
-    reasons = root[f"{key}/reason"][:]
+    meta = root.attrs["pixloc_map"]
+    status = read(root, f"{key}/status", meta)
+    reasons = read(root, f"{key}/reason", meta)
     return [i for i, (s, r) in enumerate(zip(status, reasons)) if s != DONE and not str(r).startswith(REFUSED)]
 
 

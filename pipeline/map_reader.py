@@ -12,6 +12,7 @@ from .features import FeatureConfig
 from .scene import CameraRecord
 from .store import (DONE, StoreError, StoreReadError, check_feature_group, dequantize_int8, feature_key,
                     open_store)
+from .store import read as store_read
 
 
 @dataclass
@@ -51,9 +52,11 @@ class MapReader:
         self.conf = conf
         self.dims: List[int] = list(self.group.attrs["dims"])
 
+        meta = root.attrs["pixloc_map"]
+
         def read(group, name):
             try:
-                return group[name][:]
+                return store_read(group, name, meta)
             except Exception as e:  # a corrupt chunk of the structure: every query needs it  # noqa: BLE001
                 raise StoreReadError(f"{path}: array {group[name].path} cannot be read: {type(e).__name__}: {e}"
                                      " (run pixloc check-store)") from None

@@ -96,11 +96,18 @@ def create_store(path, scene: Scene, chunk_rows: int = 256, overwrite: bool = Fa
     names = [im.name for im in scene.images]
     if path.exists() and not overwrite:
         root = open_store(path, mode="r+")
-        if list(root["images/name"][:]) != names or int(root.attrs["pixloc_map"]["num_observations"]) != len(
-                scene.obs_point):
-            raise StoreError(f"{path} holds another map (other images or observations); "
-                             "choose another path or rebuild it with --overwrite.")
-        return root
+        stored = [str(n) for n in read(root, "images/name")]
+        meta = root.attrs["pixloc_map"]
+        # the scene that built or last extended the store (an added session keeps only the new
+        # images' observations, so the store may hold fewer than that scene)
+        if stored == names and int(meta.get("scene_observations", meta["num_observations"])) == len(scene.obs_point):
+            return root
+        if len(stored) < len(names) and set(stored) <= set(names):
+            extend_store(root, scene)
+            return root
+        raise StoreError(f"{path} holds another map (other images or observations); "
+                         "choose another path, rebuild it with --overwrite, or add images with a scene that "
+                         "holds every image of the map.")
     order = np.lexsort((scene.obs_point, scene.obs_image))
     obs_image, obs_point, obs_xy = scene.obs_image[order], scene.obs_point[order], scene.obs_xy[order]
     num_obs = np.bincount(obs_image, minlength=len(scene.images))
@@ -146,6 +153,107 @@ def create_store(path, scene: Scene, chunk_rows: int = 256, overwrite: bool = Fa
     _rows_array(root, "observations/point", rows, None, "int64", meta, fill_value=-1)[:] = point
     _rows_array(root, "observations/xy", rows, 2, "float32", meta, fill_value=np.nan)[:] = xy
     return root
+
+
+def count(meta: Dict, name: str) -> int:
+    """The committed length of an array's first axis (arrays may be longer while images are being
+    added: the map attributes are the commit point)."""
+    if name.startswith("images/") or name.split("/")[-1] in ("status", "reason", "global"):
+        return meta["num_images"]
+    if name.startswith("points/"):
+        return meta["num_points"]
+    return meta["num_rows"]
+
+
+def read(group: zarr.Group, name: str, meta: Optional[Dict] = None) -> np.ndarray:
+    """Array ``name`` of ``group`` up to its committed length (``count``); ``meta``: the map
+    attributes (default: those of ``group``, the root)."""
+    meta = meta if meta is not None else group.attrs["pixloc_map"]
+    return group[name][:count(meta, name)]
+
+
+def extend_store(root: zarr.Group, scene: Scene) -> List[int]:
+    """Add the images of ``scene`` that the store does not have (a new mapping session), with their
+    observations: of the store's points where the scene names them by the same source id (a COLMAP
+    model extended with the new images), of new points otherwise. Stored images, points and rows
+    are kept as they are; new rows go after them, in whole shards; every feature group gets the
+    new images as pending. The attributes are written last: a store interrupted here is still the
+    map it was (``check_layout`` allows longer arrays) and the add runs again. Returns the new
+    images' indices."""
+    meta = dict(root.attrs["pixloc_map"])
+    I, P, R, shard = meta["num_images"], meta["num_points"], meta["num_rows"], meta["shard_rows"]  # noqa: E741
+    stored = {str(n): i for i, n in enumerate(read(root, "images/name", meta))}
+    T_stored = read(root, "images/cam_from_world", meta)
+    for k, im in enumerate(scene.images):
+        if im.name in stored:
+            T = np.concatenate([np.asarray(im.cam_from_world)[:, :3].reshape(-1), np.asarray(im.cam_from_world)[:, 3]])
+            if not np.allclose(T, T_stored[stored[im.name]], atol=1e-6):
+                raise StoreError(f"Image {im.name} has another pose than in the store: adding images keeps the "
+                                 "stored ones as they are (rebuild with --overwrite to change them).")
+    new = [k for k, im in enumerate(scene.images) if im.name not in stored]
+    ids = {int(s): i for i, s in enumerate(read(root, "points/source_id", meta)) if s >= 0}
+    sel = np.isin(scene.obs_image, new)
+    obs_image, obs_point, obs_xy = scene.obs_image[sel], scene.obs_point[sel], scene.obs_xy[sel]
+    used = np.unique(obs_point)
+    src = scene.point_ids[used]
+    known = np.array([s >= 0 and int(s) in ids for s in src], bool)
+    index = np.empty(len(scene.points), np.int64)
+    index[used[known]] = [ids[int(s)] for s in src[known]]
+    fresh = used[~known]
+    index[fresh] = P + np.arange(len(fresh))
+    local = {k: I + j for j, k in enumerate(new)}
+    obs_image = np.array([local[int(k)] for k in obs_image], np.int64).reshape(-1)
+    obs_point = index[obs_point]
+    order = np.lexsort((obs_point, obs_image))
+    obs_image, obs_point, obs_xy = obs_image[order], obs_point[order], obs_xy[order]
+    num_obs = np.bincount(obs_image - I, minlength=len(new))
+    padded = _padded(num_obs, shard)
+    row_start = R + np.concatenate([[0], np.cumsum(padded)[:-1]])
+    rank = np.arange(len(obs_image)) - np.concatenate([[0], np.cumsum(num_obs)[:-1]])[obs_image - I]
+    row = row_start[obs_image - I] + rank
+    I2, P2, R2 = I + len(new), P + len(fresh), R + int(padded.sum())  # noqa: E741
+    images = [scene.images[k] for k in new]
+    columns = {"images/name": np.array([im.name for im in images]),
+               "images/camera": np.array([im.camera.to_json() for im in images]),
+               "images/tags": np.array([json.dumps(im.tags, sort_keys=True) for im in images]),
+               "images/path": np.array([str(im.path) for im in images]),
+               "images/cam_from_world": np.stack([np.concatenate([np.asarray(im.cam_from_world)[:, :3].reshape(-1),
+                                                                  np.asarray(im.cam_from_world)[:, 3]])
+                                                  for im in images]),
+               "images/row_start": row_start, "images/num_obs": num_obs,
+               "images/source_id": np.array([im.source_id for im in images], np.int64)}
+    for name, values in columns.items():
+        root[name].resize((I2,) + root[name].shape[1:])
+        root[name][I:I2] = values
+    for name, values in (("points/xyz", scene.points[fresh]), ("points/source_id", scene.point_ids[fresh])):
+        root[name].resize((P2,) + root[name].shape[1:])
+        root[name][P:P2] = values
+    # from the committed rows, not the stored track lengths: an interrupted add may have written them
+    stored_points = read(root, "observations/point", meta)
+    track = (np.bincount(stored_points[stored_points >= 0], minlength=P2)
+             + np.bincount(obs_point, minlength=P2)).astype(np.int32)
+    root["points/track_length"].resize((P2,))
+    root["points/track_length"][:] = track
+    point = np.full(R2 - R, -1, np.int64)
+    point[row - R] = obs_point
+    xy = np.full((R2 - R, 2), np.nan, np.float32)
+    xy[row - R] = obs_xy
+    for name, values in (("observations/point", point), ("observations/xy", xy)):
+        root[name].resize((R2,) + root[name].shape[1:])
+        root[name][R:R2] = values
+    if "features" in root:
+        for _, group in root["features"].groups():
+            for name in ("status", "reason", "global"):
+                group[name].resize((I2,) + group[name].shape[1:])
+                if name != "global":
+                    group[name][I:I2] = PENDING if name == "status" else ""
+            for _, scale in group.groups():
+                for _, array in scale.arrays():
+                    array.resize((R2,) + array.shape[1:])
+    meta.update(num_images=I2, num_points=P2, num_observations=meta["num_observations"] + len(obs_image),
+                num_rows=R2, scene_observations=len(scene.obs_point))
+    root.attrs["pixloc_map"] = meta  # the commit point
+    return list(range(I, I2))
 
 
 def open_store(path, mode: str = "r") -> zarr.Group:
@@ -201,7 +309,7 @@ def check_layout(root: zarr.Group, path) -> None:
                          "(a damaged store?).")
     for name, shape in _expected_arrays(meta).items():
         array = _get(root, name, path)
-        if tuple(array.shape) != shape:
+        if tuple(array.shape[1:]) != shape[1:] or array.shape[0] < shape[0]:  # longer: an add was interrupted
             raise StoreError(f"{path}: array {name} has shape {tuple(array.shape)}, the map attributes say {shape}.")
 
 
@@ -220,9 +328,9 @@ def check_feature_group(group: zarr.Group, meta: Dict, path) -> None:
             expected[f"s{k}/scales"] = (R, L)
     for name, shape in expected.items():
         array = _get(group, name, path)
-        if tuple(array.shape) != shape:
+        if tuple(array.shape[1:]) != shape[1:] or array.shape[0] < shape[0]:
             raise StoreError(f"{path}: array {group.path}/{name} has shape {tuple(array.shape)}, expected {shape}.")
-    if _get(group, "global", path).shape[0] != I:
+    if _get(group, "global", path).shape[0] < I:
         raise StoreError(f"{path}: array {group.path}/global has {group['global'].shape[0]} rows for {I} images.")
 
 
@@ -311,11 +419,12 @@ def dequantize_int8(codes: np.ndarray, scales: np.ndarray, dims: List[int]) -> L
 
 def image_records(root: zarr.Group) -> List[ImageRecord]:
     """The stored images as records (paths as recorded at build time)."""
-    T = root["images/cam_from_world"][:]
+    meta = root.attrs["pixloc_map"]
+    T = read(root, "images/cam_from_world", meta)
     return [ImageRecord(str(n), Path(str(p)), CameraRecord.from_json(str(c)),
                         np.concatenate([t[:9].reshape(3, 3), t[9:, None]], 1), json.loads(str(g)))
-            for n, p, c, g, t in zip(root["images/name"][:], root["images/path"][:], root["images/camera"][:],
-                                     root["images/tags"][:], T)]
+            for n, p, c, g, t in zip(read(root, "images/name", meta), read(root, "images/path", meta),
+                                     read(root, "images/camera", meta), read(root, "images/tags", meta), T)]
 
 
 def image_rows(root: zarr.Group, i: int) -> slice:

@@ -14,7 +14,7 @@ from typing import Callable, List, Optional
 import numpy as np
 import zarr
 
-from .store import check_feature_group, open_store
+from .store import check_feature_group, open_store, read
 
 
 @dataclass
@@ -63,8 +63,8 @@ def check_store(path, progress: Optional[Callable[[str], None]] = None) -> Store
     out.bytes = sum(f.stat().st_size for f in path.rglob("*") if f.is_file())
     root = open_store(path)  # refuses a bad layout with a clear StoreError
     meta = root.attrs["pixloc_map"]
-    names = [str(n) for n in root["images/name"][:]]
-    row_start, num_obs = root["images/row_start"][:], root["images/num_obs"][:]
+    names = [str(n) for n in read(root, "images/name")]
+    row_start, num_obs = read(root, "images/row_start"), read(root, "images/num_obs")
     if "features" in root:
         for key, group in root["features"].groups():
             try:

@@ -70,9 +70,18 @@ def plan_build(scene: Scene, store, conf: FeatureConfig, *, batch_size: int = 1,
                chunk_rows: int = 256, shard_rows: Optional[int] = None, source: Optional[Dict] = None,
                overwrite: bool = False) -> BuildPlan:
     """Plan a build; images already done in an existing store are not planned again (all are
-    with ``overwrite``, which rebuilds the store)."""
+    with ``overwrite``, which rebuilds the store). Images of ``scene`` that an existing store does
+    not have are added to it (a new mapping session, ``pipeline.store.extend_store``): they get
+    the indices after the stored ones."""
     store = Path(store)
-    todo = pending_images(store, conf) if store.exists() and not overwrite else list(range(len(scene.images)))
+    if store.exists() and not overwrite:
+        from pipeline.store import open_store, read
+        stored = set(str(n) for n in read(open_store(store), "images/name"))
+        new = sum(im.name not in stored for im in scene.images)
+        todo = pending_images(store, conf) + list(range(len(stored), len(stored) + new))
+        todo = sorted(set(todo))
+    else:
+        todo = list(range(len(scene.images)))
     batches = [todo[i:i + batch_size] for i in range(0, len(todo), batch_size)]
     dims = list(network(conf.model, "cpu")[0].output_dims)
     return BuildPlan(scene, store, conf, batches, dims, device, chunk_rows, source or {}, overwrite, shard_rows)

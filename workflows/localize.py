@@ -79,10 +79,10 @@ class LocalizationPlan:
         retrieved = {}
         for k in range(len(self.retrieval_parts())):
             retrieved.update(json.loads(self.retrieval_path(k).read_text()))
-        from pipeline.store import open_store
+        from pipeline.store import open_store, read
         root = open_store(self.job.store)
-        names = [str(n) for n in root["images/name"][:]]
-        T = root["images/cam_from_world"][:]
+        names = [str(n) for n in read(root, "images/name")]
+        T = read(root, "images/cam_from_world")
         centres = camera_centres(np.concatenate([T[:, :9].reshape(-1, 3, 3), T[:, 9:, None]], 2))
         top1 = {n: (r["dbs"][0] if r["dbs"] else None) for n, r in retrieved.items()}
         order = region_order([q.name for q in self.queries], top1, names, centres)

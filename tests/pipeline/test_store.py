@@ -161,3 +161,60 @@ def test_int8_features_are_within_their_quantisation_step(built, maupertuis, tmp
     assert sizes[conf8] < 0.6 * sizes[CONF]
     with pytest.raises(ValueError, match="Unknown feature storage type"):
         FeatureConfig(dtype="int4")
+
+
+def _first_session(scene, keep):
+    """The scene of images ``keep`` with only the points they see (as an SfM of them would have)."""
+    sub = scene.subset(keep)
+    used = np.unique(sub.obs_point)
+    index = -np.ones(len(scene.points), np.int64)
+    index[used] = np.arange(len(used))
+    return Scene(sub.images, scene.points[used], index[sub.obs_point], sub.obs_image, sub.obs_xy,
+                 scene.point_ids[used])
+
+
+def test_adding_a_mapping_session_extracts_only_the_new_images(built, maupertuis, tmp_path, monkeypatch):
+    """A map of 3 images, then the model extended with a 4th: the store keeps its rows, adds the new
+    image, its observations and the points only it sees (the others matched by COLMAP id), and
+    only the new image is extracted. An add interrupted before its commit leaves the old map."""
+    from pipeline import store as store_module
+    from pipeline.map_reader import MapReader
+    path = tmp_path / "map.zarr"
+    first = _first_session(maupertuis, [0, 1, 2])
+    assert [r.status for r in build_map(first, path, CONF)] == ["done"] * 3
+    before = {k: v.copy() for k, v in (("rows", open_store(path)["images/row_start"][:]),)}
+
+    real = store_module.extend_store
+
+    def interrupted(root, scene):
+        meta = dict(root.attrs["pixloc_map"])
+        real(root, scene)
+        root.attrs["pixloc_map"] = meta  # as if the commit had not been written
+        raise KeyboardInterrupt
+    monkeypatch.setattr(store_module, "extend_store", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        build_map(maupertuis, path, CONF)
+    old = open_store(path)
+    assert old.attrs["pixloc_map"]["num_images"] == 3 and old["images/name"].shape[0] == 4  # longer, uncommitted
+    assert MapReader(path, CONF).names == [im.name for im in first.images]
+    monkeypatch.setattr(store_module, "extend_store", real)
+
+    results = build_map(maupertuis, path, CONF)  # the add runs again, then extraction
+    assert [(r.name, r.status) for r in results] == [(maupertuis.images[3].name, "done")]
+    root = open_store(path)
+    meta = root.attrs["pixloc_map"]
+    assert meta["num_images"] == 4 and meta["num_observations"] == len(maupertuis.obs_point)
+    assert meta["num_points"] == len(np.unique(maupertuis.obs_point))  # seen points: old + those only #4 sees
+    assert np.array_equal(root["images/row_start"][:3], before["rows"])  # stored rows untouched
+    # image 4's features equal those of a map built at once, point by point
+    full, _ = built
+    a, b = MapReader(path, CONF), MapReader(full, CONF)
+    ids_a = a.point_source_id[a.observations([3], 1).point]
+    ids_b = b.point_source_id[b.observations([3], 1).point]
+    assert sorted(ids_a) == sorted(ids_b)
+    fa = a.features(a.observations([3], 1), 1)[0][0][np.argsort(ids_a)]
+    fb = b.features(b.observations([3], 1), 1)[0][0][np.argsort(ids_b)]
+    np.testing.assert_array_equal(fa, fb)
+    by_id = dict(zip(maupertuis.point_ids, maupertuis.track_length))
+    assert all(by_id[s] == t for s, t in zip(a.point_source_id, a.track_length))  # tracks count both sessions
+    assert build_map(maupertuis, path, CONF) == []  # a rerun is a no-op

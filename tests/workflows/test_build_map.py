@@ -181,3 +181,25 @@ def test_killed_build_resumes_and_a_finished_build_reruns_as_a_noop(shared, tmp_
     # --overwrite rebuilds it whole
     over = subprocess.run(cmd + ["--overwrite"], env=env, capture_output=True, text=True)
     assert over.returncode == 0 and f"{images} images extracted, 0 already done" in over.stdout
+
+
+def test_build_map_into_an_existing_store_adds_a_mapping_session(shared, tmp_path):
+    """7-Scenes sequence 2, then sequences 2 and 3 into the same store: the 3 new frames are added
+    and only they are extracted; the first session's rows are not rewritten."""
+    store = tmp_path / "map.zarr"
+    cmd = [sys.executable, "-m", "workflows.cli", "build-map", "7scenes", str(shared / "data" / "7scenes_stairs"),
+           "--store", str(store), "--sync", "--resize", "160", "--image-scales", "1", "--rgbd-points", "frames"]
+    first = subprocess.run(cmd + ["--sequences", "2"], capture_output=True, text=True, cwd=ROOT)
+    assert first.returncode == 0, first.stderr[-2000:]
+    root = open_store(store)
+    shard = root["features"][next(iter(root["features"].group_keys()))]["s0"]["features"]
+    files = {f: f.stat().st_mtime_ns for f in (store / shard.path).rglob("*") if f.is_file() and f.name != "zarr.json"}
+    assert len(files) >= 3  # one shard file per image of the first session
+    meta = dict(root.attrs["pixloc_map"])
+    added = subprocess.run(cmd + ["--sequences", "2", "3"], capture_output=True, text=True, cwd=ROOT)
+    assert added.returncode == 0, added.stderr[-2000:]
+    assert "3 images extracted, 3 already done" in added.stdout
+    new = open_store(store).attrs["pixloc_map"]
+    assert new["num_images"] == 6 and new["num_observations"] > meta["num_observations"]
+    assert all(f.stat().st_mtime_ns == t for f, t in files.items())  # the first session's shards untouched
+    assert _done(store) == 6

@@ -1,4 +1,12 @@
-"""Benchmark: the map store at the size of Aachen Day-Night v1.1 (S3 of docs/scaling.md).
+"""Benchmarks of scale (docs/scaling.md): ``--parts S3`` (default) and ``S2``.
+
+S2: generated cities (``pipeline.synthetic.SyntheticCity``) of about 100, 500 and 2,000
+reference images (2x2, 4x4, 8x8 blocks), each built into a map (RGB-D frames, int8 features)
+and the same number of queries localized in a fresh process (retrieval restricted to the
+query's block side, as a GPS tag would): seconds per query and the process's peak RSS per map
+size, which must stay flat (within 1.2x) and under 2 GB.
+
+S3: the map store at the size of Aachen Day-Night v1.1.
 
 A store of 6,697 reference images, 6.1 M points and 29.8 M observations (the Aachen v1.1
 LoFTR model's counts; ``--fraction`` scales them down), written with the real layout and code
@@ -32,6 +40,9 @@ GOALS = {"bytes": 10e9, "files": 150_000, "rss": 2 * 2**30}
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--parts", nargs="+", default=["S3"], choices=["S2", "S3"])
+    p.add_argument("--cities", type=int, nargs="+", default=[2, 4, 8], help="S2: blocks per side of each city")
+    p.add_argument("--city-queries", type=int, default=8, help="S2: queries per condition (4 conditions)")
     p.add_argument("--work", type=Path, default=Path("outputs/benchmark-scale"))
     p.add_argument("--fraction", type=float, default=1.0, help="of the Aachen v1.1 counts (default 1: full size)")
     p.add_argument("--dtype", default="int8", choices=["int8", "float16"])
@@ -116,7 +127,83 @@ def v2_figures(num_obs: np.ndarray, scales: int) -> Dict:
             "bytes": float(num_obs.sum() * 1047 * scales)}
 
 
+LOCALIZE = r"""
+import json, sys, time, resource
+from pathlib import Path
+from pipeline.features import FeatureConfig
+from pipeline.localize import LocalizerConfig
+from pipeline.shard import LocalizationJob, RetrievalConfig
+from pipeline.synthetic import read_synthetic
+from workflows.localize import plan_localization, run_sync
+from workflows.cli_localize import store_feature_config
+root, store, out = sys.argv[1:4]
+_, queries = read_synthetic(root)
+conf = store_feature_config(Path(store))
+job = LocalizationJob(store, conf, conf.model, LocalizerConfig(num_dbs=3, num_iters=30),
+                      RetrievalConfig(k=5, same_tag="area"))
+plan = plan_localization(job, queries, Path(out), shard_size=8, overwrite=True)
+t = time.perf_counter()
+records = run_sync(plan)
+elapsed = time.perf_counter() - t
+from pipeline.evaluate import evaluate
+s = evaluate(records, {q.name: q.cam_from_world_gt for q in queries}, ((0.25, 2.0), (1.0, 5.0)))["all"]["refined"]
+io = [r["store_io"] for r in records if r.get("store_io")]
+print(json.dumps({"queries": len(records), "s_per_query": elapsed / len(records),
+                  "peak_rss": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024,
+                  "recall": {k: v for k, v in s.items() if k.startswith("recall@")},
+                  "bytes_per_query": sum(x["bytes_read"] / x["shard_queries"] for x in io) / max(len(io), 1)}))
+"""
+
+
+def city_rows(args) -> list:
+    """S2: per map size, the build and the localization of the same number of queries."""
+    from pipeline.depth import rgbd_scene
+    from pipeline.synthetic import CityConfig, generate_city, read_synthetic
+    from ..build_map import plan_build, run_sync as build_sync
+    rows = []
+    for n in args.cities:
+        root = args.work / f"city-{n}x{n}"
+        t0 = time.perf_counter()
+        generate_city(root, CityConfig(seed=args.seed, blocks=(n, n)), queries_per_condition=args.city_queries,
+                      query_spread=0.5)
+        mapping, _ = read_synthetic(root)
+        t1 = time.perf_counter()
+        scene = rgbd_scene(mapping, method="frames", stride=8, min_track_length=3)
+        store = args.work / f"city-{n}x{n}.zarr"
+        conf = FeatureConfig(resize=160, image_scales=(1,), dtype="int8", descriptor="grid")
+        build_sync(plan_build(scene, store, conf))
+        t2 = time.perf_counter()
+        out = subprocess.run([sys.executable, "-c", LOCALIZE, str(root), str(store), str(args.work / f"city-{n}x{n}-run")],
+                             capture_output=True, text=True, check=True)
+        r = json.loads(out.stdout.strip().splitlines()[-1])
+        rows.append({"blocks": f"{n}x{n}", "images": len(mapping), "points": len(scene.points),
+                     "observations": len(scene.obs_point), "render_s": t1 - t0, "build_s": t2 - t1, **r})
+        print(f"  city {n}x{n}: {len(mapping)} images, {r['s_per_query']:.2f} s/query, "
+              f"peak RSS {r['peak_rss'] / 2**20:.0f} MiB", flush=True)
+    return rows
+
+
 def main(args: argparse.Namespace) -> int:
+    if "S2" in args.parts:
+        rows = city_rows(args)
+        base = rows[0]
+        print("\n| S2: city | images | points | observations | render + build s | queries | s / query | "
+              "x smallest | peak RSS MiB | x smallest | store MiB read / query | recall 25 cm, 2 deg | 1 m, 5 deg |")
+        print("| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |")
+        for r in rows:
+            rec = list(r["recall"].values())
+            print(f"| {r['blocks']} | {r['images']} | {r['points']} | {r['observations']} | "
+                  f"{r['render_s']:.0f} + {r['build_s']:.0f} | {r['queries']} | {r['s_per_query']:.2f} | "
+                  f"{r['s_per_query'] / base['s_per_query']:.2f} | {r['peak_rss'] / 2**20:.0f} | "
+                  f"{r['peak_rss'] / base['peak_rss']:.2f} | {r['bytes_per_query'] / 2**20:.2f} | "
+                  f"{100 * (rec[0] or 0):.0f} % | {100 * (rec[1] or 0):.0f} % |")
+        print("goal: time within 1.2x of the smallest map, peak RSS <= 2048 MiB at every size")
+    if "S3" in args.parts:
+        store_at_scale(args)
+    return 0
+
+
+def store_at_scale(args: argparse.Namespace) -> int:
     counts = {k: max(1, int(round(v * args.fraction))) for k, v in AACHEN.items()}
     conf = FeatureConfig(model="pixloc-lite0", image_scales=tuple(args.image_scales), dtype=args.dtype)
     store = args.work / f"aachen-{args.fraction:g}-{args.dtype}-s{'-'.join(map(str, args.image_scales))}.zarr"

@@ -140,6 +140,10 @@ def oracle_rows(args) -> List[Dict]:
             for name, expected in cases[config]["results"].items():
                 dbs = [reader.index[n] for n in pairs[name][:refinement["num_dbs"]]]
                 result = localizer.localize(queries[name], dbs, reader.cam_from_world[dbs[0]])
+                total += 1
+                if result.refined is None:  # failed where the official code did not: not within
+                    dcs.append(float("inf"))
+                    continue
                 T = torch.as_tensor(np.asarray(result.refined), dtype=torch.float64)
                 ours = Pose.from_Rt(T[:, :3], T[:, 3])
                 official, init = pose(expected["T_refined"]), pose(expected["T_init"])
@@ -147,7 +151,6 @@ def oracle_rows(args) -> List[Dict]:
                 moved_c = float((official.center - init.center).norm())
                 dR, _ = (ours @ official.inv()).magnitude()
                 dc = float((ours.center - official.center).norm())
-                total += 1
                 within += dc <= max(2e-3, 0.1 * moved_c) and float(dR) <= max(0.01, 0.1 * float(moved_R))
                 dcs.append(dc)
             sizes = store_bytes(store, fconf)
