@@ -10,7 +10,7 @@ functions of the 3D hit point, so they are consistent across views.
 import logging
 from dataclasses import dataclass
 from pathlib import Path
-from typing import List, Tuple
+from typing import List, Optional, Tuple
 
 import numpy as np
 import torch
@@ -483,11 +483,13 @@ class SyntheticCity(SyntheticScene):
             out.append((look_at(e, e + np.array([*(facing + along), 0.15])), block))
         return out
 
-    def query_views(self, n: int, seed: int, spread: float = 1.0) -> List[Tuple[np.ndarray, str]]:
+    def query_views(self, n: int, seed: int, spread: float = 1.0,
+                    block: Optional[str] = None) -> List[Tuple[np.ndarray, str]]:
         """Other viewpoints on the streets: off the middle line (spread x 3 m), heights 1.3-2.2 m,
-        headings up to spread x 0.4 rad off the facade normal."""
+        headings up to spread x 0.4 rad off the facade normal; only around ``block`` (``bx-by``)
+        if given (the same queries in cities of any size: block 0-0 is built first in each)."""
         rng = np.random.default_rng(seed)
-        views = self._street_views(1.0)
+        views = [v for v in self._street_views(1.0) if block is None or v[2].rsplit("-", 1)[0] == block]
         out = []
         for k in rng.integers(0, len(views), n):
             eye, facing, block = views[k]
@@ -502,15 +504,17 @@ class SyntheticCity(SyntheticScene):
 
 def generate_city(root, conf: CityConfig = CityConfig(), queries_per_condition: int = 2,
                   camera: CameraRecord = CameraRecord("PINHOLE", 160, 120, (125.0, 125.0, 80.0, 60.0)),
-                  query_spread: float = 1.0, progress=None) -> Path:
+                  query_spread: float = 1.0, query_block: Optional[str] = None, progress=None) -> Path:
     """Write a city dataset in the format of ``generate`` (``read_synthetic`` reads it);
-    ``area`` tags are blocks. Regenerated only when its settings change (``cameras.json``)."""
+    ``area`` tags are block sides, ``block`` tags blocks; queries only around ``query_block``
+    if given. Regenerated only when its settings change (``cameras.json``)."""
     import json
 
     import cv2
     root = Path(root)
     wanted = json.loads(json.dumps({"city": dict(conf.__dict__), "queries_per_condition": queries_per_condition,
-                                    "camera": camera.to_json(), "query_spread": query_spread}))
+                                    "camera": camera.to_json(), "query_spread": query_spread,
+                                    "query_block": query_block}))
     meta = root / "cameras.json"
     if meta.is_file() and json.loads(meta.read_text()).get("generation") == wanted:
         return root
@@ -518,7 +522,8 @@ def generate_city(root, conf: CityConfig = CityConfig(), queries_per_condition: 
     views = [("mapping", "day", i, T, block) for i, (T, block) in enumerate(city.reference_views())]
     for c, condition in enumerate(CONDITIONS):
         views += [("query", condition, j, T, block) for j, (T, block) in
-                  enumerate(city.query_views(queries_per_condition, conf.seed * 100 + c, query_spread))]
+                  enumerate(city.query_views(queries_per_condition, conf.seed * 100 + c, query_spread,
+                                             query_block))]
     entries = []
     for k, (split, condition, j, T, block) in enumerate(views):
         rgb, depth = city.render(camera, T, condition, seed=conf.seed * 100003 + k)

@@ -94,8 +94,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "takes enough tasks for every worker to get several, at most 8 queries each)")
     p.add_argument("--order", choices=list(ORDERS), default="auto",
                    help="how queries are sharded: region (by the map region of their top-1 reference, after a "
-                        "retrieval stage: each worker reads a bounded part of the store), list (query order), or "
-                        f"auto (region from {REGION_MIN_QUERIES} queries on; default)")
+                        "retrieval stage: each worker reads a bounded part of the store; with the store's global "
+                        "descriptors that stage runs the network once more per query), list (query order), or "
+                        f"auto (default: region from {REGION_MIN_QUERIES} queries with --pairs or --descriptors, "
+                        "else list)")
     p.add_argument("--device", default="cpu")
     p.add_argument("--scheduler", help="address of an existing Dask scheduler")
     p.add_argument("--workers", type=int, default=2, help="worker processes of the local cluster (default 2)")

@@ -1,7 +1,8 @@
 """Batch localization workflow: shard the queries, localize shards (sync or Dask), merge.
 
 Planning writes nothing (``--dry-run`` shows the plan). With ``order="region"`` (the default
-``auto`` for runs of ``REGION_MIN_QUERIES`` queries or more that retrieve their references), a
+``auto`` for runs of ``REGION_MIN_QUERIES`` queries or more whose references come from a pairs
+file or hloc descriptors: ``resolve_order``), a
 retrieval stage runs first (``retrieval/part-XXXXX.json``, resumable) and the queries are then
 sharded by the map region of their top-1 reference (``pipeline.regions``), so that a worker
 reads a bounded part of the store. Running takes a lock on the output
@@ -143,16 +144,19 @@ def auto_shard_size(num_queries: int, workers: int) -> int:
 
 
 def resolve_order(order: str, job: LocalizationJob, num_queries: int) -> str:
-    """``list`` or ``region`` for ``order`` (``auto``: region from ``REGION_MIN_QUERIES`` queries,
-    when the prior comes from retrieval)."""
+    """``list`` or ``region`` for ``order``. ``auto``: region from ``REGION_MIN_QUERIES`` queries when
+    the references come from a pairs file or hloc descriptors (the retrieval stage reads them, nearly
+    free); list order with the store's global descriptors, whose retrieval stage would run the
+    network once more per query (``--order region`` pays that to read a bounded part of the store)."""
     if order not in ORDERS:
         raise ValueError(f"Unknown query order {order!r}; known: {', '.join(ORDERS)}.")
     retrieves = job.prior not in ("poses", "hloc")
     if order == "region" and not retrieves:
         raise ValueError(f"--order region groups queries by their retrieved references; prior {job.prior!r} "
                          "retrieves none.")
-    if order == "auto":
-        return "region" if retrieves and num_queries >= REGION_MIN_QUERIES else "list"
+    if order == "auto":  # a retrieval stage with the global descriptor costs one network pass per query
+        cheap = job.retrieval.method in ("pairs", "hloc")
+        return "region" if retrieves and cheap and num_queries >= REGION_MIN_QUERIES else "list"
     return order
 
 

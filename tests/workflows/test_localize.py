@@ -290,3 +290,15 @@ def test_region_order_shards_by_reference_region_and_resumes(seven_scenes, sync_
     assert [p.stat().st_mtime_ns for p in parts] == stamp
     with pytest.raises(ValueError, match="another job, query list or order"):
         plan_localization(job, queries, tmp_path, shard_size=2, order="list")
+
+
+def test_auto_order_groups_by_region_only_where_retrieval_is_free():
+    from workflows.localize import REGION_MIN_QUERIES, resolve_order
+    job = LocalizationJob("map.zarr", FCONF, FCONF.model, LCONF, RetrievalConfig(k=5))
+    pairs = dataclasses.replace(job, retrieval=RetrievalConfig("pairs", "pairs.txt", k=5))
+    assert resolve_order("auto", pairs, REGION_MIN_QUERIES) == "region"
+    assert resolve_order("auto", pairs, REGION_MIN_QUERIES - 1) == "list"
+    assert resolve_order("auto", job, 10 ** 5) == "list"  # global descriptors: one more network pass per query
+    assert resolve_order("region", job, 2) == "region"
+    with pytest.raises(ValueError, match="retrieves none"):
+        resolve_order("region", dataclasses.replace(job, prior="poses", prior_poses="p.txt"), 100)

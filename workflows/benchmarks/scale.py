@@ -8,6 +8,9 @@ size, which must stay flat (within 1.2x) and under 2 GB.
 
 S3: the map store at the size of Aachen Day-Night v1.1.
 
+S5: adding 10 % new images (the last tenth of the 4x4 city's references) to a built map of the
+other 90 %, against building the whole map from scratch (structure and features, one process).
+
 A store of 6,697 reference images, 6.1 M points and 29.8 M observations (the Aachen v1.1
 LoFTR model's counts; ``--fraction`` scales them down), written with the real layout and code
 path (``create_store``, ``init_features``, ``write_image_features``: sharding, int8 codes,
@@ -40,7 +43,7 @@ GOALS = {"bytes": 10e9, "files": 150_000, "rss": 2 * 2**30}
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--parts", nargs="+", default=["S3"], choices=["S2", "S3"])
+    p.add_argument("--parts", nargs="+", default=["S3"], choices=["S2", "S3", "S5"])
     p.add_argument("--cities", type=int, nargs="+", default=[2, 4, 8], help="S2: blocks per side of each city")
     p.add_argument("--city-queries", type=int, default=8, help="S2: queries per condition (4 conditions)")
     p.add_argument("--work", type=Path, default=Path("outputs/benchmark-scale"))
@@ -148,7 +151,10 @@ elapsed = time.perf_counter() - t
 from pipeline.evaluate import evaluate
 s = evaluate(records, {q.name: q.cam_from_world_gt for q in queries}, ((0.25, 2.0), (1.0, 5.0)))["all"]["refined"]
 io = [r["store_io"] for r in records if r.get("store_io")]
+import numpy as np
 print(json.dumps({"queries": len(records), "s_per_query": elapsed / len(records),
+                  "points": float(np.mean([r["num_points"] for r in records])),
+                  "iterations": float(np.mean([r["iterations"] for r in records])),
                   "peak_rss": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024,
                   "recall": {k: v for k, v in s.items() if k.startswith("recall@")},
                   "bytes_per_query": sum(x["bytes_read"] / x["shard_queries"] for x in io) / max(len(io), 1)}))
@@ -165,7 +171,7 @@ def city_rows(args) -> list:
         root = args.work / f"city-{n}x{n}"
         t0 = time.perf_counter()
         generate_city(root, CityConfig(seed=args.seed, blocks=(n, n)), queries_per_condition=args.city_queries,
-                      query_spread=0.5)
+                      query_spread=0.5, query_block="0-0")
         mapping, _ = read_synthetic(root)
         t1 = time.perf_counter()
         scene = rgbd_scene(mapping, method="frames", stride=8, min_track_length=3)
@@ -183,17 +189,58 @@ def city_rows(args) -> list:
     return rows
 
 
+def add_rows(args) -> Dict:
+    """S5: time to add the last 10 % of a city's references to a map of the rest, and to build all."""
+    import shutil
+
+    from pipeline.depth import rgbd_scene
+    from pipeline.synthetic import CityConfig, generate_city, read_synthetic
+    from ..build_map import plan_build, run_sync as build_sync
+    root = args.work / "city-4x4"
+    generate_city(root, CityConfig(seed=args.seed, blocks=(4, 4)), queries_per_condition=args.city_queries,
+                  query_spread=0.5, query_block="0-0")
+    mapping, _ = read_synthetic(root)
+    n_new = len(mapping) // 10
+    conf = FeatureConfig(resize=160, image_scales=(1,), dtype="int8", descriptor="grid")
+    t0 = time.perf_counter()
+    scene = rgbd_scene(mapping, method="frames", stride=8, min_track_length=3)
+    scene_s = time.perf_counter() - t0
+    first = rgbd_scene(mapping[:-n_new], method="frames", stride=8, min_track_length=3)
+    full, inc = args.work / "s5-full.zarr", args.work / "s5-incremental.zarr"
+    for path in (full, inc):
+        shutil.rmtree(path, ignore_errors=True)
+    t0 = time.perf_counter()
+    build_sync(plan_build(scene, full, conf))
+    full_s = time.perf_counter() - t0
+    build_sync(plan_build(first, inc, conf))
+    t0 = time.perf_counter()
+    results = build_sync(plan_build(scene, inc, conf))
+    add_s = time.perf_counter() - t0
+    return {"images": len(mapping), "new": n_new, "extracted": len(results), "scene_s": scene_s,
+            "full_s": full_s, "add_s": add_s}
+
+
 def main(args: argparse.Namespace) -> int:
+    if "S5" in args.parts:
+        r = add_rows(args)
+        print(f"\n| S5: city 4x4 | images | seconds | x full build |\n| --- | ---: | ---: | ---: |\n"
+              f"| full build (structure + features) | {r['images']} | {r['full_s']:.1f} | 1.00 |\n"
+              f"| add {r['new']} new images to a map of the others ({r['extracted']} extracted) | {r['new']} | "
+              f"{r['add_s']:.1f} | {r['add_s'] / r['full_s']:.3f} |\n"
+              f"goal: <= 0.15 x the full build. Not counted in either: loading the scene (RGB-D fusion of "
+              f"every frame, {r['scene_s']:.1f} s), which both need.")
     if "S2" in args.parts:
         rows = city_rows(args)
         base = rows[0]
-        print("\n| S2: city | images | points | observations | render + build s | queries | s / query | "
-              "x smallest | peak RSS MiB | x smallest | store MiB read / query | recall 25 cm, 2 deg | 1 m, 5 deg |")
-        print("| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |")
+        print("\n| S2: city | images | points | observations | render + build s | queries | points / query | "
+              "LM iterations / query | s / query | x smallest | peak RSS MiB | x smallest | store MiB read / query | "
+              "recall 25 cm, 2 deg | 1 m, 5 deg |")
+        print("| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |")
         for r in rows:
             rec = list(r["recall"].values())
             print(f"| {r['blocks']} | {r['images']} | {r['points']} | {r['observations']} | "
-                  f"{r['render_s']:.0f} + {r['build_s']:.0f} | {r['queries']} | {r['s_per_query']:.2f} | "
+                  f"{r['render_s']:.0f} + {r['build_s']:.0f} | {r['queries']} | {r['points']:.0f} | "
+                  f"{r['iterations']:.0f} | {r['s_per_query']:.2f} | "
                   f"{r['s_per_query'] / base['s_per_query']:.2f} | {r['peak_rss'] / 2**20:.0f} | "
                   f"{r['peak_rss'] / base['peak_rss']:.2f} | {r['bytes_per_query'] / 2**20:.2f} | "
                   f"{100 * (rec[0] or 0):.0f} % | {100 * (rec[1] or 0):.0f} % |")
