@@ -1,7 +1,7 @@
 """Benchmarks of scale (docs/scaling.md): ``--parts S3`` (default) and ``S2``.
 
 S2: generated cities (``pipeline.synthetic.SyntheticCity``) of about 100, 500 and 2,000
-reference images (2x2, 4x4, 8x8 blocks), each built into a map (RGB-D frames, int8 features)
+reference images (2x2, 4x4, 10x10 blocks), each built into a map (RGB-D frames, int8 features)
 and the same number of queries localized in a fresh process (retrieval restricted to the
 query's block side, as a GPS tag would): seconds per query and the process's peak RSS per map
 size, which must stay flat (within 1.2x) and under 2 GB.
@@ -44,7 +44,8 @@ GOALS = {"bytes": 10e9, "files": 150_000, "rss": 2 * 2**30}
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--parts", nargs="+", default=["S3"], choices=["S2", "S3", "S5"])
-    p.add_argument("--cities", type=int, nargs="+", default=[2, 4, 8], help="S2: blocks per side of each city")
+    p.add_argument("--cities", type=int, nargs="+", default=[2, 4, 10],
+                   help="S2: blocks per side of each city (96, 384 and 2,400 references)")
     p.add_argument("--city-queries", type=int, default=8, help="S2: queries per condition (4 conditions)")
     p.add_argument("--work", type=Path, default=Path("outputs/benchmark-scale"))
     p.add_argument("--fraction", type=float, default=1.0, help="of the Aachen v1.1 counts (default 1: full size)")
