@@ -2,6 +2,7 @@
 
 import functools
 import json
+from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Dict, List, Optional, Tuple
@@ -31,11 +32,13 @@ class MapReader:
     """A map store opened for localization with one feature config.
 
     Refuses a store whose features were made by another model (``digest``)
-    or config. Reference blocks are read once and cached (``cache_images`` images and scales);
-    ``stats`` counts the blocks read, the cache hits and the bytes read from the store.
+    or config. Reference blocks (an image's rows at one image scale, every level, as float32) are
+    read once and cached, least recently used first out, up to ``cache_images`` blocks and
+    ``cache_bytes`` bytes; ``stats`` counts the blocks read, the cache hits and the bytes read.
     """
 
-    def __init__(self, path, conf: FeatureConfig, digest: Optional[str] = None, cache_images: int = 256):
+    def __init__(self, path, conf: FeatureConfig, digest: Optional[str] = None, cache_images: int = 256,
+                 cache_bytes: int = 512 * 2**20):
         self.path = Path(path)
         root = open_store(self.path)
         key = f"features/{feature_key(conf)}"
@@ -77,7 +80,9 @@ class MapReader:
         self.global_descriptors = read(self.group, "global")
         self._read = read
         self.stats = {"blocks": 0, "hits": 0, "bytes": 0}
-        self._block = functools.lru_cache(maxsize=cache_images)(self._read_block)
+        self._blocks: "OrderedDict[Tuple[int, int], Tuple]" = OrderedDict()
+        self._cache_limits = (cache_images, cache_bytes)
+        self._cached_bytes = 0
         self._points = functools.lru_cache(maxsize=4 * cache_images)(self._read_points)
 
     def _read_points(self, i: int) -> np.ndarray:
@@ -145,9 +150,18 @@ class MapReader:
 
     def block(self, i: int, scale: int):
         """The cached block of image i at ``scale`` (see ``_read_block``); counts cache hits."""
-        before = self._block.cache_info().hits
-        out = self._block(int(i), scale)
-        self.stats["hits"] += self._block.cache_info().hits - before
+        key = (int(i), int(scale))
+        if key in self._blocks:
+            self._blocks.move_to_end(key)
+            self.stats["hits"] += 1
+            return self._blocks[key]
+        out = self._read_block(*key)
+        self._blocks[key] = out
+        self._cached_bytes += _nbytes(out)
+        max_blocks, max_bytes = self._cache_limits
+        while len(self._blocks) > 1 and (len(self._blocks) > max_blocks or self._cached_bytes > max_bytes):
+            _, old = self._blocks.popitem(last=False)
+            self._cached_bytes -= _nbytes(old)
         return out
 
     def features(self, obs: Observations, scale: int) -> List[Tuple[np.ndarray, np.ndarray, np.ndarray]]:
@@ -161,6 +175,11 @@ class MapReader:
             for level, (F, W, V) in enumerate(out):
                 F[sel], W[sel], V[sel] = f[level][local], w[local, level], v[local, level]
         return out
+
+
+def _nbytes(block) -> int:
+    features, confidences, valid = block
+    return sum(f.nbytes for f in features) + confidences.nbytes + valid.nbytes
 
 
 _OPEN: Dict[Tuple, Tuple[Tuple, MapReader]] = {}

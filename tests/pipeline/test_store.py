@@ -218,3 +218,18 @@ def test_adding_a_mapping_session_extracts_only_the_new_images(built, maupertuis
     by_id = dict(zip(maupertuis.point_ids, maupertuis.track_length))
     assert all(by_id[s] == t for s, t in zip(a.point_source_id, a.track_length))  # tracks count both sessions
     assert build_map(maupertuis, path, CONF) == []  # a rerun is a no-op
+
+
+def test_reader_block_cache_is_bounded_and_counts_hits(built):
+    from pipeline.map_reader import MapReader
+    path, _ = built
+    reader = MapReader(path, CONF)
+    obs = reader.observations([0, 1], 1)
+    reader.features(obs, 1)
+    reader.features(obs, 1)
+    assert reader.stats["blocks"] == 2 and reader.stats["hits"] == 2 and reader.stats["bytes"] > 0
+    one = reader._cached_bytes // 2
+    small = MapReader(path, CONF, cache_bytes=int(1.2 * one))  # room for about one block
+    for _ in range(2):
+        small.features(obs, 1)
+    assert small.stats["blocks"] == 4 and small.stats["hits"] == 0 and len(small._blocks) == 1
