@@ -18,8 +18,8 @@ from pixloc.nets.registry import load_extractor, state_digest
 from .features import FeatureConfig, extract_image_features
 from .runtime import restore_malloc_thresholds, torch_threads
 from .scene import Scene
-from .store import (DONE, FAILED, PENDING, create_store, feature_key, image_records, init_features, mark_failed,
-                    open_store, read, write_image_features)
+from .store import (DONE, FAILED, PENDING, consolidate, consolidated, create_store, feature_key, image_records,
+                    init_features, mark_failed, open_store, read, unconsolidate, write_image_features)
 
 logger = logging.getLogger(__name__)
 REFUSED = "refused: "  # reason prefix of images that cannot be used at all (not retried)
@@ -56,6 +56,8 @@ def write_structure(scene: Scene, store_path, conf: FeatureConfig, *, chunk_rows
     group = init_features(root, conf, digest, list(net.output_dims))
     meta = root.attrs["pixloc_map"]
     status, reasons = read(group, "status", meta), read(group, "reason", meta)
+    if not consolidated(group, meta) or (status != DONE).any():
+        unconsolidate(group)  # images will be written: readers use the per-image arrays meanwhile
     for i in range(len(scene.images)):
         if i in problems and status[i] != DONE:
             mark_failed(group, i, f"{REFUSED}{problems[i]}")
@@ -120,7 +122,18 @@ def pending_images(store_path, conf: FeatureConfig) -> List[int]:
     return [i for i, (s, r) in enumerate(zip(status, reasons)) if s != DONE and not str(r).startswith(REFUSED)]
 
 
+def finish_build(store_path, conf: FeatureConfig) -> None:
+    """After a build: consolidate the feature group's per-image arrays for fast opening
+    (``pipeline.store.consolidate``), unless they already are."""
+    root = open_store(store_path, mode="r+")
+    group = root[f"features/{feature_key(conf)}"]
+    if not consolidated(group, root.attrs["pixloc_map"]):
+        consolidate(root, group)
+
+
 def build_map(scene: Scene, store_path, conf: FeatureConfig, **kwargs) -> List[ImageResult]:
     """Synchronous map build: structure, then every pending image in order."""
     write_structure(scene, store_path, conf, **kwargs)
-    return extract_features(store_path, conf, pending_images(store_path, conf), device=kwargs.get("device", "cpu"))
+    results = extract_features(store_path, conf, pending_images(store_path, conf), device=kwargs.get("device", "cpu"))
+    finish_build(store_path, conf)
+    return results

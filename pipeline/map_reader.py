@@ -11,8 +11,8 @@ import numpy as np
 
 from .features import FeatureConfig
 from .scene import CameraRecord
-from .store import (DONE, StoreError, StoreReadError, check_feature_group, dequantize_int8, feature_key,
-                    open_store)
+from .store import (DONE, StoreError, StoreReadError, check_feature_group, consolidated, dequantize_int8,
+                    feature_key, open_store)
 from .store import read as store_read
 
 
@@ -71,13 +71,15 @@ class MapReader:
         self.cam_from_world = np.concatenate([T[:, :9].reshape(-1, 3, 3), T[:, 9:, None]], 2)
         self.row_start = read(root, "images/row_start")
         self.num_obs = read(root, "images/num_obs")
-        self.status = read(self.group, "status")
+        # a finished build's one-chunk copies (fast to open), else the per-image arrays
+        self.static = consolidated(self.group, meta)
+        self.status = read(self.group, "status_all" if self.static else "status")
         self.xyz = read(root, "points/xyz")
         self.track_length = read(root, "points/track_length")
         self._obs_point = root["observations/point"]
         self.image_source_id = read(root, "images/source_id")
         self.point_source_id = read(root, "points/source_id")
-        self.global_descriptors = read(self.group, "global")
+        self.global_descriptors = read(self.group, "global_all" if self.static else "global")
         self._read = read
         self.stats = {"blocks": 0, "hits": 0, "bytes": 0}
         self._blocks: "OrderedDict[Tuple[int, int], Tuple]" = OrderedDict()
@@ -98,8 +100,11 @@ class MapReader:
         return self._points(int(i))
 
     def refresh(self) -> None:
-        """Re-read which images are usable (a build may have finished more since)."""
-        self.status = self._read(self.group, "status")
+        """Re-read which images are usable (a build may have finished more since); nothing to do
+        for a consolidated store (a build that changes it rewrites the group's attributes, and
+        ``open_reader`` then opens it again)."""
+        if not self.static:
+            self.status = self._read(self.group, "status")
 
     def usable(self, i: int) -> bool:
         return int(self.status[i]) == DONE

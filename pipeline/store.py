@@ -158,7 +158,8 @@ def create_store(path, scene: Scene, chunk_rows: int = 256, overwrite: bool = Fa
 def count(meta: Dict, name: str) -> int:
     """The committed length of an array's first axis (arrays may be longer while images are being
     added: the map attributes are the commit point)."""
-    if name.startswith("images/") or name.split("/")[-1] in ("status", "reason", "global"):
+    if name.startswith("images/") or name.split("/")[-1] in ("status", "reason", "global", "status_all",
+                                                             "global_all"):
         return meta["num_images"]
     if name.startswith("points/"):
         return meta["num_points"]
@@ -243,6 +244,7 @@ def extend_store(root: zarr.Group, scene: Scene) -> List[int]:
         root[name][R:R2] = values
     if "features" in root:
         for _, group in root["features"].groups():
+            unconsolidate(group)
             for name in ("status", "reason", "global"):
                 group[name].resize((I2,) + group[name].shape[1:])
                 if name != "global":
@@ -462,6 +464,32 @@ def _pad_rows(x: np.ndarray, n: int) -> np.ndarray:
     out = np.zeros((n,) + x.shape[1:], x.dtype)
     out[: len(x)] = x
     return out
+
+
+def consolidate(root: zarr.Group, group: zarr.Group) -> None:
+    """Copy the per-image ``status`` and ``global`` arrays (one chunk per image, so that workers
+    write their own) into one chunk each, for readers: reading 6,697 one-image chunks takes
+    seconds, on every open. Called when a build has finished; ``unconsolidate`` before the next
+    one writes. The copy is valid while ``attrs["consolidated"]`` names the image count."""
+    meta = root.attrs["pixloc_map"]
+    I = meta["num_images"]  # noqa: E741
+    status, descriptors = read(group, "status", meta), read(group, "global", meta)
+    for name, values in (("status_all", status), ("global_all", descriptors)):
+        if name in group:
+            del group[name]
+        _array(group, name, values.shape, values.shape if len(values) else (1,) + values.shape[1:],
+               values.dtype)[...] = values
+    group.attrs["consolidated"] = {"num_images": I}
+
+
+def unconsolidate(group: zarr.Group) -> None:
+    """Readers go back to the per-image arrays (a build or an add is about to change them)."""
+    if group.attrs.get("consolidated"):
+        group.attrs["consolidated"] = False
+
+
+def consolidated(group: zarr.Group, meta: Dict) -> bool:
+    return group.attrs.get("consolidated") == {"num_images": meta["num_images"]} and "status_all" in group
 
 
 def mark_failed(group: zarr.Group, i: int, reason: str) -> None:

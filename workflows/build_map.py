@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Dict, List, Optional
 
 
-from pipeline.build import ImageResult, extract_features, network, pending_images, write_structure
+from pipeline.build import ImageResult, extract_features, finish_build, network, pending_images, write_structure
 from pipeline.features import FeatureConfig
 from pipeline.scene import Scene
 
@@ -97,6 +97,7 @@ def run_sync(plan: BuildPlan, progress: bool = False) -> List[ImageResult]:
             results += extract_features(plan.store, plan.conf, batch, device=plan.device)
             if bar:
                 bar.update(len(batch))
+    finish_build(plan.store, plan.conf)
     return results
 
 
@@ -129,4 +130,5 @@ def run_dask(plan: BuildPlan, client, progress: bool = False) -> List[ImageResul
     with _progress(batches, progress) as bar:
         done = executor.run_dask(client, extract_features, calls, "features", plan.device,
                                  on_done=(lambda r: bar.update(len(r))) if bar else None)
+    finish_build(plan.store, plan.conf)
     return [r for batch_results in done for r in batch_results]

@@ -54,6 +54,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="image scales stored (default [1]; the Aachen preset's [4, 1] doubles the features)")
     p.add_argument("--queries", type=int, default=50, help="queries whose reads are timed")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--reuse", action="store_true", help="S3: measure the store a previous run wrote (same counts)")
 
 
 def synthetic_scene(num_images: int, num_points: int, num_obs: int, seed: int = 0) -> Scene:
@@ -75,7 +76,7 @@ def synthetic_scene(num_images: int, num_points: int, num_obs: int, seed: int = 
 
 
 def build(store: Path, scene: Scene, conf: FeatureConfig, seed: int) -> Dict:
-    from pipeline.store import create_store, init_features, write_image_features
+    from pipeline.store import consolidate, create_store, init_features, write_image_features
     rng = np.random.default_rng(seed + 1)
     t0 = time.perf_counter()
     root = create_store(store, scene, overwrite=True)
@@ -89,6 +90,7 @@ def build(store: Path, scene: Scene, conf: FeatureConfig, seed: int) -> Dict:
         write_image_features(group, root, i, ImageFeatures(samples, rng.normal(size=DIMS[-1]).astype(np.float32)))
         if i % 500 == 0:
             print(f"  features: {i}/{len(num_obs)} images, {time.perf_counter() - t1:.0f} s", flush=True)
+    consolidate(root, group)  # as a finished build does
     t2 = time.perf_counter()
     return {"structure_s": t1 - t0, "features_s": t2 - t1, "images_per_s": len(num_obs) / (t2 - t1)}
 
@@ -258,12 +260,22 @@ def store_at_scale(args: argparse.Namespace) -> int:
     args.work.mkdir(parents=True, exist_ok=True)
     print(f"S3: a store of {counts['images']} images, {counts['points']} points, {counts['observations']} "
           f"observations ({args.fraction:g} x Aachen v1.1), {args.dtype}, image scales {args.image_scales} -> {store}")
-    t0 = time.perf_counter()
-    scene = synthetic_scene(counts["images"], counts["points"], counts["observations"], args.seed)
-    gen_s = time.perf_counter() - t0
-    built = build(store, scene, conf, args.seed)
-    num_obs = np.bincount(scene.obs_image, minlength=len(scene.images))
-    del scene
+    from pipeline.store import open_store
+    if args.reuse and store.exists():
+        root = open_store(store)
+        assert root.attrs["pixloc_map"]["num_images"] == counts["images"], "--reuse: another size"
+        num_obs, gen_s, built = root["images/num_obs"][:], float("nan"), None
+        from pipeline.store import consolidate, consolidated
+        group = root[f"features/{next(iter(root['features'].group_keys()))}"]
+        if not consolidated(group, root.attrs["pixloc_map"]):
+            consolidate(open_store(store, mode="r+"), open_store(store, mode="r+")[group.path])
+    else:
+        t0 = time.perf_counter()
+        scene = synthetic_scene(counts["images"], counts["points"], counts["observations"], args.seed)
+        gen_s = time.perf_counter() - t0
+        built = build(store, scene, conf, args.seed)
+        num_obs = np.bincount(scene.obs_image, minlength=len(scene.images))
+        del scene
     files = [f for f in store.rglob("*") if f.is_file()]
     size = sum(f.stat().st_size for f in files)
     out = subprocess.run([sys.executable, "-c", READER, str(store), json.dumps(conf.to_dict()), str(args.queries),
@@ -286,8 +298,10 @@ def store_at_scale(args: argparse.Namespace) -> int:
             ("reader peak RSS (after the reads)", f"{r['peak_rss'] / 2**20:.0f} MiB", "", "", "", ""),
             ("reads of one query (3 references, cold)", f"{r['read_ms_median']:.1f} ms median, "
              f"{r['read_ms_p90']:.1f} ms p90 ({r['obs_per_query']} observations)", "", "", "", "")]
-    print(f"\nscene generated in {gen_s:.0f} s; structure written in {built['structure_s']:.0f} s; features of "
-          f"{counts['images']} images in {built['features_s']:.0f} s ({built['images_per_s']:.1f} images/s, 1 process)")
+    if built:
+        print(f"\nscene generated in {gen_s:.0f} s; structure written in {built['structure_s']:.0f} s; features of "
+              f"{counts['images']} images in {built['features_s']:.0f} s ({built['images_per_s']:.1f} images/s, "
+              "1 process)")
     print("\n| S3 | measured | at full size | v2 layout, full size | goal | measured / goal |")
     print("| --- | --- | --- | --- | --- | ---: |")
     for row in rows:
