@@ -96,12 +96,14 @@ def build(store: Path, scene: Scene, conf: FeatureConfig, seed: int) -> Dict:
 
 
 READER = r"""
-import json, sys, time, resource
+import json, sys, time
 import numpy as np
 from pipeline.features import FeatureConfig
 from pipeline.map_reader import MapReader
 def rss():
     return int(open('/proc/self/status').read().split('VmRSS:')[1].split()[0]) * 1024
+def hwm():  # this process's peak (ru_maxrss would include the parent's, kept across exec)
+    return int(open('/proc/self/status').read().split('VmHWM:')[1].split()[0]) * 1024
 store, conf, queries, seed = sys.argv[1], json.loads(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4])
 conf['image_scales'] = tuple(conf['image_scales'])
 before = rss()
@@ -119,7 +121,7 @@ for q in range(queries):
         reader.features(obs, k)
     lat.append(time.perf_counter() - t)
 print(json.dumps({"open_s": open_s, "rss_before": before, "rss_open": opened, "rss_end": rss(),
-                  "peak_rss": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024,
+                  "peak_rss": hwm(),
                   "read_ms_median": 1e3 * float(np.median(lat)), "read_ms_p90": 1e3 * float(np.quantile(lat, 0.9)),
                   "obs_per_query": int(len(obs.rows)), "bytes_read": reader.stats["bytes"], "blocks": reader.stats["blocks"]}))
 """
@@ -134,7 +136,7 @@ def v2_figures(num_obs: np.ndarray, scales: int) -> Dict:
 
 
 LOCALIZE = r"""
-import json, sys, time, resource
+import json, sys, time
 from pathlib import Path
 from pipeline.features import FeatureConfig
 from pipeline.localize import LocalizerConfig
@@ -142,6 +144,8 @@ from pipeline.shard import LocalizationJob, RetrievalConfig
 from pipeline.synthetic import read_synthetic
 from workflows.localize import plan_localization, run_sync
 from workflows.cli_localize import store_feature_config
+def hwm():  # this process's peak (ru_maxrss would include the parent's, kept across exec)
+    return int(open('/proc/self/status').read().split('VmHWM:')[1].split()[0]) * 1024
 root, store, out = sys.argv[1:4]
 _, queries = read_synthetic(root)
 conf = store_feature_config(Path(store))
@@ -158,7 +162,7 @@ import numpy as np
 print(json.dumps({"queries": len(records), "s_per_query": elapsed / len(records),
                   "points": float(np.mean([r["num_points"] for r in records])),
                   "iterations": float(np.mean([r["iterations"] for r in records])),
-                  "peak_rss": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024,
+                  "peak_rss": hwm(),
                   "recall": {k: v for k, v in s.items() if k.startswith("recall@")},
                   "bytes_per_query": sum(x["bytes_read"] / x["shard_queries"] for x in io) / max(len(io), 1)}))
 """
@@ -185,8 +189,8 @@ def city_rows(args) -> list:
         out = subprocess.run([sys.executable, "-c", LOCALIZE, str(root), str(store), str(args.work / f"city-{n}x{n}-run")],
                              capture_output=True, text=True, check=True)
         r = json.loads(out.stdout.strip().splitlines()[-1])
-        rows.append({"blocks": f"{n}x{n}", "images": len(mapping), "points": len(scene.points),
-                     "observations": len(scene.obs_point), "render_s": t1 - t0, "build_s": t2 - t1, **r})
+        rows.append({**r, "blocks": f"{n}x{n}", "images": len(mapping), "map_points": len(scene.points),
+                     "observations": len(scene.obs_point), "render_s": t1 - t0, "build_s": t2 - t1})
         print(f"  city {n}x{n}: {len(mapping)} images, {r['s_per_query']:.2f} s/query, "
               f"peak RSS {r['peak_rss'] / 2**20:.0f} MiB", flush=True)
     return rows
@@ -241,7 +245,7 @@ def main(args: argparse.Namespace) -> int:
         print("| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |")
         for r in rows:
             rec = list(r["recall"].values())
-            print(f"| {r['blocks']} | {r['images']} | {r['points']} | {r['observations']} | "
+            print(f"| {r['blocks']} | {r['images']} | {r['map_points']} | {r['observations']} | "
                   f"{r['render_s']:.0f} + {r['build_s']:.0f} | {r['queries']} | {r['points']:.0f} | "
                   f"{r['iterations']:.0f} | {r['s_per_query']:.2f} | "
                   f"{r['s_per_query'] / base['s_per_query']:.2f} | {r['peak_rss'] / 2**20:.0f} | "
