@@ -202,8 +202,9 @@ def extend_store(root: zarr.Group, scene: Scene) -> List[int]:
     index[used[known]] = [ids[int(s)] for s in src[known]]
     fresh = used[~known]
     index[fresh] = P + np.arange(len(fresh))
-    local = {k: I + j for j, k in enumerate(new)}
-    obs_image = np.array([local[int(k)] for k in obs_image], np.int64).reshape(-1)
+    local = np.full(len(scene.images), -1, np.int64)
+    local[new] = I + np.arange(len(new))
+    obs_image = local[obs_image]
     obs_point = index[obs_point]
     order = np.lexsort((obs_point, obs_image))
     obs_image, obs_point, obs_xy = obs_image[order], obs_point[order], obs_xy[order]

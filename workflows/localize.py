@@ -1,11 +1,12 @@
 """Batch localization workflow: shard the queries, localize shards (sync or Dask), merge.
 
-Planning writes nothing (``--dry-run`` shows the plan). With ``order="region"`` (the default
-``auto`` for runs of ``REGION_MIN_QUERIES`` queries or more whose references come from a pairs
-file or hloc descriptors: ``resolve_order``), a
-retrieval stage runs first (``retrieval/part-XXXXX.json``, resumable) and the queries are then
-sharded by the map region of their top-1 reference (``pipeline.regions``), so that a worker
-reads a bounded part of the store. Running takes a lock on the output
+Planning writes nothing (``--dry-run`` shows the plan). With ``order="region"`` (what ``auto``
+picks for runs of ``REGION_MIN_QUERIES`` queries or more whose references come from a pairs file
+or hloc descriptors: ``resolve_order``), a retrieval stage runs first (``retrieval/part-XXXXX.json``,
+resumable), then the queries are sharded by the map region of their top-1 reference
+(``pipeline.regions``), so that a worker reads a bounded part of the store.
+
+Running takes a lock on the output
 folder (a second run into it is refused), records the job in ``job.json`` and runs what is
 pending. Each shard writes ``shards/shard-XXXXX.jsonl`` atomically when done, so an
 interrupted run resumes without redoing or losing work, and a finished run reruns as a
