@@ -22,6 +22,8 @@ from typing import List, Optional, Sequence, Tuple
 
 import numpy as np
 
+from .regions import camera_centres
+
 logger = logging.getLogger(__name__)
 
 METHODS = ("auto", "exhaustive", "spatial", "sequential", "retrieval", "file")
@@ -73,9 +75,8 @@ def spatial_pairs(names: Sequence[str], cam_from_world: Sequence[np.ndarray], nu
     """Each image with its ``num_neighbors`` nearest camera centres among the images whose
     optical axes are within ``max_angle`` degrees of its own."""
     T = np.asarray(cam_from_world, np.float64)
-    R, t = T[:, :, :3], T[:, :, 3]
-    centres = -np.einsum("nji,nj->ni", R, t)  # -R^T t
-    axes = R[:, 2, :]  # the camera z axis in world coordinates
+    centres = camera_centres(T)
+    axes = T[:, 2, :3]  # the camera z axis in world coordinates
     cos_max = np.cos(np.radians(max_angle))
     pairs = []
     for i in range(len(names)):

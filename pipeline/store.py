@@ -82,6 +82,23 @@ class StoreReadError(StoreError):
     fails the query that needed it, not the run."""
 
 
+def _flat_pose(T) -> np.ndarray:
+    """cam_from_world (3, 4) as stored: [R row-major (9) | t (3)]."""
+    T = np.asarray(T, np.float64)
+    return np.concatenate([T[:, :3].reshape(-1), T[:, 3]])
+
+
+def _image_columns(images: List[ImageRecord], row_start: np.ndarray, num_obs: np.ndarray) -> Dict[str, np.ndarray]:
+    """The images/* arrays of ``images`` (whose rows start at ``row_start``)."""
+    return {"images/name": np.array([im.name for im in images]),
+            "images/camera": np.array([im.camera.to_json() for im in images]),
+            "images/tags": np.array([json.dumps(im.tags, sort_keys=True) for im in images]),
+            "images/path": np.array([str(im.path) for im in images]),
+            "images/cam_from_world": np.stack([_flat_pose(im.cam_from_world) for im in images]),
+            "images/row_start": np.asarray(row_start, np.int64), "images/num_obs": np.asarray(num_obs, np.int64),
+            "images/source_id": np.array([im.source_id for im in images], np.int64)}
+
+
 def _padded(n: np.ndarray, chunk: int) -> np.ndarray:
     return np.maximum(1, -(-n // chunk)) * chunk
 
@@ -127,21 +144,8 @@ def create_store(path, scene: Scene, chunk_rows: int = 256, overwrite: bool = Fa
         "num_points": len(scene.points), "num_observations": int(len(obs_point)), "num_rows": rows,
         "source": source or {}}
     meta = root.attrs["pixloc_map"]
-    I = len(names)  # noqa: E741
-    _array(root, "images/name", (I,), (I,), str)[:] = np.array(names)
-    _array(root, "images/camera", (I,), (I,), str)[:] = np.array(
-        [im.camera.to_json() for im in scene.images])
-    _array(root, "images/tags", (I,), (I,), str)[:] = np.array(
-        [json.dumps(im.tags, sort_keys=True) for im in scene.images])
-    _array(root, "images/path", (I,), (I,), str)[:] = np.array(
-        [str(im.path) for im in scene.images])
-    _array(root, "images/cam_from_world", (I, 12), (I, 12), "float64")[:] = np.stack(
-        [np.concatenate([np.asarray(im.cam_from_world)[:, :3].reshape(-1), np.asarray(im.cam_from_world)[:, 3]])
-         for im in scene.images])
-    _array(root, "images/row_start", (I,), (I,), "int64")[:] = row_start
-    _array(root, "images/num_obs", (I,), (I,), "int64")[:] = num_obs
-    _array(root, "images/source_id", (I,), (I,), "int64")[:] = np.array(
-        [im.source_id for im in scene.images], dtype=np.int64)
+    for name, values in _image_columns(scene.images, row_start, num_obs).items():
+        _array(root, name, values.shape, values.shape, values.dtype if values.dtype.kind != "U" else str)[:] = values
     P = len(scene.points)
     _array(root, "points/xyz", (P, 3), (max(P, 1), 3), "float64")[:] = scene.points
     _array(root, "points/track_length", (P,), (max(P, 1),), "int32")[:] = scene.track_length
@@ -187,8 +191,7 @@ def extend_store(root: zarr.Group, scene: Scene) -> List[int]:
     T_stored = read(root, "images/cam_from_world", meta)
     for k, im in enumerate(scene.images):
         if im.name in stored:
-            T = np.concatenate([np.asarray(im.cam_from_world)[:, :3].reshape(-1), np.asarray(im.cam_from_world)[:, 3]])
-            if not np.allclose(T, T_stored[stored[im.name]], atol=1e-6):
+            if not np.allclose(_flat_pose(im.cam_from_world), T_stored[stored[im.name]], atol=1e-6):
                 raise StoreError(f"Image {im.name} has another pose than in the store: adding images keeps the "
                                  "stored ones as they are (rebuild with --overwrite to change them).")
     new = [k for k, im in enumerate(scene.images) if im.name not in stored]
@@ -214,17 +217,7 @@ def extend_store(root: zarr.Group, scene: Scene) -> List[int]:
     rank = np.arange(len(obs_image)) - np.concatenate([[0], np.cumsum(num_obs)[:-1]])[obs_image - I]
     row = row_start[obs_image - I] + rank
     I2, P2, R2 = I + len(new), P + len(fresh), R + int(padded.sum())  # noqa: E741
-    images = [scene.images[k] for k in new]
-    columns = {"images/name": np.array([im.name for im in images]),
-               "images/camera": np.array([im.camera.to_json() for im in images]),
-               "images/tags": np.array([json.dumps(im.tags, sort_keys=True) for im in images]),
-               "images/path": np.array([str(im.path) for im in images]),
-               "images/cam_from_world": np.stack([np.concatenate([np.asarray(im.cam_from_world)[:, :3].reshape(-1),
-                                                                  np.asarray(im.cam_from_world)[:, 3]])
-                                                  for im in images]),
-               "images/row_start": row_start, "images/num_obs": num_obs,
-               "images/source_id": np.array([im.source_id for im in images], np.int64)}
-    for name, values in columns.items():
+    for name, values in _image_columns([scene.images[k] for k in new], row_start, num_obs).items():
         root[name].resize((I2,) + root[name].shape[1:])
         root[name][I:I2] = values
     for name, values in (("points/xyz", scene.points[fresh]), ("points/source_id", scene.point_ids[fresh])):

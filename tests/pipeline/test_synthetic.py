@@ -93,7 +93,7 @@ def test_a_generated_city_has_blocks_streets_and_tagged_views(tmp_path):
     """A 2x2 city: references along every street facing each block side, tagged by block side;
     each reference sees mostly the facade of the block its tag names (its depth hits lie in
     that block's footprint), and the dataset reads back like the courtyard's."""
-    from pipeline.synthetic import CityConfig, SyntheticCity, generate_city
+    from pipeline.city import CityConfig, SyntheticCity, generate_city
     conf = CityConfig(seed=1, blocks=(2, 2), spacing=8.0)
     city = SyntheticCity(conf)
     views = city.reference_views()

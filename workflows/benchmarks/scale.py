@@ -1,6 +1,6 @@
 """Benchmarks of scale (docs/scaling.md): ``--parts S3`` (default) and ``S2``.
 
-S2: generated cities (``pipeline.synthetic.SyntheticCity``) of about 100, 500 and 2,000
+S2: generated cities (``pipeline.city.SyntheticCity``) of about 100, 500 and 2,000
 reference images (2x2, 4x4, 10x10 blocks), each built into a map (RGB-D frames, int8 features)
 and the same number of queries localized in a fresh process (retrieval restricted to the
 query's block side, as a GPS tag would): seconds per query and the process's peak RSS per map
@@ -171,7 +171,8 @@ print(json.dumps({"queries": len(records), "s_per_query": elapsed / len(records)
 def city_rows(args) -> list:
     """S2: per map size, the build and the localization of the same number of queries."""
     from pipeline.depth import rgbd_scene
-    from pipeline.synthetic import CityConfig, generate_city, read_synthetic
+    from pipeline.city import CityConfig, generate_city
+    from pipeline.synthetic import read_synthetic
     from ..build_map import plan_build, run_sync as build_sync
     rows = []
     for n in args.cities:
@@ -201,7 +202,8 @@ def add_rows(args) -> Dict:
     import shutil
 
     from pipeline.depth import rgbd_scene
-    from pipeline.synthetic import CityConfig, generate_city, read_synthetic
+    from pipeline.city import CityConfig, generate_city
+    from pipeline.synthetic import read_synthetic
     from ..build_map import plan_build, run_sync as build_sync
     root = args.work / "city-4x4"
     generate_city(root, CityConfig(seed=args.seed, blocks=(4, 4)), queries_per_condition=args.city_queries,
