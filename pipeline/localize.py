@@ -32,6 +32,7 @@ logger = logging.getLogger(__name__)
 # pixels at the finest level of the contrast that verification reads (pixloc.optim.evidence); the
 # measurement of docs/verification.md also recorded 1 and 10 px and a depth contrast: none did better
 CONTRAST_SHIFTS = (3.0,)
+MIN_SUBSET = 1024  # the fewest points a level is subsampled to (points_per_cell)
 
 
 @dataclass(frozen=True)
@@ -41,13 +42,18 @@ class LocalizerConfig:
     num_iters: LM iterations per level. min_track_length, min_points: official filters
     (points seen by fewer images of the whole map than ``min_track_length`` are left out;
     fewer than ``min_points`` points fails the query). verification: when a refined pose is
-    accepted (``pipeline.verify``)."""
+    accepted (``pipeline.verify``). points_per_cell: at a level whose query feature map has
+    fewer cells than points / ``points_per_cell``, LM runs on a seeded subset of
+    max(``MIN_SUBSET``, points_per_cell x cells) of them (0: every point, as official PixLoc).
+    Dense (RGB-D) maps put tens of thousands of points into the few hundred cells of the
+    coarse levels, where they are redundant and cost nearly all the time."""
 
     num_dbs: int = 5
     average_observations: bool = False
     num_iters: int = 100
     min_track_length: int = 3
     min_points: int = 10
+    points_per_cell: float = 0.0
     verification: VerificationConfig = field(default_factory=VerificationConfig)
 
 
@@ -247,18 +253,32 @@ class Localizer:
         st["active"] = False
         st["result"].reason = reason
 
+    def _subset(self, n: int, cells: int, level: int) -> Optional[torch.Tensor]:
+        """The points LM uses at a level with ``cells`` feature-map cells (``points_per_cell``):
+        None for all of them, else a seeded subset, sorted."""
+        if self.conf.points_per_cell <= 0:
+            return None
+        keep = max(MIN_SUBSET, int(self.conf.points_per_cell * cells))
+        if n <= keep:
+            return None
+        rng = np.random.default_rng(level)
+        return torch.from_numpy(np.sort(rng.choice(n, keep, replace=False)))
+
     def _solve_level(self, group: List[Dict], k: int, image_scale: int, level: int, final: bool) -> None:
         """One LM batch for ``group`` at one level; points are padded and masked to a common N.
         Records the evidence of the level's start and end poses (``pixloc.optim.evidence``) and,
         at the ``final`` level, of the prior, for verification."""
         stride = self.net.strides[level]
-        n_max = max(len(st["refs"][0]) for st in group)
-        p3d, F_ref, W_ref, mask, cams = [], [], [], [], []
         first = group[0]["cache"][k][0]["features"][level]
+        subsets = [self._subset(len(st["refs"][0]), first.shape[-2] * first.shape[-1], level) for st in group]
+        n_max = max(len(st["refs"][0]) if sub is None else len(sub) for st, sub in zip(group, subsets))
+        p3d, F_ref, W_ref, mask, cams = [], [], [], [], []
         maps = new_query_maps((len(group),) + tuple(first.shape[1:]), first)  # normalised features + confidence
-        for st in group:
+        for st, sub in zip(group, subsets):
             xyz, levels = st["refs"]
             f, w = levels[level]
+            if sub is not None:
+                xyz, f, w = xyz[sub], f[sub], w[sub]
             n = len(xyz)
             pad = n_max - n
             p3d.append(torch.cat([xyz, xyz.new_zeros(pad, 3)]))
@@ -294,7 +314,8 @@ class Localizer:
                         for key in ("inliers", "weighted_inliers", "valid", "cost")}
             result.per_level.append({"scale": int(image_scale), "level": level, "failed": failed,
                                      "pose": _matrix(lm.pose[b].cpu()).tolist(),
-                                     "iterations": int(lm.iterations[b]), **evidence})
+                                     "iterations": int(lm.iterations[b]), "residuals": int(mask[b].sum()),
+                                     **evidence})
             result.iterations += int(lm.iterations[b])
             result.cost = float(lm.cost[b, int(lm.iterations[b]) - 1])
             if failed:

@@ -62,6 +62,7 @@ def build_parser() -> argparse.ArgumentParser:
     from .benchmarks import build_map as bench_build_map
     from .benchmarks import lm as bench_lm
     from .benchmarks import localize as bench_localize
+    from .benchmarks import rgbd as bench_rgbd
     from .benchmarks import scale as bench_scale
     from .benchmarks import search as bench_search
     from .benchmarks import storage as bench_storage
@@ -71,8 +72,9 @@ def build_parser() -> argparse.ArgumentParser:
             ("build-map", bench_build_map, "map building: images/s and bytes per observation, 1 vs 2 workers"),
             ("localize", bench_localize, "queries/s with stored features vs the official re-extraction"),
             ("verification", bench_verification, "precision and rejections of pose verification per threshold"),
+            ("rgbd", bench_rgbd, "time per 7-Scenes query: gradient maps and points per cell against the official sampler"),
             ("search", bench_search, "recall and time of the search prior against top1, average, hypotheses"),
-            ("scale", bench_scale, "a map store of Aachen v1.1 size: bytes, files, open time, reader RSS, reads"),
+            ("scale", bench_scale, "S1-S5, P3: an Aachen-size store, cities built and localized at size, adding a session"),
             ("storage", bench_storage, "bytes per observation and recall of int8 against float16 feature storage")]:
         p = bench_sub.add_parser(name, help=text)
         module.add_arguments(p)

@@ -31,7 +31,7 @@ _L, _R = LocalizerConfig(), RetrievalConfig()
 LOCALIZE_DEFAULTS = {"prior": "top1", "point_selection": "all", "min_points": _L.min_points, "num_dbs": _L.num_dbs,
                      "average_observations": _L.average_observations, "iters": _L.num_iters,
                      "retrieval_k": _R.k, "same_tag": None, "levels": None, "scales": None,
-                     "min_track_length": _L.min_track_length,
+                     "min_track_length": _L.min_track_length, "points_per_cell": _L.points_per_cell,
                      "min_confidence": _L.verification.min_confidence, "pose_names": "full"}
 
 
@@ -76,6 +76,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "official; 100 in refinement mode)")
     p.add_argument("--min-track-length", type=int, help="leave out points seen by fewer map images "
                    f"(default {d['min_track_length']}, official; 2 keeps the points of two-view maps)")
+    p.add_argument("--points-per-cell", type=float,
+                   help="at levels with more points than this many per query feature-map cell, LM runs on a "
+                        "seeded subset (at least 1024 points; default 0: all, official; the 7scenes preset: 1)")
     p.add_argument("--levels", type=int, nargs="+", help="optimise only these levels (refinement mode: 0 1)")
     p.add_argument("--scales", type=int, nargs="+", help="run only these of the store's image scales "
                    "(refinement mode: 1)")
@@ -141,7 +144,7 @@ def build_job(args: argparse.Namespace) -> LocalizationJob:
         str(store), fconf, fconf.model,
         LocalizerConfig(num_dbs=args.num_dbs, average_observations=bool(args.average_observations),
                         num_iters=args.iters, min_track_length=args.min_track_length, min_points=args.min_points,
-                        verification=verification),
+                        points_per_cell=args.points_per_cell, verification=verification),
         RetrievalConfig("pairs" if args.pairs else "hloc" if args.descriptors else "global",
                         _absolute(args.pairs), args.retrieval_k, args.same_tag, _absolute(args.descriptors)),
         prior=args.prior, device=args.device, prior_poses=_absolute(args.prior_poses),

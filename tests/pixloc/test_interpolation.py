@@ -1,7 +1,7 @@
 import pytest
 import torch
 
-from pixloc.interpolation import Interpolator
+from pixloc.interpolation import Interpolator, append_gradient_maps
 
 
 def linear_map(C=4, H=20, W=30, dtype=torch.float64):
@@ -44,6 +44,27 @@ def test_bilinear_gradient_is_the_official_central_difference():
     dx = torch.tensor([1.0, 0.0], dtype=torch.float64)
     fd = (interp(maps, p + dx)[0] - interp(maps, p - dx)[0]) / 2
     torch.testing.assert_close(grads[..., 0], fd)
+
+
+@pytest.mark.parametrize("layout", [torch.contiguous_format, torch.channels_last])
+def test_gradient_maps_give_the_official_gradients_everywhere_in_the_map(layout):
+    """Sampling precomputed central-difference maps = central differences of samples, up to the
+    border (zeros outside on both sides) and on integer coordinates; values are untouched."""
+    g = torch.Generator().manual_seed(1)
+    maps = torch.randn(2, 5, 9, 13, generator=g, dtype=torch.float64)
+    p = torch.rand(2, 400, 2, generator=g, dtype=torch.float64) * torch.tensor([12.0, 8.0], dtype=torch.float64)
+    p[:, :20] = torch.randint(0, 9, (2, 20, 2), generator=g).to(p)  # on pixel centres, borders included
+    p[0, 20] = torch.tensor([12.0, 8.0])  # the far corner
+    interp = Interpolator("linear", pad=0)
+    values, valid, grads = interp(maps, p, gradients=True)
+    stacked = append_gradient_maps(maps, 4, layout)
+    v2, valid2, g2 = interp.sample_with_gradients(stacked, p, 4)
+    assert stacked.shape == (2, 13, 9, 13)
+    torch.testing.assert_close(v2, values, rtol=0, atol=1e-12)
+    torch.testing.assert_close(g2, grads[..., :4, :], rtol=0, atol=1e-12)
+    assert torch.equal(valid2, valid)
+    with pytest.raises(ValueError, match="linear"):
+        Interpolator("cubic").sample_with_gradients(stacked, p, 4)
 
 
 @pytest.mark.parametrize("mode,pad", [("linear", 0), ("linear", 2), ("cubic", 2)])

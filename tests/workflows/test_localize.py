@@ -74,6 +74,19 @@ def test_7scenes_with_retrieval(seven_scenes, sync_records):
     print(json.dumps({k: {w: v[w] for w in ("prior", "refined")} for k, v in summary.items()}, indent=1))
 
 
+def test_points_per_cell_subsamples_only_the_crowded_levels(seven_scenes, sync_records, tmp_path):
+    """--points-per-cell 1: the coarsest level (20 x 15 cells at 320 px) runs on a seeded subset of
+    1,024 residuals; the finer levels, with more cells than points, on all of them; rerun, the same."""
+    job, queries = seven_scenes
+    sub = dataclasses.replace(job, localizer=dataclasses.replace(LCONF, points_per_cell=1.0))
+    a = run_sync(plan_localization(sub, queries[:1], tmp_path / "a"))[0]
+    b = run_sync(plan_localization(sub, queries[:1], tmp_path / "b"))[0]
+    full = [lv["residuals"] for lv in sync_records[0]["per_level"]]
+    assert full[0] > 1024 and [lv["residuals"] for lv in a["per_level"]] == [1024] + full[1:]
+    assert a["refined"] == b["refined"] and a["per_level"] == b["per_level"]
+    assert a["per_level"][0]["pose"] != sync_records[0]["per_level"][0]["pose"]  # a subset is not all
+
+
 def test_outputs(seven_scenes, sync_records, tmp_path):
     job, queries = seven_scenes
     plan = plan_localization(job, queries, tmp_path, shard_size=2)

@@ -1,4 +1,5 @@
-"""Benchmarks of scale (docs/scaling.md): ``--parts S3`` (default) and ``S2``.
+"""Benchmarks of scale (docs/scaling.md): ``--parts S3`` (default), ``S2``, ``S5``, and ``S1`` and
+``P3`` (``workflows/benchmarks/city_run.py``: a city end to end on a Dask cluster, killed and resumed).
 
 S2: generated cities (``pipeline.city.SyntheticCity``) of about 100, 500 and 2,000
 reference images (2x2, 4x4, 10x10 blocks), each built into a map (RGB-D frames, int8 features)
@@ -43,10 +44,13 @@ GOALS = {"bytes": 10e9, "files": 150_000, "rss": 2 * 2**30}
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--parts", nargs="+", default=["S3"], choices=["S2", "S3", "S5"])
+    p.add_argument("--parts", nargs="+", default=["S3"], choices=["S1", "S2", "S3", "S5", "P3"])
     p.add_argument("--cities", type=int, nargs="+", default=[2, 4, 10],
                    help="S2: blocks per side of each city (96, 384 and 2,400 references)")
     p.add_argument("--city-queries", type=int, default=8, help="S2: queries per condition (4 conditions)")
+    p.add_argument("--s1-blocks", type=int, default=10, help="S1, P3: blocks per side of the city (10: 2,400 references)")
+    p.add_argument("--s1-queries", type=int, default=5000, help="S1: queries (a quarter per condition)")
+    p.add_argument("--p3-queries", type=int, default=480, help="P3: queries localized with 1 and 2 workers")
     p.add_argument("--work", type=Path, default=Path("outputs/benchmark-scale"))
     p.add_argument("--fraction", type=float, default=1.0, help="of the Aachen v1.1 counts (default 1: full size)")
     p.add_argument("--dtype", default="int8", choices=["int8", "float16"])
@@ -230,6 +234,10 @@ def add_rows(args) -> Dict:
 
 
 def main(args: argparse.Namespace) -> int:
+    args.work.mkdir(parents=True, exist_ok=True)
+    if "S1" in args.parts or "P3" in args.parts:
+        from .city_run import report
+        report(args)
     if "S5" in args.parts:
         r = add_rows(args)
         print(f"\n| S5: city 4x4 | images | seconds | x full build |\n| --- | ---: | ---: | ---: |\n"

@@ -24,6 +24,7 @@ MAPPING = {
     "iters": ("localizer", "num_iters"), "retrieval_k": ("retrieval", "k"),
     "same_tag": ("retrieval", "same_tag"), "prior": ("prior",), "levels": ("levels",),
     "point_selection": ("point_selection",), "min_points": ("localizer", "min_points"), "scales": ("scales",),
+    "points_per_cell": ("localizer", "points_per_cell"),
     "pose_names": ("pose_names",),
 }
 

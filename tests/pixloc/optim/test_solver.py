@@ -7,6 +7,7 @@ from pixloc.geometry import lie
 from pixloc.interpolation import Interpolator
 from pixloc.optim import (ConstantDamping, FeaturemetricProblem, LearnedDamping, LevenbergMarquardt,
                           build_system, linearize)
+from pixloc.optim.cost import use_gradient_maps
 from workflows.benchmarks.lm import make_problems
 
 
@@ -149,3 +150,25 @@ def test_chunked_linearization_equals_whole_batch():
     torch.testing.assert_close(result.pose.data, whole.pose.data, atol=1e-6, rtol=0)
     torch.testing.assert_close(result.cost, whole.cost)
     assert result.iterations.tolist() == whole.iterations.tolist()
+
+
+def test_gradient_maps_give_the_official_linearization():
+    """Where points outnumber half the cells, the LM samples precomputed gradient maps: the same
+    residuals and Jacobians as the 5 official taps, hence the same solve."""
+    problem, T_init = make_problems(2, 12000, 16, "cpu", seed=5)  # 120 x 160 maps: 19,200 cells
+    double = FeaturemetricProblem(problem.p3d_world.double(), problem.F_ref.double(),
+                                  problem.F_query.double(), problem.camera.double())
+    maps, taps = Interpolator("linear", pad=2, gradient_maps=True), Interpolator("linear", pad=2)
+    assert use_gradient_maps(double, maps) and not use_gradient_maps(double, taps)
+    few = FeaturemetricProblem(double.p3d_world[:, :100], double.F_ref[:, :100], double.F_query, double.camera)
+    assert not use_gradient_maps(few, maps)  # fine levels with few points keep the taps
+    a, b = linearize(T_init.double(), double, maps), linearize(T_init.double(), double, taps)
+    assert torch.equal(a.valid, b.valid)
+    torch.testing.assert_close(a.res, b.res, rtol=0, atol=1e-12)
+    torch.testing.assert_close(a.J_f, b.J_f, rtol=0, atol=1e-12)
+    solve = {}
+    for name, interp in (("maps", maps), ("taps", taps)):
+        solver = LevenbergMarquardt(ConstantDamping(1e-2), num_iters=20).eval()
+        solver.interpolator = interp
+        solve[name] = solver(problem, T_init)
+    torch.testing.assert_close(solve["maps"].pose.data, solve["taps"].pose.data, atol=1e-5, rtol=0)
