@@ -19,13 +19,15 @@ class CityConfig:
     sides (varied widths, heights, materials), poles, trees and street lamps line the streets.
     References stand along every street every ``spacing`` metres, one camera facing each side;
     each image's ``area`` tag is the block side it looks at (``bx-by-side``, side n/e/s/w: about
-    what a GPS tag tells), and ``block`` the block (``bx-by``)."""
+    what a GPS tag tells), and ``block`` the block (``bx-by``). ``detail``: fine stains on every
+    surface (0: none, the courtyard's look), for local features (SIFT triangulation, S4)."""
 
     seed: int = 0
     blocks: Tuple[int, int] = (3, 3)
     block_size: float = 24.0
     street: float = 10.0
     spacing: float = 4.0
+    detail: float = 0.0
 
 
 class SyntheticCity(SyntheticScene):

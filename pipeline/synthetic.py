@@ -168,6 +168,8 @@ class SyntheticScene:
         oid = np.where(ok, geom, -1)
         mat = np.where(ok, material[np.where(ok, geom, 0)], -1)
         color = _albedo(X, normal, mat, oid)
+        if getattr(self.conf, "detail", 0.0) > 0:
+            color = _weathering(color, X, normal, ok, self.conf.detail)
         if self.textures:
             color = _photo_facades(color, X, normal, mat, oid, self.textures, self.conf.texture_scale)
         lamps = self.lamps
@@ -214,6 +216,18 @@ def _photo_facades(color, X, n, mat, oid, textures, scale) -> np.ndarray:
         py = ((1 - np.mod(z[sel] / (scale * h / w), 1.0)) * (h - 1)).astype(np.int64)
         out[sel] = tex[py, px]
     return out
+
+
+def _weathering(color, X, n, ok, amount: float) -> np.ndarray:
+    """Fine stains on every surface (value noise of 6 and 12 cycles per metre, in wall or ground
+    coordinates), albedo scaled by 1 +- ``amount``: texture that local features (SIFT) can tell
+    apart, where the procedural walls repeat (windows, bricks) or are plain."""
+    tangent = np.stack([-n[:, 1], n[:, 0], np.zeros(len(n))], 1)
+    ground = np.abs(n[:, 2]) > 0.5
+    a = np.where(ground, X[:, 0], (X * tangent).sum(1))
+    b = np.where(ground, X[:, 1], X[:, 2])
+    stain = value_noise(a * 6.0, b * 6.0, octaves=2)
+    return np.where(ok[:, None], color * (1 - amount + 2 * amount * stain)[:, None], color)
 
 
 def _albedo(X, n, mat, oid) -> np.ndarray:

@@ -1,4 +1,4 @@
-"""Benchmarks of scale (docs/scaling.md): ``--parts S3`` (default), ``S2``, ``S5``, and ``S1`` and
+"""Benchmarks of scale (docs/scaling.md): ``--parts S3`` (default), ``S2``, ``S4``, ``S5``, and ``S1`` and
 ``P3`` (``workflows/benchmarks/city_run.py``: a city end to end on a Dask cluster, killed and resumed).
 
 S2: generated cities (``pipeline.city.SyntheticCity``) of about 100, 500 and 2,000
@@ -8,6 +8,10 @@ query's block side, as a GPS tag would): seconds per query and the process's pea
 size, which must stay flat (within 1.2x) and under 2 GB.
 
 S3: the map store at the size of Aachen Day-Night v1.1.
+
+S4: triangulation from known poses (SIFT, spatial pairs, pycolmap) of 200 and 2,000 references of
+the 10x10 city, rendered at 480 x 360 with fine stains on every surface (the procedural walls
+alone repeat too much for SIFT): time against the number of images.
 
 S5: adding 10 % new images (the last tenth of the 4x4 city's references) to a built map of the
 other 90 %, against building the whole map from scratch (structure and features, one process).
@@ -44,13 +48,16 @@ GOALS = {"bytes": 10e9, "files": 150_000, "rss": 2 * 2**30}
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--parts", nargs="+", default=["S3"], choices=["S1", "S2", "S3", "S5", "P3"])
+    p.add_argument("--parts", nargs="+", default=["S3"], choices=["S1", "S2", "S3", "S4", "S5", "P3"])
     p.add_argument("--cities", type=int, nargs="+", default=[2, 4, 10],
                    help="S2: blocks per side of each city (96, 384 and 2,400 references)")
     p.add_argument("--city-queries", type=int, default=8, help="S2: queries per condition (4 conditions)")
     p.add_argument("--s1-blocks", type=int, default=10, help="S1, P3: blocks per side of the city (10: 2,400 references)")
     p.add_argument("--s1-queries", type=int, default=5000, help="S1: queries (a quarter per condition)")
     p.add_argument("--p3-queries", type=int, default=480, help="P3: queries localized with 1 and 2 workers")
+    p.add_argument("--s4-images", type=int, nargs="+", default=[200, 2000],
+                   help="S4: references triangulated, the nearest the city's corner (the city of --s1-blocks)")
+    p.add_argument("--s4-neighbors", type=int, default=10, help="S4: spatial pairs per image")
     p.add_argument("--work", type=Path, default=Path("outputs/benchmark-scale"))
     p.add_argument("--fraction", type=float, default=1.0, help="of the Aachen v1.1 counts (default 1: full size)")
     p.add_argument("--dtype", default="int8", choices=["int8", "float16"])
@@ -233,8 +240,55 @@ def add_rows(args) -> Dict:
             "full_s": full_s, "add_s": add_s}
 
 
+def triangulation_rows(args) -> list:
+    """S4: triangulation from the known poses of the ``--s4-images`` references nearest the city's
+    corner (compact parts of the 10x10 city, rendered at 480 x 360 with fine stains for SIFT), each
+    from scratch in its own work folder: SIFT, matching of spatial pairs, triangulation."""
+    import shutil
+
+    from pipeline.city import CityConfig, generate_city
+    from pipeline.pairs import PairsConfig, spatial_pairs
+    from pipeline.readers.colmap import triangulate_known_poses
+    from pipeline.regions import camera_centres
+    from pipeline.synthetic import read_synthetic
+    root = args.work / f"s4-city-{args.s1_blocks}x{args.s1_blocks}"
+    t0 = time.perf_counter()
+    generate_city(root, CityConfig(seed=args.seed, blocks=(args.s1_blocks, args.s1_blocks), detail=0.3),
+                  queries_per_condition=0, camera=CameraRecord("PINHOLE", 480, 360, (375.0, 375.0, 240.0, 180.0)))
+    mapping, _ = read_synthetic(root)
+    print(f"  S4: {len(mapping)} references rendered (or reused) in {time.perf_counter() - t0:.0f} s", flush=True)
+    centres = camera_centres(np.stack([im.cam_from_world for im in mapping]))
+    order = np.argsort(np.linalg.norm(centres[:, :2], axis=1), kind="stable")  # nearest the corner first
+    pairs = PairsConfig(method="spatial", num_neighbors=args.s4_neighbors)
+    rows = []
+    for n in args.s4_images:
+        images = [mapping[i] for i in sorted(order[:n])]
+        work = args.work / f"s4-triangulation-{n}"
+        shutil.rmtree(work, ignore_errors=True)
+        t0 = time.perf_counter()
+        scene = triangulate_known_poses(images, root, work, pairs=pairs)
+        elapsed = time.perf_counter() - t0
+        matched = len(spatial_pairs([im.name for im in images], [im.cam_from_world for im in images],
+                                    pairs.num_neighbors, pairs.max_angle))
+        rows.append({"images": n, "pairs": matched, "exhaustive_pairs": n * (n - 1) // 2, "seconds": elapsed,
+                     "points": len(scene.points), "observations": len(scene.obs_point)})
+        print(f"  S4: {n} images, {matched} pairs, {len(scene.points)} points in {elapsed:.0f} s", flush=True)
+    return rows
+
+
 def main(args: argparse.Namespace) -> int:
     args.work.mkdir(parents=True, exist_ok=True)
+    if "S4" in args.parts:
+        rows = triangulation_rows(args)
+        base = rows[0]
+        print("\n| S4: triangulation, known poses | images | pairs matched (spatial) | exhaustive pairs | points | "
+              "observations | seconds | x smallest | images x smallest |")
+        print("| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |")
+        for r in rows:
+            print(f"| | {r['images']} | {r['pairs']} | {r['exhaustive_pairs']} | {r['points']} | "
+                  f"{r['observations']} | {r['seconds']:.0f} | {r['seconds'] / base['seconds']:.2f} | "
+                  f"{r['images'] / base['images']:.0f} |")
+        print("goal: <= 10 x the time of the smallest (exhaustive pairs would be about 100 x)")
     if "S1" in args.parts or "P3" in args.parts:
         from .city_run import report
         report(args)
