@@ -11,15 +11,17 @@ import logging
 from dataclasses import dataclass
 from typing import Dict, List, Optional, Sequence
 
+import numpy as np
 import torch
 
 from pixloc.nets.registry import load_extractor, state_digest
 
 from .features import FeatureConfig, extract_image_features
+from .images import read_image, resize_max, to_tensor
 from .runtime import restore_malloc_thresholds, torch_threads
 from .scene import Scene
-from .store import (DONE, FAILED, PENDING, consolidate, consolidated, create_store, feature_key, image_records,
-                    init_features, mark_failed, open_store, read, unconsolidate, write_image_features)
+from .store import (DONE, FAILED, PENDING, consolidate, consolidated, create_store, feature_key, fit_pca,
+                    image_records, init_features, mark_failed, open_store, read, unconsolidate, write_image_features)
 
 logger = logging.getLogger(__name__)
 REFUSED = "refused: "  # reason prefix of images that cannot be used at all (not retried)
@@ -53,7 +55,8 @@ def write_structure(scene: Scene, store_path, conf: FeatureConfig, *, chunk_rows
     root = create_store(store_path, scene, chunk_rows=chunk_rows, overwrite=overwrite, source=source,
                         shard_rows=shard_rows)
     net, digest = network(conf.model, device)
-    group = init_features(root, conf, digest, list(net.output_dims))
+    group = init_features(root, conf, digest, list(net.output_dims),
+                          pca=lambda: fit_store_pca(scene, conf, net, problems, device))
     meta = root.attrs["pixloc_map"]
     status, reasons = read(group, "status", meta), read(group, "reason", meta)
     if not consolidated(group, meta) or (status != DONE).any():
@@ -65,6 +68,41 @@ def write_structure(scene: Scene, store_path, conf: FeatureConfig, *, chunk_rows
         elif i not in problems and status[i] == FAILED and str(reasons[i]).startswith(REFUSED):
             group["status"][i] = PENDING  # the problem is gone (e.g. the file is back): retry
     return problems
+
+
+def fit_store_pca(scene: Scene, conf: FeatureConfig, net, problems: Dict[int, str], device: str = "cpu",
+                  num_images: int = 8) -> Dict:
+    """PCA bases (``FeatureConfig.pca``) per image scale and level, fitted on the dense feature maps
+    (every pixel) of ``num_images`` of the scene's usable images, evenly spread, at the store's
+    resolutions (one torch thread: the same images give the same bases)."""
+    usable = [i for i in range(len(scene.images)) if i not in problems]
+    chosen = usable[::max(1, len(usable) // num_images)][:num_images]
+    dims = list(net.output_dims)
+    reduced = [level for level, d in enumerate(dims) if conf.pca and d > conf.pca]
+    samples: Dict = {}
+    with torch_threads(1), torch.inference_mode():
+        for i in chosen:
+            try:
+                rgb = read_image(scene.images[i].path)
+            except (OSError, ValueError) as e:  # the build records it; the PCA uses the others
+                logger.warning("PCA sample %s left out: %s", scene.images[i].name, e)
+                continue
+            for k, image_scale in enumerate(conf.image_scales):
+                resized, _ = resize_max(rgb, conf.resize // image_scale)
+                pred = net(to_tensor(resized)[None].to(device))
+                for level in reduced:
+                    fmap = pred["features"][level][0]
+                    samples.setdefault((k, level), []).append(fmap.reshape(len(fmap), -1).T.cpu().numpy())
+    bases = {}
+    for k in range(len(conf.image_scales)):
+        for level in reduced:
+            x = np.concatenate(samples.get((k, level), [np.zeros((0, dims[level]), np.float32)]))
+            if len(x) < conf.pca:
+                raise ValueError(f"Too few feature samples ({len(x)}) in the {len(chosen)} images sampled to fit a "
+                                 f"PCA of {conf.pca} components (image scale {k}, level {level}).")
+            bases[(k, level)] = fit_pca(x, conf.pca)
+    logger.info("Fitted the PCA of the features (%d components) on %d images.", conf.pca, len(chosen))
+    return bases
 
 
 def extract_features(store_path, conf: FeatureConfig, indices: Sequence[int], device: str = "cpu", *,

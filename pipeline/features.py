@@ -9,7 +9,7 @@ when it projects inside the image and inside the interpolation margin.
 """
 
 from dataclasses import asdict, dataclass
-from typing import Dict, Tuple
+from typing import Dict, List, Tuple
 
 import numpy as np
 import torch
@@ -41,6 +41,11 @@ class FeatureConfig:
     descriptor: global descriptor for retrieval, from the coarsest feature map: ``gem``
         (generalised mean) or ``grid`` (mean-centred features averaged over a 2 x 3 grid:
         keeps the layout, more robust to changes of light in our synthetic tests).
+    pca: 0 (default) stores every channel; D > 0 stores the levels with more than D channels as
+        their D leading principal components (a PCA of the map's own features, fitted on a
+        sample of its images when the feature group is created, stored with it); readers
+        reconstruct the full channels. With int8, two image scales fit in about 300 bytes per
+        observation (docs/map_store.md).
     """
 
     model: str = DEFAULT_MODEL
@@ -49,17 +54,26 @@ class FeatureConfig:
     pad: int = 2
     dtype: str = "float16"
     descriptor: str = "gem"
+    pca: int = 0
 
     def __post_init__(self):
         if self.dtype not in DTYPES:
             raise ValueError(f"Unknown feature storage type {self.dtype!r}; known: {', '.join(DTYPES)}.")
         if self.descriptor not in DESCRIPTORS:
             raise ValueError(f"Unknown global descriptor {self.descriptor!r}; known: {', '.join(DESCRIPTORS)}.")
+        if self.pca < 0:
+            raise ValueError(f"pca must be 0 (off) or a number of components, not {self.pca}.")
 
     def to_dict(self) -> Dict:
         d = asdict(self)
         d["image_scales"] = list(self.image_scales)
+        if not self.pca:  # stores made before the option have no such key
+            del d["pca"]
         return d
+
+    def stored_dims(self, dims: List[int]) -> List[int]:
+        """The channels stored per level for a network of ``dims`` channels per level."""
+        return [min(d, self.pca) if self.pca else d for d in dims]
 
 
 @dataclass

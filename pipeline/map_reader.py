@@ -12,7 +12,7 @@ import numpy as np
 from .features import FeatureConfig
 from .scene import CameraRecord
 from .store import (DONE, StoreError, StoreReadError, check_feature_group, consolidated, dequantize_int8,
-                    feature_key, open_store)
+                    feature_key, open_store, pca_bases, reconstruct, stored_dims)
 from .store import read as store_read
 
 
@@ -54,6 +54,8 @@ class MapReader:
                              f"not the localizer's {digest}: rebuild the map with this model.")
         self.conf = conf
         self.dims: List[int] = list(self.group.attrs["dims"])
+        self.stored_dims = stored_dims(self.group)
+        self.pca = pca_bases(self.group)  # levels stored as principal components: reconstructed on read
 
         meta = root.attrs["pixloc_map"]
 
@@ -147,10 +149,13 @@ class MapReader:
         self.stats["blocks"] += 1
         self.stats["bytes"] += sum(a.nbytes for a in out.values())
         if "scales" in out:
-            features = dequantize_int8(out["features"], out["scales"], self.dims)
+            features = dequantize_int8(out["features"], out["scales"], self.stored_dims)
         else:
-            edges = np.cumsum([0] + self.dims)
-            features = [out["features"][:, edges[k]:edges[k + 1]].astype(np.float32) for k in range(len(self.dims))]
+            edges = np.cumsum([0] + self.stored_dims)
+            features = [out["features"][:, edges[k]:edges[k + 1]].astype(np.float32)
+                        for k in range(len(self.stored_dims))]
+        features = [reconstruct(f, self.pca[(scale, level)]) if (scale, level) in self.pca else f
+                    for level, f in enumerate(features)]
         return features, out["confidences"].astype(np.float32), out["valid"]
 
     def block(self, i: int, scale: int):

@@ -28,7 +28,10 @@ class SearchConfig:
     and points (a seeded subset) of the screening. average: the pose averaged over the references'
     covisibility cluster (the ``average`` prior) is one more start, with its perturbations. The
     top-1 reference's pose and the average pose always go on to the finer levels (then the search
-    loses nothing where ``top1`` or ``average`` converge), besides the ``keep`` best other starts."""
+    loses nothing where ``top1`` or ``average`` converge), besides the ``keep`` best other starts.
+    merge_t, merge_R: two of these whose coarse poses lie within ``merge_t`` x the top reference's
+    median point depth and ``merge_R`` degrees of each other sit in one basin, and only the first
+    (top-1, average, then the others) is refined (0: only identical poses)."""
 
     references: int = 3
     yaw: float = 15.0
@@ -38,12 +41,14 @@ class SearchConfig:
     iters: int = 15
     max_points: int = 1024
     average: bool = True
+    merge_t: float = 0.02
+    merge_R: float = 1.0
 
     def validate(self) -> None:
         if min(self.references, self.keep, self.iters, self.max_points) < 1:
             raise ValueError("search: references, keep, iters and max_points must be at least 1.")
-        if min(self.yaw, self.pitch, self.shift) < 0:
-            raise ValueError("search: yaw, pitch and shift must not be negative.")
+        if min(self.yaw, self.pitch, self.shift, self.merge_t, self.merge_R) < 0:
+            raise ValueError("search: yaw, pitch, shift, merge_t and merge_R must not be negative.")
 
     def size(self) -> int:
         """Hypotheses per reference."""
@@ -102,3 +107,12 @@ def hypotheses(reader: MapReader, dbs: List[int], conf: SearchConfig, average=No
         depth = median_depth(reader, dbs[0])
         out += [(T, f"average: {label}") for T, label in perturbations(average, depth, conf)]
     return out
+
+
+def same_basin(a: np.ndarray, b: np.ndarray, depth: float, conf: SearchConfig) -> bool:
+    """Whether two coarse poses (cam_from_world) lie within ``conf.merge_t`` x ``depth`` (camera
+    centres) and ``conf.merge_R`` degrees of each other."""
+    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    ca, cb = -a[:, :3].T @ a[:, 3], -b[:, :3].T @ b[:, 3]
+    cos = np.clip((np.trace(a[:, :3] @ b[:, :3].T) - 1) / 2, -1, 1)
+    return bool(np.linalg.norm(ca - cb) <= conf.merge_t * depth and np.degrees(np.arccos(cos)) <= conf.merge_R)

@@ -25,7 +25,7 @@ from .priors import covisibility_clusters, pose_approximation
 from .queries import QueryRecord
 from .readers.hloc import PnPLog, read_hloc_logs
 from .results import read_records, result_to_record, write_records
-from .search import SearchConfig, hypotheses
+from .search import SearchConfig, hypotheses, median_depth, same_basin
 from .runtime import restore_malloc_thresholds, torch_threads
 from .store import StoreError
 
@@ -288,7 +288,7 @@ def prepare_query(job: LocalizationJob, reader: MapReader, localizer: Localizer,
         # always refined: the top-1 pose (first) and the average pose (first of the last block)
         always = [0] + ([len(starts) - job.search.size()] if job.search.average else [])
         return _Hypotheses([(query, dbs[:num], T, rgb, cache) for T, _ in starts], [label for _, label in starts],
-                           always=always)
+                           always=always, depth=median_depth(reader, dbs[0]))
     if job.prior == "poses":
         prior = find_by_name(read_poses_file(job.prior_poses), query.name)
         if prior is None:
@@ -333,11 +333,13 @@ def _prepare_hloc(job: LocalizationJob, reader: MapReader, query: QueryRecord, r
 class _Hypotheses(list):
     """The localize_batch items of one query's search, with a label per starting pose; after the
     screening, also the top-1 start (the prior a rejected search reports) and how many were screened;
-    ``always``: the starts refined whatever the screening ranks them."""
+    ``always``: the starts refined whatever the screening ranks them; ``depth``: the top reference's
+    median point depth (the scale of the scene); ``merged``: kept starts left out as duplicates."""
 
-    def __init__(self, items, labels, top1=None, screened=None, always=(0,)):
+    def __init__(self, items, labels, top1=None, screened=None, always=(0,), depth=1.0, merged=0):
         super().__init__(items)
         self.labels, self.top1, self.screened, self.always = labels, top1, screened, list(always)
+        self.depth, self.merged = depth, merged
 
 
 def _solve(localizer: Localizer, prepared: List) -> List[Tuple]:
@@ -384,8 +386,9 @@ def localize_queries(job: LocalizationJob, reader: MapReader, localizer: Localiz
         best = candidates[j]
         if isinstance(p, _Hypotheses):  # a search: report the top-1 reference's pose when rejected
             best.prior = np.asarray(p.top1, np.float64)
+            merged = f" ({p.merged} more in the same basin as one of them)" if p.merged else ""
             best.notes.append(f"search: {p.screened} starting poses screened at the coarsest level, {len(p)} "
-                              f"refined; the winner started from {p.labels[j]}")
+                              f"refined{merged}; the winner started from {p.labels[j]}")
         results.append(best)
     return results
 
@@ -405,12 +408,17 @@ def _search(job: LocalizationJob, reader: MapReader, localizer: Localizer, prepa
         # the top-1 reference's pose and the average pose go on (so the search loses nothing where top1
         # or average converge), with the best others by their coarse confidence
         own = [j for j in p.always if results[j].refined is not None]
-        kept = own + [j for j in _rank(results) if j not in own][:job.search.keep]
-        if not kept:  # no start converged at the coarsest level: the top-1 start fails with its reason
+        candidates = own + [j for j in _rank(results) if j not in own][:job.search.keep]
+        if not candidates:  # no start converged at the coarsest level: the top-1 start fails with its reason
             out.append(results[0])
             continue
+        kept = []  # starts whose coarse poses share a basin with one kept before are refined once
+        for j in candidates:
+            if not any(same_basin(results[j].refined, results[i].refined, p.depth, conf) for i in kept):
+                kept.append(j)
         out.append(_Hypotheses([(*p[j][:2], results[j].refined, *p[j][3:]) for j in kept],
-                               [p.labels[j] for j in kept], top1=p[0][2], screened=len(p)))
+                               [p.labels[j] for j in kept], top1=p[0][2], screened=len(p),
+                               merged=len(candidates) - len(kept)))
     return out
 
 

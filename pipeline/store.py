@@ -18,6 +18,8 @@ Layout (version 3, documented in docs/map_store.md):
         s{k}/features (R, C) every level's channels side by side (C = sum of dims):
                       float16, float32, or int8 with s{k}/scales (R, L) float16
         s{k}/confidences (R, L) float16, s{k}/valid (R, L) bool
+        s{k}/pca_mean_{l} (C_l,), s{k}/pca_basis_{l} (C_l, D) float32   [config pca = D > 0: the
+                      levels with C_l > D are stored as their D principal components]
 
 Rows are grouped by image and each image's block is padded to a multiple of
 ``shard_rows``: every shard (one file per array, inner chunks of ``chunk_rows``
@@ -35,7 +37,7 @@ import functools
 import hashlib
 import json
 from pathlib import Path
-from typing import Dict, List, Optional, Tuple
+from typing import Callable, Dict, List, Optional, Tuple
 
 import numpy as np
 import zarr
@@ -317,14 +319,20 @@ def check_feature_group(group: zarr.Group, meta: Dict, path) -> None:
     except (KeyError, TypeError, ValueError) as e:
         raise StoreError(f"{path}: feature group {group.path} has no readable config or dims ({e}).") from None
     I, R, L = meta["num_images"], meta["num_rows"], len(dims)  # noqa: E741
+    stored = stored_dims(group)
     expected = {"status": (I,), "reason": (I,)}
     for k in range(scales):
-        expected.update({f"s{k}/features": (R, sum(dims)), f"s{k}/confidences": (R, L), f"s{k}/valid": (R, L)})
+        expected.update({f"s{k}/features": (R, sum(stored)), f"s{k}/confidences": (R, L), f"s{k}/valid": (R, L)})
         if group.attrs["config"].get("dtype") == "int8":
             expected[f"s{k}/scales"] = (R, L)
+        for level, (d, kept) in enumerate(zip(dims, stored)):
+            if kept < d:
+                expected[f"s{k}/pca_mean_{level}"] = (d,)
+                expected[f"s{k}/pca_basis_{level}"] = (d, kept)
     for name, shape in expected.items():
         array = _get(group, name, path)
-        if tuple(array.shape[1:]) != shape[1:] or array.shape[0] < shape[0]:
+        if tuple(array.shape[1:]) != shape[1:] or array.shape[0] < shape[0] or (
+                "pca_" in name and tuple(array.shape) != shape):
             raise StoreError(f"{path}: array {group.path}/{name} has shape {tuple(array.shape)}, expected {shape}.")
     if _get(group, "global", path).shape[0] < I:
         raise StoreError(f"{path}: array {group.path}/global has {group['global'].shape[0]} rows for {I} images.")
@@ -353,7 +361,8 @@ def feature_key(conf: FeatureConfig) -> str:
     scales = "-".join(str(s) for s in conf.image_scales)
     dtype = "" if conf.dtype == "float16" else f"_{conf.dtype}"
     descriptor = "" if conf.descriptor == "gem" else f"_{conf.descriptor}"
-    return f"{name}_r{conf.resize}_s{scales}_p{conf.pad}{dtype}{descriptor}"
+    pca = f"_pca{conf.pca}" if conf.pca else ""
+    return f"{name}_r{conf.resize}_s{scales}_p{conf.pad}{dtype}{descriptor}{pca}"
 
 
 def descriptor_dim(kind: str, channels: int) -> int:
@@ -361,8 +370,15 @@ def descriptor_dim(kind: str, channels: int) -> int:
     return channels * 6 if kind == "grid" else channels
 
 
-def init_features(root: zarr.Group, conf: FeatureConfig, digest: str, dims: List[int]) -> zarr.Group:
-    """Create (or check and reuse) the feature group of ``conf``; another model is refused."""
+PCABases = Dict[Tuple[int, int], Tuple[np.ndarray, np.ndarray]]
+
+
+def init_features(root: zarr.Group, conf: FeatureConfig, digest: str, dims: List[int],
+                  pca: Optional[Callable[[], PCABases]] = None) -> zarr.Group:
+    """Create (or check and reuse) the feature group of ``conf``; another model is refused.
+
+    With ``conf.pca``, creating the group needs ``pca``: a function returning, per (image scale,
+    level) stored reduced, the mean (C,) and basis (C, D) (``fit_pca``); called only then."""
     key = feature_key(conf)
     expected = {"config": conf.to_dict(), "model_digest": digest, "dims": list(dims)}
     if f"features/{key}" in root:
@@ -375,6 +391,13 @@ def init_features(root: zarr.Group, conf: FeatureConfig, digest: str, dims: List
         return group
     meta = root.attrs["pixloc_map"]
     I, R, L = meta["num_images"], meta["num_rows"], len(dims)  # noqa: E741
+    stored = conf.stored_dims(dims)
+    bases: PCABases = {}
+    if stored != list(dims):
+        if pca is None:
+            raise ValueError(f"Feature group {key!r} stores a PCA of the features: it is created with its bases "
+                             "(pipeline.build.write_structure fits them).")
+        bases = pca()
     group = root.create_group(f"features/{key}")
     group.attrs.update(expected)
     _array(group, "status", (I,), (1,), "int8", fill_value=PENDING)
@@ -382,7 +405,15 @@ def init_features(root: zarr.Group, conf: FeatureConfig, digest: str, dims: List
     D = descriptor_dim(conf.descriptor, dims[-1])
     _array(group, "global", (I, D), (1, D), "float32", fill_value=0)
     for k in range(len(conf.image_scales)):
-        _rows_array(group, f"s{k}/features", R, sum(dims), conf.dtype, meta, fill_value=0)
+        for level, (d, kept) in enumerate(zip(dims, stored)):
+            if kept < d:
+                mean, basis = bases[(k, level)]
+                if mean.shape != (d,) or basis.shape != (d, kept):
+                    raise ValueError(f"PCA of image scale {k}, level {level}: shapes {mean.shape} and {basis.shape}, "
+                                     f"expected {(d,)} and {(d, kept)}.")
+                _array(group, f"s{k}/pca_mean_{level}", (d,), (d,), "float32")[:] = mean
+                _array(group, f"s{k}/pca_basis_{level}", (d, kept), (d, kept), "float32")[:] = basis
+        _rows_array(group, f"s{k}/features", R, sum(stored), conf.dtype, meta, fill_value=0)
         if conf.dtype == "int8":
             _rows_array(group, f"s{k}/scales", R, L, "float16", meta, fill_value=0)
         _rows_array(group, f"s{k}/confidences", R, L, "float16" if conf.dtype == "int8" else conf.dtype, meta,
@@ -413,6 +444,48 @@ def dequantize_int8(codes: np.ndarray, scales: np.ndarray, dims: List[int]) -> L
             for i in range(len(dims))]
 
 
+def fit_pca(samples: np.ndarray, components: int, max_rows: int = 50_000, seed: int = 0
+            ) -> Tuple[np.ndarray, np.ndarray]:
+    """Mean (C,) and the ``components`` leading principal directions (C, D), orthonormal columns, of
+    the rows of ``samples`` (N, C) (a seeded subset of at most ``max_rows``), float32."""
+    x = np.asarray(samples, np.float64)
+    if len(x) < components:
+        raise ValueError(f"A PCA of {components} components needs at least as many samples, not {len(x)}.")
+    if len(x) > max_rows:
+        x = x[np.sort(np.random.default_rng(seed).choice(len(x), max_rows, replace=False))]
+    mean = x.mean(0)
+    _, _, vt = np.linalg.svd(x - mean, full_matrices=False)
+    return mean.astype(np.float32), np.ascontiguousarray(vt[:components].T).astype(np.float32)
+
+
+def project(features: np.ndarray, basis: Tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+    """(N, C) features -> (N, D) components of ``basis`` (mean, directions)."""
+    mean, directions = basis
+    return (np.asarray(features, np.float32) - mean) @ directions
+
+
+def reconstruct(components: np.ndarray, basis: Tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+    """(N, D) components -> (N, C) features."""
+    mean, directions = basis
+    return components @ directions.T + mean
+
+
+def stored_dims(group: zarr.Group) -> List[int]:
+    """The channels a feature group stores per level (fewer than the network's with a PCA)."""
+    pca = int(group.attrs["config"].get("pca", 0))
+    return [min(int(d), pca) if pca else int(d) for d in group.attrs["dims"]]
+
+
+def pca_bases(group: zarr.Group) -> PCABases:
+    """{(image scale, level): (mean, directions)} of a feature group stored as a PCA (else empty)."""
+    conf = group.attrs["config"]
+    pca = int(conf.get("pca", 0))
+    if not pca:
+        return {}
+    return {(k, level): (group[f"s{k}/pca_mean_{level}"][:], group[f"s{k}/pca_basis_{level}"][:])
+            for k in range(len(conf["image_scales"])) for level, d in enumerate(group.attrs["dims"]) if d > pca}
+
+
 def image_records(root: zarr.Group) -> List[ImageRecord]:
     """The stored images as records (paths as recorded at build time)."""
     meta = root.attrs["pixloc_map"]
@@ -437,14 +510,16 @@ def write_image_features(group: zarr.Group, root: zarr.Group, i: int, feats: Ima
     block = slice(rows.start, rows.start + int(_padded(np.array(n), shard)))
     n_pad = block.stop - block.start
     dims = [int(d) for d in group.attrs["dims"]]
+    bases, stored = pca_bases(group), stored_dims(group)
     for k in range(len(group.attrs["config"]["image_scales"])):
         levels = [feats.samples[(k, level)] for level in range(len(dims))]
-        f = np.concatenate([x[0] for x in levels], 1)
+        f = np.concatenate([project(x[0], bases[(k, level)]) if (k, level) in bases else x[0]
+                            for level, x in enumerate(levels)], 1)
         c = np.stack([x[1] for x in levels], 1)
         v = np.stack([x[2] for x in levels], 1)
         g = group[f"s{k}"]
         if "scales" in g:
-            f, scales = quantize_int8(f, dims)
+            f, scales = quantize_int8(f, stored)
             g["scales"][block] = _pad_rows(scales, n_pad)
         g["features"][block] = _pad_rows(f.astype(g["features"].dtype), n_pad)
         g["confidences"][block] = _pad_rows(c.astype(g["confidences"].dtype), n_pad)

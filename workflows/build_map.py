@@ -43,12 +43,12 @@ class BuildPlan:
         (2 bytes per channel in float16, 1 in int8 plus a scale per level, 4 in float32), then a
         confidence and a valid flag per level; padding rows are not stored."""
         n_obs = len(self.scene.obs_point)
-        dims = self.dims
+        dims = self.conf.stored_dims(self.dims)
         width = {"float16": 2, "int8": 1, "float32": 4}[self.conf.dtype]
         conf = 4 if self.conf.dtype == "float32" else 2
         per_level = conf + 1 + (2 if self.conf.dtype == "int8" else 0)
         per_obs = len(self.conf.image_scales) * (width * sum(dims) + per_level * len(dims)) + 8 + 8
-        return n_obs * per_obs + len(self.scene.points) * 28 + len(self.scene.images) * (4 * dims[-1] + 200)
+        return n_obs * per_obs + len(self.scene.points) * 28 + len(self.scene.images) * (4 * self.dims[-1] + 200)
 
     def describe(self) -> str:
         n_obs = len(self.scene.obs_point)

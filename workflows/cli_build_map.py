@@ -42,6 +42,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--dtype", choices=list(DTYPES), default=_F.dtype,
                    help="feature storage: float16 (default), int8 (codes and a scale per row and level: "
                         "smaller, for large maps) or float32")
+    p.add_argument("--pca", type=int, default=0, metavar="D",
+                   help="store the levels with more than D channels as their D principal components (a PCA "
+                        "of the map's features, fitted on 8 of its images; e.g. 48 with --dtype int8 and two "
+                        "image scales: about 300 bytes per observation); default 0: every channel")
     p.add_argument("--chunk-rows", type=int, default=256, help="rows per chunk (the unit of a partial read)")
     p.add_argument("--shard-rows", type=int,
                    help="rows per shard file (a multiple of --chunk-rows; default: fits 90%% of the images)")
@@ -71,7 +75,8 @@ def main(args: argparse.Namespace) -> int:
     store = absolute(args.store)
     source = MapSource(args.kind, absolute(args.path), absolute(args.images), tuple(args.sequences),
                        args.rgbd_points, args.densify, tuple(args.intrinsics), args.depth_scale, args.depth_ext)
-    conf = FeatureConfig(model, args.resize, tuple(args.image_scales), args.pad, args.dtype, args.descriptor)
+    conf = FeatureConfig(model, args.resize, tuple(args.image_scales), args.pad, args.dtype, args.descriptor,
+                         args.pca)
     pairs = PairsConfig("file" if args.pairs_file and args.pairs == "auto" else args.pairs,
                         args.pairs_neighbors, path=str(absolute(args.pairs_file)) if args.pairs_file else None)
     work_dir = absolute(args.work_dir) or store.with_suffix(".work")

@@ -2,6 +2,7 @@
 
 import json
 import logging
+import time
 from dataclasses import asdict
 from pathlib import Path
 from typing import Dict, List, Optional, Sequence
@@ -58,9 +59,12 @@ def read_colmap(model_dir, image_dir, tags=None) -> Scene:
 
 def _extract_and_match(database: Path, image_dir: Path, names: Sequence[str], pairs: PairsConfig,
                        cameras: Optional[Sequence[CameraRecord]] = None,
-                       cam_from_world: Optional[Sequence[np.ndarray]] = None) -> None:
+                       cam_from_world: Optional[Sequence[np.ndarray]] = None,
+                       timings: Optional[Dict[str, float]] = None) -> None:
     """SIFT features, and matches over the pairs of ``pairs``, into ``database``; known
-    intrinsics if given."""
+    intrinsics if given; the seconds of each (``sift``, ``matching``) into ``timings``."""
+    timings = {} if timings is None else timings
+    t0 = time.perf_counter()
     options = pycolmap.ImageReaderOptions()
     if cameras is not None:
         options.camera_model = "PINHOLE"
@@ -78,8 +82,11 @@ def _extract_and_match(database: Path, image_dir: Path, names: Sequence[str], pa
                 known.params = list(rec.params)
                 known.has_prior_focal_length = True
                 db.update_camera(known)
+    timings["sift"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
     match(database, names, pairs, database.parent, cam_from_world=cam_from_world, image_dir=image_dir,
           model=DEFAULT_MODEL)
+    timings["matching"] = time.perf_counter() - t0
 
 
 def _pairs_fingerprint(pairs: PairsConfig, num_images: int, posed: bool) -> dict:
@@ -166,13 +173,14 @@ def run_sfm(image_dir, work_dir, names: Optional[Sequence[str]] = None, tags=Non
 
 def triangulate_known_poses(images: List[ImageRecord], image_root, work_dir, *,
                             min_track_length: int = 2, max_reprojection_error: float = 2.0,
-                            pairs: PairsConfig = PairsConfig()) -> Scene:
+                            pairs: PairsConfig = PairsConfig(), timings: Optional[Dict[str, float]] = None) -> Scene:
     """Extract and match SIFT (over ``pairs``: exhaustive for small maps, nearby cameras with
     overlapping views above that), then triangulate with the given poses and intrinsics held fixed.
 
     image names must be paths relative to ``image_root``. Tracks shorter than
     ``min_track_length`` or with a mean reprojection error above
-    ``max_reprojection_error`` pixels are removed.
+    ``max_reprojection_error`` pixels are removed. ``timings``, if given, receives the seconds of
+    each stage (``sift``, ``matching``, ``triangulation``; nothing when a finished model is reused).
     """
     image_root, work_dir = Path(image_root), Path(work_dir)
     work_dir.mkdir(parents=True, exist_ok=True)
@@ -190,8 +198,10 @@ def triangulate_known_poses(images: List[ImageRecord], image_root, work_dir, *,
     database = work_dir / "database.db"
     if database.exists():
         database.unlink()
+    stages = {} if timings is None else timings
     _extract_and_match(database, image_root, names, pairs, [im.camera for im in images],
-                       [im.cam_from_world for im in images])
+                       [im.cam_from_world for im in images], stages)
+    t0 = time.perf_counter()
     rec = pycolmap.Reconstruction()
     with pycolmap.Database.open(database) as db:
         for image in db.read_all_images():
@@ -204,6 +214,10 @@ def triangulate_known_poses(images: List[ImageRecord], image_root, work_dir, *,
             rec.delete_point3D(pid)
     if rec.num_points3D() == 0:
         raise SceneError("Triangulation from the known poses produced no 3D points.")
+    stages["triangulation"] = time.perf_counter() - t0
+    logger.info("Triangulated %d points from %d images with known poses in %.0f s (SIFT %.0f s, matching %.0f s).",
+                rec.num_points3D(), len(names), stages["triangulation"], stages.get("sift", 0.0),
+                stages.get("matching", 0.0))
     rec = _finish(rec, work_dir, "triangulation.json", "model", fingerprint)
     return _known_pose_scene(rec, image_root, by_name)
 

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from pipeline.evaluate import pose_errors
-from pipeline.search import SearchConfig, perturbations
+from pipeline.search import SearchConfig, perturbations, same_basin
 
 
 def _pose(seed=0):
@@ -41,3 +41,19 @@ def test_a_search_without_perturbations_is_the_reference_poses():
     assert [label for _, label in perturbations(_pose(), 1.0, SearchConfig(yaw=0, pitch=0, shift=0))] == ["reference"]
     with pytest.raises(ValueError, match="at least 1"):
         SearchConfig(keep=0).validate()
+
+
+def test_coarse_poses_within_the_merge_tolerance_share_a_basin():
+    T = _pose(1)
+    conf = SearchConfig(merge_t=0.02, merge_R=1.0)
+    depth = 10.0  # 2 % of it: 0.2 units
+    moved = T.copy()
+    moved[:, 3] -= T[:, :3] @ np.array([0.15, 0.0, 0.0])  # the centre moved by 0.15
+    assert same_basin(T, moved, depth, conf)
+    moved[:, 3] -= T[:, :3] @ np.array([0.1, 0.0, 0.0])  # 0.25 in all
+    assert not same_basin(T, moved, depth, conf)
+    turned = perturbations(T, depth, SearchConfig(yaw=0.8, pitch=0, shift=0))[1][0]
+    assert same_basin(T, turned, depth, conf)
+    turned = perturbations(T, depth, SearchConfig(yaw=1.5, pitch=0, shift=0))[1][0]
+    assert not same_basin(T, turned, depth, conf)
+    assert same_basin(T, T, depth, SearchConfig(merge_t=0, merge_R=0))  # 0 tolerances: equal poses only

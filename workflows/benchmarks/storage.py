@@ -1,6 +1,7 @@
-"""Benchmark: what int8 feature storage saves on disk, and what it costs in localization.
+"""Benchmark: what int8 (and PCA) feature storage saves on disk, and what it costs in localization.
 
-For each scene and storage type (``float16``, the default, and ``int8``), the same map is built
+For each scene and storage type (``--storage``: ``float16``, the default, and ``int8``; a PCA of D
+components as ``int8-pcaD``), at ``--image-scales`` (default 1), the same map is built
 (leave-one-out on Strecha fountain-P11 and Herz-Jesus-P8, the demo scene, 7scenes_stairs; the
 triangulations and the demo scene of the verification benchmark in ``--work`` are reused) and
 its queries are localized from retrieval (top-1 prior, verification on). Per scene and type:
@@ -43,6 +44,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="the verification benchmark's folder (its triangulations are reused); stores and "
                         "runs go to WORK/storage")
     p.add_argument("--scenes", nargs="+", default=list(SCENES), choices=SCENES)
+    p.add_argument("--storage", nargs="+", default=list(DTYPES), metavar="TYPE",
+                   help="storage types compared with the first: float16, int8, float32, optionally with a PCA "
+                        "of D components as TYPE-pcaD (e.g. int8-pca48); default float16 int8")
+    p.add_argument("--image-scales", type=int, nargs="+", default=[1],
+                   help="image scales of the maps (default 1; the official multiscale is 4 1)")
 
 
 def _parts(args, key: str, fconf: FeatureConfig, stores: Path):
@@ -68,20 +74,28 @@ def store_bytes(store: Path, conf: FeatureConfig) -> Dict[str, float]:
             "store_B": sum(f.stat().st_size for f in files) / n_obs, "files": len(files) / n_img}
 
 
+def storage_config(base: FeatureConfig, variant: str) -> FeatureConfig:
+    """``TYPE`` or ``TYPE-pcaD`` -> the feature config with that storage."""
+    dtype, _, pca = variant.partition("-pca")
+    return dataclasses.replace(base, dtype=dtype, pca=int(pca or 0))
+
+
 def scene_rows(args, key: str) -> List[Dict]:
-    base = FeatureConfig(model=DEFAULT_MODEL, resize=512, image_scales=(1,))
+    scales = tuple(getattr(args, "image_scales", (1,)))
+    base = FeatureConfig(model=DEFAULT_MODEL, resize=512, image_scales=scales)
     lconf = LocalizerConfig(num_dbs=3, num_iters=50)
     rows = []
-    for dtype in DTYPES:
-        stores = args.work / "storage" / dtype
+    suffix = "" if scales == (1,) else "-s" + "-".join(map(str, scales))
+    for dtype in getattr(args, "storage", DTYPES):
+        stores = args.work / "storage" / f"{dtype}{suffix}"
         stores.mkdir(parents=True, exist_ok=True)
         records, gt, sizes = [], {}, []
-        for name, store, queries in _parts(args, key, dataclasses.replace(base, dtype=dtype), stores):
+        for name, store, queries in _parts(args, key, storage_config(base, dtype), stores):
             from workflows.cli_localize import store_feature_config
             conf = store_feature_config(store)
             job = LocalizationJob(str(store), conf, conf.model, lconf,
                                   RetrievalConfig(k=5, same_tag="area" if key == "demo" else None))
-            out = args.work / "storage" / "runs" / dtype / name.replace("/", "-")
+            out = args.work / "storage" / "runs" / f"{dtype}{suffix}" / name.replace("/", "-")
             records += run_sync(plan_localization(job, queries, out, shard_size=8))
             gt.update({q.name: q.cam_from_world_gt for q in queries})
             sizes.append(store_bytes(store, conf))
@@ -179,7 +193,9 @@ def table(rows: List[Dict]) -> str:
     lines = ["| scene | storage | maps | queries | feature B / obs | store B / obs | files / image | "
              + " | ".join(k[len("recall@"):] for k in keys) + " |",
              "| --- | --- | ---: | ---: | ---: | ---: | ---: | " + " | ".join("---:" for _ in keys) + " |"]
-    base = {r["scene"]: r for r in rows if r["dtype"] == "float16"}
+    base = {}
+    for r in rows:  # the first storage type of each scene is the baseline
+        base.setdefault(r["scene"], r)
     for r in rows:
         b = base.get(r["scene"])
         cells = []
