@@ -34,7 +34,7 @@ from ..localize import plan_localization, run_sync
 from .verification import _demo, _seven_scenes, _strecha
 
 THRESHOLDS = ((0.05, 1.0), (0.25, 2.0), (1.0, 5.0))
-SCENES = ("fountain", "herzjesus", "demo", "7scenes", "oracle")
+SCENES = ("fountain", "herzjesus", "demo", "7scenes", "sacre_coeur", "oracle")
 DTYPES = ("float16", "int8")
 
 
@@ -48,7 +48,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="storage types compared with the first: float16, int8, float32, optionally with a PCA "
                         "of D components as TYPE-pcaD (e.g. int8-pca48); default float16 int8")
     p.add_argument("--image-scales", type=int, nargs="+", default=[1],
-                   help="image scales of the maps (default 1; the official multiscale is 4 1)")
+                   help="image scales of the maps (default 1; the official multiscale is 4 1, with --resize 1024: "
+                        "at 512, the coarse image is too small for the coarsest level)")
+    p.add_argument("--resize", type=int, default=512, help="longer image side of the Strecha maps (default 512; "
+                   "the demo and 7-Scenes keep 320, Sacre Coeur 1024)")
 
 
 def _parts(args, key: str, fconf: FeatureConfig, stores: Path):
@@ -60,6 +63,9 @@ def _parts(args, key: str, fconf: FeatureConfig, stores: Path):
                         fconf, stores)
     if key == "demo":
         return _demo(args.work, fconf, stores)
+    if key == "sacre_coeur":  # each oracle query photo against the other 9, and the night photo against all 10
+        from .sacre_coeur import sacre_coeur
+        return sacre_coeur(args.shared, stores, dataclasses.replace(fconf, resize=1024))
     return _seven_scenes(args.shared, args.work, fconf, stores)
 
 
@@ -81,11 +87,11 @@ def storage_config(base: FeatureConfig, variant: str) -> FeatureConfig:
 
 
 def scene_rows(args, key: str) -> List[Dict]:
-    scales = tuple(getattr(args, "image_scales", (1,)))
-    base = FeatureConfig(model=DEFAULT_MODEL, resize=512, image_scales=scales)
+    scales, resize = tuple(getattr(args, "image_scales", (1,))), getattr(args, "resize", 512)
+    base = FeatureConfig(model=DEFAULT_MODEL, resize=resize, image_scales=scales)
     lconf = LocalizerConfig(num_dbs=3, num_iters=50)
     rows = []
-    suffix = "" if scales == (1,) else "-s" + "-".join(map(str, scales))
+    suffix = ("" if scales == (1,) else "-s" + "-".join(map(str, scales))) + ("" if resize == 512 else f"-r{resize}")
     for dtype in getattr(args, "storage", DTYPES):
         stores = args.work / "storage" / f"{dtype}{suffix}"
         stores.mkdir(parents=True, exist_ok=True)
