@@ -45,7 +45,8 @@ class LMResult:
 
     pose: (B,) refined cam_from_world. failed: (B,) fewer than ``min_points``
     valid points at some iteration, or a non-finite step. cost: (B, I) mean
-    robust cost over valid points at each of the I iterations run.
+    robust cost over valid points at each of the I iterations run (a problem that
+    stopped earlier keeps its last cost in the later columns).
     iterations: (B,) iterations each problem took (until it converged or the
     budget ran out). num_valid: (B,) valid points at the last iteration.
     trajectory: (B, I) pose after each iteration, if asked for.
@@ -103,7 +104,9 @@ class LevenbergMarquardt(nn.Module):
 
     Unlike official PixLoc, which stops a batch only when all of it has
     converged, each problem is frozen at the check where it converges, so a
-    batched solve gives the same poses as solving the problems one by one.
+    batched solve gives the same poses as solving the problems one by one; from
+    then on it is no longer linearized, so a batch costs the sum of its
+    problems' iterations, not its size times the slowest one's.
     """
 
     def __init__(self, damping: Optional[nn.Module] = None, loss: str = "scaled_barron(0, 0.1)",
@@ -121,13 +124,28 @@ class LevenbergMarquardt(nn.Module):
         self.chunk_points = chunk_points
         self.gpu_chunk_points = gpu_chunk_points
 
-    def _chunks(self, problem: FeaturemetricProblem):
+    def _chunks(self, problem: FeaturemetricProblem, active: Optional[Tensor] = None):
+        """(slice of the batch, sub-problem) pairs covering the ``active`` problems (default all):
+        runs of consecutive active problems, each cut into chunks of at most the point limit.
+        Slices make views: nothing is copied."""
         B, N = problem.p3d_world.shape[:2]
         limit = self.chunk_points if problem.F_ref.device.type == "cpu" else self.gpu_chunk_points
         size = max(1, limit // max(N, 1))
-        if size >= B:
-            return [(slice(None), problem)]
-        return [(slice(i, i + size), problem.index(slice(i, i + size))) for i in range(0, B, size)]
+        if active is None or bool(active.all()):
+            if size >= B:
+                return [(slice(None), problem)]
+            runs = [(0, B)]
+        else:
+            idx = torch.nonzero(active).flatten().tolist()
+            runs, start = [], None
+            for k, j in enumerate(idx):
+                if start is None:
+                    start = j
+                if k + 1 == len(idx) or idx[k + 1] != j + 1:
+                    runs.append((start, j + 1))
+                    start = None
+        return [(slice(i, min(i + size, stop)), problem.index(slice(i, min(i + size, stop))))
+                for begin, stop in runs for i in range(begin, stop, size)]
 
     def _normal_equations(self, T: Pose, chunks):
         """Per problem: gradient (B, 6), Hessian (B, 6, 6), valid count (B,), mean robust cost (B,)."""
@@ -161,9 +179,17 @@ class LevenbergMarquardt(nn.Module):
         active = torch.ones(B, dtype=torch.bool, device=device)
         iterations = torch.zeros(B, dtype=torch.long, device=device)
         costs, trajectory = [], []
-        chunks = self._chunks(problem)
+        chunks, linearized = self._chunks(problem), active
         for i in range(num_iters):
-            g, H, num_valid, cost = self._normal_equations(T, chunks)
+            if linearized is active:
+                g, H, num_valid, cost = self._normal_equations(T, chunks)
+            else:  # only the problems still running are linearized; the others keep their last figures
+                rows = torch.cat([torch.arange(B, device=device)[sl] for sl, _ in chunks])
+                g_a, H_a, valid_a, cost_a = self._normal_equations(T, chunks)
+                g = torch.zeros_like(g).index_copy(0, rows, g_a)
+                H = torch.zeros_like(H).index_copy(0, rows, H_a)
+                num_valid = num_valid.index_copy(0, rows, valid_a)
+                cost = cost.index_copy(0, rows, cost_a)
             failed = failed | (num_valid < self.min_points)
 
             step_mask = active & ~failed
@@ -181,9 +207,12 @@ class LevenbergMarquardt(nn.Module):
             if record_trajectory:
                 trajectory.append(T.detach())
             if not self.training and i % self.stopping.every == 0:
-                active = active & ~(self.stopping.converged(step, g) | failed)
-                if not bool(active.any()):
+                running = active & ~(self.stopping.converged(step, g) | failed)
+                if not bool(running.any()):
                     break
+                if not bool(torch.equal(running, active)):  # some stopped: linearize only the others
+                    active = running
+                    chunks, linearized = self._chunks(problem, active), None
 
         if bool(failed.any()):
             logger.debug("%d of %d problems failed (too few valid points).", int(failed.sum()), B)

@@ -172,3 +172,25 @@ def test_gradient_maps_give_the_official_linearization():
         solver.interpolator = interp
         solve[name] = solver(problem, T_init)
     torch.testing.assert_close(solve["maps"].pose.data, solve["taps"].pose.data, atol=1e-5, rtol=0)
+
+
+def test_problems_that_stopped_are_no_longer_linearized(monkeypatch):
+    """A batch where some problems converge early: from the check where they stop, only the others are
+    linearized (their points are the only work left), and every result equals its one-at-a-time solve."""
+    import pixloc.optim.solver as solver_module
+    problem, T_init = make_problems(4, 300, 16, "cpu", seed=1)
+    T_init = Pose(torch.stack([Pose.from_Rt(torch.eye(3), torch.zeros(3)).data, *T_init.data[1:]]))  # 0 starts at truth
+    solver = LevenbergMarquardt(ConstantDamping(1e-2), num_iters=30).eval()
+    sizes = []
+    real = solver_module.linearize
+    monkeypatch.setattr(solver_module, "linearize", lambda T, p, interp: sizes.append(len(T)) or real(T, p, interp))
+    batched = solver(problem, T_init)
+    iterations = batched.iterations.tolist()
+    assert iterations == [1, 11, 11, 11]  # 0 stops at the first check (iteration 1), the others at the second
+    assert sizes == [4] + [3] * 10  # after the first check, 3 problems linearized, not 4
+    monkeypatch.setattr(solver_module, "linearize", real)
+    for i in range(4):
+        single = solver(problem.index(i), T_init[[i]])
+        torch.testing.assert_close(batched.pose.data[i], single.pose.data[0], atol=1e-5, rtol=0)
+        assert int(batched.iterations[i]) == int(single.iterations[0])
+        assert float(batched.cost[i, iterations[i] - 1]) == pytest.approx(float(single.cost[0, -1]), rel=1e-5)
