@@ -1,7 +1,8 @@
 """Wide-basin search (the ``search`` prior): many starting poses, screened at the coarsest level.
 
 PixLoc's LM converges only inside a basin around the true pose; a retrieved reference's pose
-can lie outside it (metres and tens of degrees off). The search starts from the poses of the
+can lie outside it (metres and tens of degrees off). The top-1 reference's pose is refined first;
+where that refinement is verified, it stands. Elsewhere the search starts from the poses of the
 top retrieved references and from perturbations of each (turns left/right and up/down about
 the camera centre, moves forward/backward along the viewing direction, scaled to the scene by
 the reference's median point depth), runs only the coarsest level for all of them as one LM
@@ -31,7 +32,10 @@ class SearchConfig:
     loses nothing where ``top1`` or ``average`` converge), besides the ``keep`` best other starts.
     merge_t, merge_R: two of these whose coarse poses lie within ``merge_t`` x the top reference's
     median point depth and ``merge_R`` degrees of each other sit in one basin, and only the first
-    (top-1, average, then the others) is refined (0: only identical poses)."""
+    (top-1, average, then the others) is refined (0: only identical poses). first: the top-1 start
+    is refined through every level first, as the ``top1`` prior does, and the other starts are
+    screened and refined only for the queries where that refinement is not verified (a verified
+    top-1 refinement is kept: the search costs nothing where ``top1`` succeeds)."""
 
     references: int = 3
     yaw: float = 15.0
@@ -43,6 +47,7 @@ class SearchConfig:
     average: bool = True
     merge_t: float = 0.02
     merge_R: float = 1.0
+    first: bool = True
 
     def validate(self) -> None:
         if min(self.references, self.keep, self.iters, self.max_points) < 1:

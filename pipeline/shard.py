@@ -334,12 +334,15 @@ class _Hypotheses(list):
     """The localize_batch items of one query's search, with a label per starting pose; after the
     screening, also the top-1 start (the prior a rejected search reports) and how many were screened;
     ``always``: the starts refined whatever the screening ranks them; ``depth``: the top reference's
-    median point depth (the scale of the scene); ``merged``: kept starts left out as duplicates."""
+    median point depth (the scale of the scene); ``merged``: kept starts left out as duplicates;
+    ``first``: the top-1 start's refinement through every level when it ran before the search."""
 
-    def __init__(self, items, labels, top1=None, screened=None, always=(0,), depth=1.0, merged=0):
+    def __init__(self, items, labels, top1=None, screened=None, always=(0,), depth=1.0, merged=0, first=None,
+                 first_label=None):
         super().__init__(items)
         self.labels, self.top1, self.screened, self.always = labels, top1, screened, list(always)
         self.depth, self.merged = depth, merged
+        self.first, self.first_label = first, first_label  # the top-1 start's full refinement, if done first
 
 
 def _solve(localizer: Localizer, prepared: List) -> List[Tuple]:
@@ -375,22 +378,45 @@ def localize_queries(job: LocalizationJob, reader: MapReader, localizer: Localiz
             logger.warning("Query %s failed: %s", q.name, e)
             prepared.append(_failure(q, f"{type(e).__name__}: {e}"))
     if job.prior == "search":
-        prepared = _search(job, reader, localizer, prepared)
+        prepared = _search(job, reader, localizer, _top1_first(job, localizer, prepared))
     results = []
     for p, candidates in _solve(localizer, prepared):
         if candidates is None:
             results.append(p)
             continue
+        labels = getattr(p, "labels", None)
+        if isinstance(p, _Hypotheses) and p.first is not None:  # the top-1 start, refined before the search
+            candidates, labels = [p.first] + candidates, [p.first_label] + labels
         ranked = _rank(candidates)
         j = ranked[0] if ranked else 0
         best = candidates[j]
         if isinstance(p, _Hypotheses):  # a search: report the top-1 reference's pose when rejected
             best.prior = np.asarray(p.top1, np.float64)
             merged = f" ({p.merged} more in the same basin as one of them)" if p.merged else ""
-            best.notes.append(f"search: {p.screened} starting poses screened at the coarsest level, {len(p)} "
-                              f"refined{merged}; the winner started from {p.labels[j]}")
+            before = "the top-1 start was not verified; " if p.first is not None else ""
+            best.notes.append(f"search: {before}{p.screened} starting poses screened at the coarsest level, "
+                              f"{len(candidates)} refined{merged}; the winner started from {labels[j]}")
         results.append(best)
     return results
+
+
+def _top1_first(job: LocalizationJob, localizer: Localizer, prepared: List) -> List:
+    """With ``search.first``: refine every query's top-1 start through every level (one batch); a
+    verified refinement is the query's result, the others go on to the search with it."""
+    if not job.search.first:
+        return prepared
+    searches = [k for k, p in enumerate(prepared) if isinstance(p, _Hypotheses)]
+    solved = localizer.localize_batch([prepared[k][0] for k in searches]) if searches else []
+    out = list(prepared)
+    for k, result in zip(searches, solved):
+        p = prepared[k]
+        if result.success:
+            result.notes.append(f"search: the top-1 start was verified (confidence {result.confidence:.2f}); "
+                                f"the other {len(p) - 1} starts were not needed")
+            out[k] = result
+        else:
+            p.first, p.first_label = result, p.labels[0]
+    return out
 
 
 def _search(job: LocalizationJob, reader: MapReader, localizer: Localizer, prepared: List) -> List:
@@ -410,15 +436,18 @@ def _search(job: LocalizationJob, reader: MapReader, localizer: Localizer, prepa
         own = [j for j in p.always if results[j].refined is not None]
         candidates = own + [j for j in _rank(results) if j not in own][:job.search.keep]
         if not candidates:  # no start converged at the coarsest level: the top-1 start fails with its reason
-            out.append(results[0])
+            out.append(p.first if p.first is not None else results[0])
             continue
         kept = []  # starts whose coarse poses share a basin with one kept before are refined once
         for j in candidates:
             if not any(same_basin(results[j].refined, results[i].refined, p.depth, conf) for i in kept):
                 kept.append(j)
+        merged = len(candidates) - len(kept)
+        if p.first is not None and kept and kept[0] == 0:  # the top-1 start: refined already
+            kept = kept[1:]
         out.append(_Hypotheses([(*p[j][:2], results[j].refined, *p[j][3:]) for j in kept],
                                [p.labels[j] for j in kept], top1=p[0][2], screened=len(p),
-                               merged=len(candidates) - len(kept)))
+                               merged=merged, first=p.first, first_label=p.first_label))
     return out
 
 

@@ -412,3 +412,38 @@ def test_hypotheses_keep_the_most_confident_refinement(stairs):
         assert len(candidates) == 3
         assert chosen.confidence == max(c.confidence for c in candidates)
         np.testing.assert_allclose(chosen.refined, max(candidates, key=lambda c: c.confidence).refined, atol=1e-6)
+
+
+def test_search_refines_the_top1_start_first_and_searches_only_where_it_is_not_verified(stairs, monkeypatch):
+    """Where the top-1 refinement is verified (here: verification off, every converged refinement is),
+    the search is exactly ``top1`` and screens nothing; where it is not (default verification: 7-Scenes
+    from retrieval, ~46 deg off, is rejected), the search screens its starts and the top-1 refinement
+    stays one of the candidates."""
+    from pipeline.localize import Localizer
+    from pipeline.map_reader import MapReader
+    from pipeline.shard import localization_model, localize_queries
+    from pipeline.verify import VerificationConfig
+    job, queries, _ = stairs
+    refiner, digest = localization_model(job.model)
+    reader = MapReader(job.store, FCONF, digest)
+    calls = []
+    real = Localizer.localize_batch
+    monkeypatch.setattr(Localizer, "localize_batch", lambda self, items: calls.append(len(items)) or real(self, items))
+    off = dataclasses.replace(LCONF, verification=VerificationConfig(enabled=False))
+    for lconf, searched in ((off, False), (LCONF, True)):
+        localizer = Localizer(refiner.extractor, refiner.solvers, reader, lconf)
+        top1 = localize_queries(dataclasses.replace(job, localizer=lconf), reader, localizer, queries[:2])
+        calls.clear()
+        search = localize_queries(dataclasses.replace(job, localizer=lconf, prior="search"), reader, localizer,
+                                  queries[:2])
+        assert calls[0] == 2  # the two top-1 starts, first, in one batch
+        if not searched:
+            assert calls == [2] and all(r.success for r in search)
+            for a, b in zip(top1, search):
+                np.testing.assert_allclose(b.refined, a.refined, atol=1e-9)
+                assert "the top-1 start was verified" in b.notes[-1]
+        else:
+            assert not any(r.success for r in top1) and calls[1] == 2 * 28  # then every start screened
+            for a, b in zip(top1, search):
+                assert "the top-1 start was not verified; 28 starting poses screened" in b.notes[-1]
+                assert b.confidence >= a.confidence  # the top-1 refinement was among the candidates
