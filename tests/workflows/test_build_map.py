@@ -5,7 +5,6 @@ import signal
 import subprocess
 import sys
 import threading
-import time
 from pathlib import Path
 
 import pytest
@@ -15,10 +14,10 @@ from pipeline.readers.colmap import read_colmap
 from pipeline.store import DONE, feature_key, open_store
 from tests.pipeline.helpers import assert_same_store
 from workflows.build_map import plan_build, run_dask, run_sync
+from workflows.process_cluster import DASK, ProcessCluster, wait_for
 
 CONF = FeatureConfig(resize=1024, image_scales=(4, 1))
 ROOT = Path(__file__).resolve().parents[2]
-DASK = Path(sys.executable).parent / "dask"
 
 
 @pytest.fixture(scope="module")
@@ -43,36 +42,16 @@ def done_count(path) -> int:
         return 0
 
 
-def wait_for(predicate, timeout=120.0):
-    start = time.time()
-    while not predicate():
-        if time.time() - start > timeout:
-            raise TimeoutError("condition not reached")
-        time.sleep(0.05)
-
-
 @pytest.fixture
 def cluster(tmp_path):
-    """A scheduler and two worker processes on 127.0.0.1, started with the dask CLI."""
+    """A scheduler and two worker processes ("a", "b") on 127.0.0.1, started with the dask CLI."""
     if not DASK.exists():
         pytest.skip("the dask command is not installed next to this Python")
-    sched_file = tmp_path / "scheduler.json"
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    procs = [subprocess.Popen([str(DASK), "scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard",
-                               "--scheduler-file", str(sched_file)], env=env, stderr=subprocess.DEVNULL)]
-    wait_for(sched_file.exists, 60)
-    for name in ("a", "b"):
-        procs.append(subprocess.Popen(
-            [str(DASK), "worker", "--scheduler-file", str(sched_file), "--nthreads", "1", "--no-nanny",
-             "--no-dashboard", "--name", name, "--host", "127.0.0.1"], env=env, stderr=subprocess.DEVNULL))
-    from distributed import Client
-    client = Client(scheduler_file=str(sched_file), timeout=60)
-    client.wait_for_workers(2, timeout=60)
-    yield client, {"a": procs[1], "b": procs[2]}
+    procs = ProcessCluster(tmp_path, ("a", "b"), timeout=60)
+    client = procs.client()
+    yield client, {"a": procs.procs["a"], "b": procs.procs["b"]}
     client.close()
-    for p in procs:
-        p.kill()
-        p.wait()
+    procs.close()
 
 
 def test_distributed_build_equals_sync(scene, reference, cluster, tmp_path):
@@ -156,8 +135,9 @@ def _done(store: Path) -> int:
         return 0
 
 
-@pytest.mark.parametrize("kind, folder, images", [("strecha", "strecha/Herz-Jesus-P8", 8),
-                                                  ("sfm", "sacre_coeur/mapping", 10)])
+@pytest.mark.parametrize("kind, folder, images", [
+    pytest.param("strecha", "strecha/Herz-Jesus-P8", 8, marks=pytest.mark.slow),  # the same path as sfm's: slow tier
+    ("sfm", "sacre_coeur/mapping", 10)])
 def test_killed_build_resumes_and_a_finished_build_reruns_as_a_noop(shared, tmp_path, kind, folder, images):
     """Before: pycolmap's SfM and triangulation gave another map on each run, so any rerun failed with
     'holds another map ... pass overwrite'. The work folder's finished reconstruction is now reused."""

@@ -21,7 +21,8 @@ from pipeline.localize import LocalizerConfig
 from pipeline.readers.rgbd import read_7scenes
 from pipeline.results import read_records, record_pose
 from pipeline.shard import LocalizationJob, RetrievalConfig
-from tests.workflows.test_build_map import cluster, wait_for  # noqa: F401  (fixture)
+from tests.workflows.test_build_map import cluster  # noqa: F401  (fixture)
+from workflows.process_cluster import wait_for
 from workflows.localize import plan_localization, run_dask, run_sync
 from workflows.sources import load_queries
 

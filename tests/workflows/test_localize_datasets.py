@@ -35,7 +35,7 @@ def run(store, queries, out, fconf=FCONF, lconf=LCONF):
     return records, summary
 
 
-@pytest.mark.parametrize("held_out", ["0003.jpg", "0007.jpg"])
+@pytest.mark.parametrize("held_out", ["0003.jpg", pytest.param("0007.jpg", marks=pytest.mark.slow)])
 def test_strecha_leave_one_out(shared, tmp_path, held_out):
     root = shared / "data" / "strecha" / "fountain-P11"
     images = read_strecha(root)
@@ -52,7 +52,7 @@ def test_strecha_leave_one_out(shared, tmp_path, held_out):
     assert summary["all"]["prior"]["median_t"] < 5.0  # metres: a neighbour's pose
 
 
-@pytest.mark.parametrize("held_out", ["0002.jpg", "0005.jpg"])
+@pytest.mark.parametrize("held_out", ["0002.jpg", pytest.param("0005.jpg", marks=pytest.mark.slow)])
 def test_herz_jesus_leave_one_out_with_the_shipped_model(shared, tmp_path, held_out):
     """A scene held out of the shipped model's training: the held-out view is localized from its
     retrieved neighbour's pose (2 to 3 m, 4 to 6 deg off) to within centimetres."""

@@ -26,6 +26,8 @@ import time
 from pathlib import Path
 from typing import Dict, List, Optional
 
+from ..process_cluster import ProcessCluster, wait_for
+
 DRIVER = r"""
 import json, sys, time
 from pathlib import Path
@@ -64,53 +66,6 @@ with Client(scheduler_file=sched, timeout=60) as client:
 """
 
 
-class Cluster:
-    """A scheduler and worker processes started with the dask CLI (no nanny: a killed worker stays dead)."""
-
-    def __init__(self, work: Path, workers: int):
-        self.work, self.sched = work, work / "scheduler.json"
-        self.sched.unlink(missing_ok=True)
-        self.dask = str(Path(sys.executable).parent / "dask")
-        # one thread per worker for every library (torch tasks set their own; numpy and OpenCV follow this)
-        self.env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(Path(__file__).resolve().parents[2])}
-        self.procs = {"scheduler": subprocess.Popen(
-            [self.dask, "scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard", "--scheduler-file",
-             str(self.sched)], env=self.env, stderr=subprocess.DEVNULL)}
-        wait_for(self.sched.exists, 60)
-        for k in range(workers):
-            self.add_worker(f"w{k}")
-        self.wait(workers)
-
-    def add_worker(self, name: str) -> None:
-        self.procs[name] = subprocess.Popen(
-            [self.dask, "worker", "--scheduler-file", str(self.sched), "--nthreads", "1", "--no-nanny",
-             "--no-dashboard", "--name", name, "--host", "127.0.0.1", "--memory-limit", "0"],
-            env=self.env, stderr=subprocess.DEVNULL)
-
-    def wait(self, n: int) -> None:
-        from distributed import Client
-        with Client(scheduler_file=str(self.sched), timeout=60) as client:
-            client.wait_for_workers(n, timeout=120)
-
-    def kill(self, name: str) -> None:
-        self.procs[name].send_signal(signal.SIGKILL)
-        self.procs[name].wait()
-
-    def close(self) -> None:
-        for p in self.procs.values():
-            if p.poll() is None:
-                p.send_signal(signal.SIGKILL)
-                p.wait()
-
-
-def wait_for(cond, timeout: float, every: float = 0.5) -> None:
-    end = time.time() + timeout
-    while not cond():
-        if time.time() > end:
-            raise TimeoutError("benchmark: a process did not start in time")
-        time.sleep(every)
-
-
 def warm_up(job) -> None:
     """Load the network and open the map in this (worker) process: one-off costs of a worker's first
     task, which P3 leaves out so that it compares the steady-state rates of 1 and 2 workers."""
@@ -120,7 +75,7 @@ def warm_up(job) -> None:
     open_reader(job.store, job.features, digest)
 
 
-def driver(root: Path, store: Path, out: Path, cluster: Cluster, limit: int = 0, order: str = "list",
+def driver(root: Path, store: Path, out: Path, cluster: ProcessCluster, limit: int = 0, order: str = "list",
            warm: bool = False):
     return subprocess.Popen([sys.executable, "-c", DRIVER, str(root), str(store), str(out), str(cluster.sched),
                              str(limit), order, str(int(warm))], env={**os.environ, "OMP_NUM_THREADS": "1"},
@@ -155,10 +110,9 @@ def build_city(args, blocks: int, per_condition: int) -> Dict:
     t2 = time.perf_counter()
     conf = FeatureConfig(resize=160, image_scales=(1,), dtype="int8", descriptor="grid")
     plan = plan_build(scene, store, conf, batch_size=4)
-    cluster = Cluster(args.work, 2)
+    cluster = ProcessCluster(args.work, ("w0", "w1"))
     try:
-        from distributed import Client
-        with Client(scheduler_file=str(cluster.sched), timeout=60) as client:
+        with cluster.client() as client:
             results = build_dask(plan, client)
     finally:
         cluster.close()
@@ -175,7 +129,7 @@ def s1(args) -> Dict:
         import shutil
         shutil.rmtree(out)
     # leg 1: 2 workers; a worker killed at 25 % of the shards (a new one joins), everything killed at 55 %
-    cluster = Cluster(args.work, 2)
+    cluster = ProcessCluster(args.work, ("w0", "w1"))
     t0 = time.perf_counter()
     proc = driver(city["root"], city["store"], out, cluster)
     start = json.loads(proc.stdout.readline())["start"]
@@ -191,7 +145,7 @@ def s1(args) -> Dict:
     leg1_s = time.perf_counter() - t0
     before = shard_files(out)
     # leg 2: a new cluster and process resume
-    cluster = Cluster(args.work, 2)
+    cluster = ProcessCluster(args.work, ("w0", "w1"))
     try:
         t1 = time.perf_counter()
         msgs = lines(driver(city["root"], city["store"], out, cluster))
@@ -205,14 +159,18 @@ def s1(args) -> Dict:
     _, queries = read_synthetic(city["root"])
     names = sorted(q.name for q in queries)
     rewritten = [k for k, t in before.items() if after.get(k) != t]
-    io = [r["store_io"] for r in records if r.get("store_io")]
     return {**city, "shards": total, "shard_size": start["shard_size"], "at_worker_kill": at_worker_kill,
             "at_crash": len(before), "resume_pending": resume["pending"], "leg1_s": leg1_s, "leg2_s": leg2_s,
             "records": len(records), "exactly_once": sorted(r["name"] for r in records) == names,
             "rewritten": len(rewritten), "shards_after": len(after),
             "success": sum(bool(r.get("success")) for r in records),
-            "mib_per_query": sum(x["bytes_read"] / x["shard_queries"] for x in io) / max(len(io), 1) / 2**20,
-            "recall": recall(records, queries)}
+            "mib_per_query": reads(records)["bytes_per_query"] / 2**20, "recall": recall(records, queries)}
+
+
+def reads(records: List[Dict]) -> Dict:
+    """Store bytes read per query and the block-cache hit rate, as ``pixloc localize`` reports them."""
+    from workflows.cli_localize import store_io
+    return store_io(records) or {"bytes_per_query": 0.0, "blocks": 0, "hit_rate": 0.0}
 
 
 def recall(records: List[Dict], queries) -> Dict:
@@ -226,19 +184,16 @@ def timed_run(args, root: Path, store: Path, workers: int, order: str) -> Dict:
     if out.exists():
         import shutil
         shutil.rmtree(out)
-    cluster = Cluster(args.work, workers)
+    cluster = ProcessCluster(args.work, [f"w{k}" for k in range(workers)])
     try:
         msgs = lines(driver(root, store, out, cluster, args.p3_queries, order, warm=True))
     finally:
         cluster.close()
     records = [json.loads(line) for line in (out / "records.jsonl").read_text().splitlines()]
-    io = [r["store_io"] for r in records if r.get("store_io")]
-    blocks = sum(x["blocks_read"] / x["shard_queries"] for x in io)  # each shard's counts, once per shard
-    hits = sum(x["cache_hits"] / x["shard_queries"] for x in io)
+    io = reads(records)
     return {"workers": workers, "order": order, "queries": len(records), "elapsed": msgs[-1]["elapsed"],
-            "queries_per_s": len(records) / msgs[-1]["elapsed"],
-            "mib_per_query": sum(x["bytes_read"] / x["shard_queries"] for x in io) / max(len(io), 1) / 2**20,
-            "hit_rate": hits / max(hits + blocks, 1e-9)}
+            "queries_per_s": len(records) / msgs[-1]["elapsed"], "mib_per_query": io["bytes_per_query"] / 2**20,
+            "hit_rate": io["hit_rate"]}
 
 
 def bare_run(args, root: Path, store: Path, parts: int) -> Dict:

@@ -80,28 +80,33 @@ def main(args: argparse.Namespace) -> int:
     gt = {q.name: q.cam_from_world_gt for q in queries}
     refiner, _ = localization_model(fconf.model, "cpu")
     rows, base = [], None
-    for name, gradient_maps, ppc in WAYS:
-        for solver in refiner.solvers:  # this process's solvers, which the in-process run uses
-            solver.interpolator.gradient_maps = gradient_maps
-        lconf = LocalizerConfig(num_dbs=preset["localizer"]["num_dbs"], num_iters=preset["localizer"]["num_iters"],
-                                points_per_cell=ppc, verification=VerificationConfig(enabled=False))
-        job = LocalizationJob(str(store), fconf, fconf.model, lconf, RetrievalConfig(k=preset["retrieval"]["k"]),
-                              prior="poses", prior_poses=str(args.work / "priors.txt"))
-        # a finished run is reused (its records keep their timings): runs of the same job, one folder per way
-        records = run_sync(plan_localization(job, queries, args.work / f"run-{len(rows)}"))
-        elapsed = sum(r["timings"]["total"] for r in records)
-        poses = {r["name"]: np.asarray(r["refined"]) for r in records}
-        errors = np.array([pose_errors(poses[n], gt[n]) for n in poses])
-        prior_err = np.array([pose_errors(np.asarray(r["prior"]), gt[r["name"]]) for r in records])
-        lm = sum(v for r in records for k, v in r["timings"].items() if k.startswith("optim")) / len(records)
-        diff = None if base is None else np.array([pose_errors(poses[n], base[n]) for n in poses]).max(0)
-        base = base or poses
-        rows.append({"way": name, "s_per_query": elapsed / len(records), "lm_s": lm,
-                     "residuals": [lv["residuals"] for lv in records[0]["per_level"]],
-                     "iterations": float(np.mean([r["iterations"] for r in records])),
-                     "median": np.median(errors, 0).tolist(), "prior": np.median(prior_err, 0).tolist(),
-                     "diff": None if diff is None else diff.tolist()})
-        print(json.dumps(rows[-1]), flush=True)
+    saved = [solver.interpolator.gradient_maps for solver in refiner.solvers]
+    try:
+        for name, gradient_maps, ppc in WAYS:
+            for solver in refiner.solvers:  # this process's solvers, which the in-process run uses
+                solver.interpolator.gradient_maps = gradient_maps
+            lconf = LocalizerConfig(num_dbs=preset["localizer"]["num_dbs"], num_iters=preset["localizer"]["num_iters"],
+                                    points_per_cell=ppc, verification=VerificationConfig(enabled=False))
+            job = LocalizationJob(str(store), fconf, fconf.model, lconf, RetrievalConfig(k=preset["retrieval"]["k"]),
+                                  prior="poses", prior_poses=str(args.work / "priors.txt"))
+            # a finished run is reused (its records keep their timings): runs of the same job, one folder per way
+            records = run_sync(plan_localization(job, queries, args.work / f"run-{len(rows)}"))
+            elapsed = sum(r["timings"]["total"] for r in records)
+            poses = {r["name"]: np.asarray(r["refined"]) for r in records}
+            errors = np.array([pose_errors(poses[n], gt[n]) for n in poses])
+            prior_err = np.array([pose_errors(np.asarray(r["prior"]), gt[r["name"]]) for r in records])
+            lm = sum(v for r in records for k, v in r["timings"].items() if k.startswith("optim")) / len(records)
+            diff = None if base is None else np.array([pose_errors(poses[n], base[n]) for n in poses]).max(0)
+            base = base or poses
+            rows.append({"way": name, "s_per_query": elapsed / len(records), "lm_s": lm,
+                         "residuals": [lv["residuals"] for lv in records[0]["per_level"]],
+                         "iterations": float(np.mean([r["iterations"] for r in records])),
+                         "median": np.median(errors, 0).tolist(), "prior": np.median(prior_err, 0).tolist(),
+                         "diff": None if diff is None else diff.tolist()})
+            print(json.dumps(rows[-1]), flush=True)
+    finally:  # they are this process's cached solvers: leave them as they were
+        for solver, value in zip(refiner.solvers, saved):
+            solver.interpolator.gradient_maps = value
     b = rows[0]["s_per_query"]
     print(f"\n7scenes_stairs, {len(queries)} queries from priors {rows[0]['prior'][0] * 100:.0f} cm / "
           f"{rows[0]['prior'][1]:.1f} deg off (median)\n")
