@@ -23,11 +23,11 @@ def fresh_trainer(lr=1e-3):
 def test_loss_falls_on_a_tiny_synthetic_set(pairs):
     trainer = fresh_trainer(lr=3e-4)
     first = [trainer.step(p)["total"] for p in pairs]
-    for _ in range(9):
+    for _ in range(4):  # the loss levels off at about 0.42 x the first after 5 passes over the pairs
         for p in pairs:
             trainer.step(p)
     last = [trainer.step(p)["total"] for p in pairs]
-    assert sum(last) < 0.8 * sum(first), (first, last)
+    assert sum(last) < 0.7 * sum(first), (first, last)
 
 
 def test_resume_reaches_the_same_state(pairs, tmp_path):
