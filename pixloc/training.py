@@ -18,7 +18,8 @@ from .refiner import PairBatch, TwoViewRefiner, masked_mean
 
 @dataclass(frozen=True)
 class TrainConfig:
-    """lr: base learning rate (official MegaDepth 5e-6, CMU 1e-5). damping_lr_scale: official 100.
+    """lr: base learning rate (official MegaDepth 5e-6, CMU 1e-5). damping_lr_scale: official 100;
+    0 keeps the damping as it is (a fine-tune of the features alone).
     clip_grad: max gradient norm (official 1.0). num_iters: LM iterations per level (official 15).
     freeze_batchnorm: keep BatchNorm statistics fixed (batches of one or two pairs are too small
     to estimate them). grad_checkpointing: recompute the network's activations in backward.

@@ -313,6 +313,7 @@ def train(config: Dict, out: Path, data_root: Path, resume: bool = True, threads
 
     refiner = load_refiner(model)
     tconf = TrainConfig(lr=float(config.get("lr", 1e-4)), clip_grad=float(config.get("clip_grad", 1.0)),
+                        damping_lr_scale=float(config.get("damping_lr_scale", 100.0)),
                         num_iters=int(config.get("num_iters", 15)),
                         grad_checkpointing=bool(config.get("grad_checkpointing", False)),
                         lr_schedule=str(config.get("lr_schedule", "constant")),

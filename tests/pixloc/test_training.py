@@ -51,6 +51,17 @@ def test_damping_learns_at_100x():
     assert all(p.requires_grad for p in trainer.optimizer.param_groups[1]["params"])
 
 
+def test_damping_can_be_kept_while_the_features_learn(pairs):
+    torch.manual_seed(0)
+    trainer = Trainer(load_refiner("lite0-imagenet"), TrainConfig(lr=1e-3, num_iters=3, damping_lr_scale=0.0))
+    before = {n: p.detach().clone() for n, p in trainer.model.named_parameters()}
+    trainer.step(pairs[0])
+    after = dict(trainer.model.named_parameters())
+    damping = [n for n in before if n.startswith("solvers.")]
+    assert damping and all(torch.equal(before[n], after[n]) for n in damping)
+    assert any(not torch.equal(before[n], after[n]) for n in before if not n.startswith("solvers."))
+
+
 def test_gradient_checkpointing_gives_the_same_gradients(pairs):
     grads = []
     for checkpointing in (False, True):
