@@ -104,10 +104,10 @@ class Interpolator:
     mode: ``linear`` (official PixLoc) or ``cubic`` (Keys, needs one more pixel
     of margin). pad: border margin in pixels of the map; points closer to the
     border are marked invalid (official ``interpolation.pad``). gradient_maps
-    (linear mode, opt-in): the LM samples precomputed central-difference maps
+    (linear mode): the LM samples precomputed central-difference maps
     (``append_gradient_maps``, the same gradients) rather than 5 taps per point at
-    crowded levels; faster in isolation (1.7-2x per linearization), not yet faster
-    end to end on 7-Scenes (docs/benchmarks.md, "RGB-D maps"), hence off.
+    crowded levels (``pixloc.optim.cost.use_gradient_maps``); the LM solver turns
+    them on (docs/benchmarks.md, "RGB-D maps").
     """
 
     def __init__(self, mode: str = "linear", pad: int = 2, gradient_maps: bool = False):
@@ -157,6 +157,7 @@ class Interpolator:
         out = grid_sample(stacked, grid[:, None], mode="bilinear", align_corners=True)
         out = out.reshape(b, total, -1).transpose(-1, -2)  # B x N x (K + 2 channels)
         n = out.shape[1]
-        # laid out (B, N, 2, C) in memory, as _bilinear's: the solver contracts over C
-        grads = out[..., k:].reshape(b, n, 2, channels).transpose(-1, -2)
+        # laid out (B, N, 2, C) in memory, as _bilinear's: the solver contracts over C. The copy pays:
+        # a strided view (rows of the channels-last sample) made build_system's matmuls 3.5x slower
+        grads = out[..., k:].reshape(b, n, 2, channels).contiguous().transpose(-1, -2)
         return out[..., :k], valid, grads

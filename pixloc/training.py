@@ -6,6 +6,7 @@ no file paths: callers save ``state_dict()`` where they want and resume with
 ``load_state_dict()`` to the identical state (model, optimiser, step, RNG).
 """
 
+import contextlib
 import math
 from dataclasses import dataclass
 from typing import Dict, List, Sequence, Union
@@ -26,7 +27,11 @@ class TrainConfig:
     lr_schedule: ``constant``, or ``cosine`` from ``lr`` at step ``decay_start`` down to
     ``lr * lr_min_factor`` at ``total_steps`` (a function of the step alone, so a resumed
     run follows the same schedule). device: where the model trains (``cuda`` on a GPU).
-    amp: the network in bfloat16 autocast on a GPU (the LM and the loss stay in float32)."""
+    amp: the network in bfloat16 autocast on a GPU (the LM and the loss stay in float32).
+    ema: decay of an exponential moving average of the weights (0: none), the model that is
+    validated and saved (``Trainer.averaged``). It starts at the initial weights, so a fine-tune's
+    average stays near the model it starts from until the steps have moved it (about 1 / (1 - ema)
+    steps)."""
 
     lr: float = 1e-5
     damping_lr_scale: float = 100.0
@@ -40,6 +45,7 @@ class TrainConfig:
     lr_min_factor: float = 0.1
     device: str = "cpu"
     amp: bool = False
+    ema: float = 0.0
 
     def lr_factor(self, step: int) -> float:
         """The learning rate of ``step`` (counted from 0) as a fraction of ``lr``."""
@@ -80,6 +86,35 @@ class Trainer:
         if hasattr(model.extractor, "grad_checkpointing"):
             model.extractor.grad_checkpointing = conf.grad_checkpointing
         self.step_count = 0
+        # the moving average of the trained parameters (float copies), when conf.ema > 0
+        self.ema = {n: p.detach().clone() for n, p in model.named_parameters()} if conf.ema > 0 else None
+
+    @torch.no_grad()
+    def _update_ema(self) -> None:
+        if self.ema is None:
+            return
+        d = self.conf.ema
+        for n, p in self.model.named_parameters():
+            self.ema[n].mul_(d).add_(p.detach(), alpha=1 - d)
+
+    @contextlib.contextmanager
+    def averaged(self):
+        """Within this block the model holds the averaged weights (``conf.ema``; the trained ones
+        when there is no average); they are swapped back after it."""
+        if self.ema is None:
+            yield self.model
+            return
+        params = dict(self.model.named_parameters())
+        trained = {n: p.detach().clone() for n, p in params.items()}
+        with torch.no_grad():
+            for n, p in params.items():
+                p.copy_(self.ema[n])
+        try:
+            yield self.model
+        finally:
+            with torch.no_grad():
+                for n, p in params.items():
+                    p.copy_(trained[n])
 
     def train_mode(self) -> None:
         self.model.train()
@@ -123,16 +158,26 @@ class Trainer:
             metrics["grad_norm"] = float(norm)
             if math.isfinite(metrics["grad_norm"]):
                 self.optimizer.step()
+        self._update_ema()
         self.step_count += 1
         metrics["step"] = self.step_count
         return metrics
 
     def state_dict(self) -> Dict:
-        return {"model": self.model.state_dict(), "optimizer": self.optimizer.state_dict(),
-                "step": self.step_count, "rng": torch.get_rng_state()}
+        state = {"model": self.model.state_dict(), "optimizer": self.optimizer.state_dict(),
+                 "step": self.step_count, "rng": torch.get_rng_state()}
+        if self.ema is not None:
+            state["ema"] = self.ema
+        return state
 
     def load_state_dict(self, state: Dict) -> None:
         self.model.load_state_dict(state["model"])
         self.optimizer.load_state_dict(state["optimizer"])
         self.step_count = int(state["step"])
         torch.set_rng_state(state["rng"])
+        if self.ema is not None:
+            if "ema" not in state:
+                raise ValueError("This checkpoint has no weight average (ema): resume it with the config it "
+                                 "was trained with, or restart.")
+            for n, v in state["ema"].items():
+                self.ema[n].copy_(v)

@@ -165,10 +165,11 @@ def step_batches(sampler: StepSampler, start: int, stop: int, workers: int = 0):
 
 
 def validate(trainer: Trainer, pairs) -> Dict[str, float]:
-    """Median reprojection errors (pixels) and recall at 1 and 5 px of fixed pairs."""
-    model = trainer.model.eval()
+    """Median reprojection errors (pixels) and recall at 1 and 5 px of fixed pairs (with the
+    averaged weights, when the config averages them)."""
     init, final, losses = [], [], []
-    with torch.no_grad():
+    with torch.no_grad(), trainer.averaged() as model:
+        model.eval()
         for batch in pairs:
             batch = batch.to(trainer.device)
             pred = model(batch)
@@ -320,7 +321,8 @@ def train(config: Dict, out: Path, data_root: Path, resume: bool = True, threads
                         total_steps=int(config.get("decay_steps", config.get("steps", 1000))),
                         decay_start=int(config.get("decay_start", 0)),
                         lr_min_factor=float(config.get("lr_min_factor", 0.1)),
-                        device=str(config.get("device", "cpu")), amp=bool(config.get("amp", False)))
+                        device=str(config.get("device", "cpu")), amp=bool(config.get("amp", False)),
+                        ema=float(config.get("ema", 0.0)))
     trainer = Trainer(refiner, tconf)
     torch.manual_seed(int(config.get("seed", 0)))
     wall = 0.0
@@ -336,7 +338,7 @@ def train(config: Dict, out: Path, data_root: Path, resume: bool = True, threads
     steps = int(config.get("steps", 1000))
     val_every, ckpt_every = int(config.get("val_every", 100)), int(config.get("checkpoint_every", 100))
     info = {"architecture": arch, "init": model, "data": [s.name for s in sources], "skipped_data": skipped,
-            "held_out": config.get("held_out", []), "max_size": pconf.max_size, "lr": tconf.lr,
+            "held_out": config.get("held_out", []), "max_size": pconf.max_size, "lr": tconf.lr, "ema": tconf.ema,
             "hardware": f"{platform.processor() or platform.machine()}, {torch.get_num_threads()} threads, "
                         f"{tconf.device}" + (f" ({torch.cuda.get_device_name()})" if tconf.device.startswith("cuda") else "")}
 
@@ -344,8 +346,9 @@ def train(config: Dict, out: Path, data_root: Path, resume: bool = True, threads
         tmp = ckpt_path.with_suffix(".tmp")
         torch.save({"trainer": trainer.state_dict(), "wall_time": wall}, tmp)
         tmp.replace(ckpt_path)
-        save_model(trainer.model, arch, out / "model.pt",
-                   {**info, "steps": trainer.step_count, "wall_time_s": round(wall, 1), "validation": last_val})
+        with trainer.averaged() as model:
+            save_model(model, arch, out / "model.pt",
+                       {**info, "steps": trainer.step_count, "wall_time_s": round(wall, 1), "validation": last_val})
 
     best_path = out / "best.json"
     best = json.loads(best_path.read_text()) if start and best_path.is_file() else {}
@@ -357,8 +360,9 @@ def train(config: Dict, out: Path, data_root: Path, resume: bool = True, threads
             return
         best.clear()
         best.update({"step": step, **val})
-        save_model(trainer.model, arch, out / "model_best.pt",
-                   {**info, "steps": step, "wall_time_s": round(wall, 1), "validation": val})
+        with trainer.averaged() as model:
+            save_model(model, arch, out / "model_best.pt",
+                       {**info, "steps": step, "wall_time_s": round(wall, 1), "validation": val})
         best_path.write_text(json.dumps(best, indent=1))
 
     last_val: Dict[str, float] = {}

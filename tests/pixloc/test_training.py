@@ -62,6 +62,33 @@ def test_damping_can_be_kept_while_the_features_learn(pairs):
     assert any(not torch.equal(before[n], after[n]) for n in before if not n.startswith("solvers."))
 
 
+def test_the_weight_average_follows_the_steps_and_resumes(pairs, tmp_path):
+    torch.manual_seed(0)
+    init = load_refiner("lite0-imagenet")
+    start = {n: p.detach().clone() for n, p in init.named_parameters()}
+    conf = TrainConfig(lr=1e-3, num_iters=3, ema=0.5)
+    a = Trainer(init, conf)
+    a.step(pairs[0])
+    a.step(pairs[1])
+    trained = {n: p.detach().clone() for n, p in a.model.named_parameters()}
+    name = next(n for n in trained if not torch.equal(trained[n], start[n]))  # a weight the steps moved
+    with a.averaged() as model:  # two steps at 0.5 from the initial weights: between them and the trained ones
+        avg = dict(model.named_parameters())[name].detach().clone()
+    assert not torch.equal(avg, trained[name]) and not torch.equal(avg, start[name])
+    d_avg, d_start = (avg - trained[name]).norm(), (start[name] - trained[name]).norm()
+    assert 0 < d_avg < d_start
+    for n, p in a.model.named_parameters():  # the trained weights are back after the block
+        assert torch.equal(p, trained[n]), n
+    torch.save(a.state_dict(), tmp_path / "ckpt.pt")
+    torch.manual_seed(1)
+    b = Trainer(load_refiner("lite0-imagenet"), conf)
+    b.load_state_dict(torch.load(tmp_path / "ckpt.pt", weights_only=True))
+    for n in a.ema:
+        assert torch.equal(a.ema[n], b.ema[n]), n
+    with pytest.raises(ValueError, match="no weight average"):
+        Trainer(load_refiner("lite0-imagenet"), conf).load_state_dict(fresh_trainer().state_dict())
+
+
 def test_gradient_checkpointing_gives_the_same_gradients(pairs):
     grads = []
     for checkpointing in (False, True):
