@@ -388,8 +388,6 @@ def localize_queries(job: LocalizationJob, reader: MapReader, localizer: Localiz
         if isinstance(p, _Hypotheses) and p.first is not None:  # the top-1 start, refined before the search
             candidates, labels = [p.first] + candidates, [p.first_label] + labels
         ranked = _rank(candidates)
-        if labels:
-            logger.info("DEBUGSEARCH final %s", [(lb, round(c.confidence, 3), c.success) for lb, c in zip(labels, candidates)])
         j = ranked[0] if ranked else 0
         best = candidates[j]
         if isinstance(p, _Hypotheses):  # a search: report the top-1 reference's pose when rejected
@@ -445,7 +443,6 @@ def _search(job: LocalizationJob, reader: MapReader, localizer: Localizer, prepa
             if not any(same_basin(results[j].refined, results[i].refined, p.depth, conf) for i in kept):
                 kept.append(j)
         merged = len(candidates) - len(kept)
-        logger.info("DEBUGSEARCH coarse %s", [(p.labels[j], round(results[j].confidence, 3)) for j in kept])
         if p.first is not None and kept and kept[0] == 0:  # the top-1 start: refined already
             kept = kept[1:]
         out.append(_Hypotheses([(*p[j][:2], results[j].refined, *p[j][3:]) for j in kept],
