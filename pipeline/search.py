@@ -27,8 +27,8 @@ class SearchConfig:
     besides the top-1 and average poses, refined through the finer levels after the coarse screening
     (the best by coarse verification confidence); iters, max_points: LM iterations
     and points (a seeded subset) of the screening (256: the same recall as 1,024 on the seven
-    scenes of ``pixloc benchmark search``, at 0.6x the search's time on 7-Scenes). average: the pose averaged over the references'
-    covisibility cluster (the ``average`` prior) is one more start, with its perturbations. The
+    scenes of ``pixloc benchmark search``, at 0.6x the search's time on 7-Scenes). average: the
+    pose averaged over the references' covisibility cluster (the ``average`` prior) is one more start, with its perturbations. The
     top-1 reference's pose and the average pose always go on to the finer levels (then the search
     loses nothing where ``top1`` or ``average`` converge), besides the ``keep`` best other starts.
     merge_t, merge_R: two of these whose coarse poses lie within ``merge_t`` x the top reference's
