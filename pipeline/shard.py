@@ -25,7 +25,7 @@ from .priors import covisibility_clusters, pose_approximation
 from .queries import QueryRecord
 from .readers.hloc import PnPLog, read_hloc_logs
 from .results import read_records, result_to_record, write_records
-from .search import SearchConfig, hypotheses, median_depth, same_basin
+from .search import Hypotheses, SearchConfig, hypotheses, median_depth, rank_results, screen, solve, top1_first
 from .runtime import restore_malloc_thresholds, torch_threads
 from .store import StoreError
 
@@ -287,7 +287,7 @@ def prepare_query(job: LocalizationJob, reader: MapReader, localizer: Localizer,
         starts = hypotheses(reader, dbs, job.search, prior if job.search.average else None)
         # always refined: the top-1 pose (first) and the average pose (first of the last block)
         always = [0] + ([len(starts) - job.search.size()] if job.search.average else [])
-        return _Hypotheses([(query, dbs[:num], T, rgb, cache) for T, _ in starts], [label for _, label in starts],
+        return Hypotheses([(query, dbs[:num], T, rgb, cache) for T, _ in starts], [label for _, label in starts],
                            always=always, depth=median_depth(reader, dbs[0]))
     if job.prior == "poses":
         prior = find_by_name(read_poses_file(job.prior_poses), query.name)
@@ -330,36 +330,6 @@ def _prepare_hloc(job: LocalizationJob, reader: MapReader, query: QueryRecord, r
     return [(query, dbs, prior, rgb, cache, selected)]
 
 
-class _Hypotheses(list):
-    """The localize_batch items of one query's search, with a label per starting pose; after the
-    screening, also the top-1 start (the prior a rejected search reports) and how many were screened;
-    ``always``: the starts refined whatever the screening ranks them; ``depth``: the top reference's
-    median point depth (the scale of the scene); ``merged``: kept starts left out as duplicates;
-    ``first``: the top-1 start's refinement through every level when it ran before the search."""
-
-    def __init__(self, items, labels, top1=None, screened=None, always=(0,), depth=1.0, merged=0, first=None,
-                 first_label=None):
-        super().__init__(items)
-        self.labels, self.top1, self.screened, self.always = labels, top1, screened, list(always)
-        self.depth, self.merged = depth, merged
-        self.first, self.first_label = first, first_label  # the top-1 start's full refinement, if done first
-
-
-def _solve(localizer: Localizer, prepared: List) -> List[Tuple]:
-    """(prepared, its results) per query: one localize_batch for every query's items; a failure
-    (QueryResult) comes with None."""
-    items = [it for p in prepared if isinstance(p, list) for it in p]
-    solved = iter(localizer.localize_batch(items)) if items else iter(())
-    return [(p, None if isinstance(p, QueryResult) else [next(solved) for _ in p]) for p in prepared]
-
-
-def _rank(results: List[QueryResult]) -> List[int]:
-    """Indices of the refined results, best first: verification confidence, then the
-    confidence-weighted inlier fraction."""
-    done = [j for j, r in enumerate(results) if r.refined is not None and r.evidence]
-    return sorted(done, key=lambda j: (results[j].confidence, results[j].evidence["weighted_inliers"]), reverse=True)
-
-
 def localize_queries(job: LocalizationJob, reader: MapReader, localizer: Localizer,
                      queries: List[QueryRecord]) -> List[QueryResult]:
     """Localize ``queries`` together: one LM batch per level and group of compatible queries.
@@ -369,7 +339,7 @@ def localize_queries(job: LocalizationJob, reader: MapReader, localizer: Localiz
     by the confidence-weighted inlier fraction. All hypotheses of a query use the same points
     and features, so this compares like with like, which the final costs (means over different
     sets of valid points) do not. ``search`` screens its hypotheses at the coarsest level first
-    (``_search``)."""
+    (``pipeline.search.screen``)."""
     prepared = []
     for q in queries:
         try:
@@ -378,19 +348,19 @@ def localize_queries(job: LocalizationJob, reader: MapReader, localizer: Localiz
             logger.warning("Query %s failed: %s", q.name, e)
             prepared.append(_failure(q, f"{type(e).__name__}: {e}"))
     if job.prior == "search":
-        prepared = _search(job, reader, localizer, _top1_first(job, localizer, prepared))
+        prepared = screen(localizer, reader, top1_first(localizer, prepared, job.search), job.search)
     results = []
-    for p, candidates in _solve(localizer, prepared):
+    for p, candidates in solve(localizer, prepared):
         if candidates is None:
             results.append(p)
             continue
         labels = getattr(p, "labels", None)
-        if isinstance(p, _Hypotheses) and p.first is not None:  # the top-1 start, refined before the search
+        if isinstance(p, Hypotheses) and p.first is not None:  # the top-1 start, refined before the search
             candidates, labels = [p.first] + candidates, [p.first_label] + labels
-        ranked = _rank(candidates)
+        ranked = rank_results(candidates)
         j = ranked[0] if ranked else 0
         best = candidates[j]
-        if isinstance(p, _Hypotheses):  # a search: report the top-1 reference's pose when rejected
+        if isinstance(p, Hypotheses):  # a search: report the top-1 reference's pose when rejected
             best.prior = np.asarray(p.top1, np.float64)
             merged = f" ({p.merged} more in the same basin as one of them)" if p.merged else ""
             before = "the top-1 start was not verified; " if p.first is not None else ""
@@ -398,57 +368,6 @@ def localize_queries(job: LocalizationJob, reader: MapReader, localizer: Localiz
                               f"{len(candidates)} refined{merged}; the winner started from {labels[j]}")
         results.append(best)
     return results
-
-
-def _top1_first(job: LocalizationJob, localizer: Localizer, prepared: List) -> List:
-    """With ``search.first``: refine every query's top-1 start through every level (one batch); a
-    verified refinement is the query's result, the others go on to the search with it."""
-    if not job.search.first:
-        return prepared
-    searches = [k for k, p in enumerate(prepared) if isinstance(p, _Hypotheses)]
-    solved = localizer.localize_batch([prepared[k][0] for k in searches]) if searches else []
-    out = list(prepared)
-    for k, result in zip(searches, solved):
-        p = prepared[k]
-        if result.success:
-            result.notes.append(f"search: the top-1 start was verified (confidence {result.confidence:.2f}); "
-                                f"the other {len(p) - 1} starts were not needed")
-            out[k] = result
-        else:
-            p.first, p.first_label = result, p.labels[0]
-    return out
-
-
-def _search(job: LocalizationJob, reader: MapReader, localizer: Localizer, prepared: List) -> List:
-    """Screen every query's starting poses at the coarsest level (one batch), and replace them by
-    the ``job.search.keep`` best coarse results, to be refined through every level."""
-    conf = job.search
-    coarse = Localizer(localizer.net, localizer.solvers, reader, dataclasses.replace(localizer.conf, num_iters=conf.iters),
-                       localizer.device, levels=[localizer.levels[0]],
-                       scales=[reader.conf.image_scales[localizer.scales[0]]], max_points=conf.max_points)
-    out = []
-    for p, results in _solve(coarse, prepared):
-        if results is None:
-            out.append(p)
-            continue
-        # the top-1 reference's pose and the average pose go on (so the search loses nothing where top1
-        # or average converge), with the best others by their coarse confidence
-        own = [j for j in p.always if results[j].refined is not None]
-        candidates = own + [j for j in _rank(results) if j not in own][:job.search.keep]
-        if not candidates:  # no start converged at the coarsest level: the top-1 start fails with its reason
-            out.append(p.first if p.first is not None else results[0])
-            continue
-        kept = []  # starts whose coarse poses share a basin with one kept before are refined once
-        for j in candidates:
-            if not any(same_basin(results[j].refined, results[i].refined, p.depth, conf) for i in kept):
-                kept.append(j)
-        merged = len(candidates) - len(kept)
-        if p.first is not None and kept and kept[0] == 0:  # the top-1 start: refined already
-            kept = kept[1:]
-        out.append(_Hypotheses([(*p[j][:2], results[j].refined, *p[j][3:]) for j in kept],
-                               [p.labels[j] for j in kept], top1=p[0][2], screened=len(p),
-                               merged=merged, first=p.first, first_label=p.first_label))
-    return out
 
 
 def retrieve_queries(job: LocalizationJob, queries: List[QueryRecord], out_path) -> Dict[str, Dict]:
