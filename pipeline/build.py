@@ -16,11 +16,12 @@ import torch
 
 from pixloc.nets.registry import load_extractor, state_digest
 
+from .compression import fit_pca
 from .features import FeatureConfig, extract_image_features
 from .images import read_image, resize_max, to_tensor
 from .runtime import restore_malloc_thresholds, torch_threads
 from .scene import Scene
-from .store import (DONE, FAILED, PENDING, consolidate, consolidated, create_store, feature_key, fit_pca,
+from .store import (DONE, FAILED, PENDING, consolidate, consolidated, create_store, feature_key,
                     image_records, init_features, mark_failed, open_store, read, unconsolidate, write_image_features)
 
 logger = logging.getLogger(__name__)

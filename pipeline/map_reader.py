@@ -9,10 +9,11 @@ from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
+from .compression import dequantize_int8, reconstruct
 from .features import FeatureConfig
 from .scene import CameraRecord
-from .store import (DONE, StoreError, StoreReadError, check_feature_group, consolidated, dequantize_int8,
-                    feature_key, open_store, pca_bases, reconstruct, stored_dims)
+from .store import (DONE, StoreError, StoreReadError, check_feature_group, consolidated,
+                    feature_key, open_store, pca_bases, stored_dims)
 from .store import read as store_read
 
 

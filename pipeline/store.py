@@ -43,6 +43,7 @@ import numpy as np
 import zarr
 from zarr.codecs import Crc32cCodec, ZstdCodec
 
+from .compression import project, quantize_int8
 from .features import FeatureConfig, ImageFeatures
 from .scene import CameraRecord, ImageRecord, Scene
 
@@ -420,54 +421,6 @@ def init_features(root: zarr.Group, conf: FeatureConfig, digest: str, dims: List
                     fill_value=0)
         _rows_array(group, f"s{k}/valid", R, L, "bool", meta, fill_value=False)
     return group
-
-
-def quantize_int8(features: np.ndarray, dims: List[int]) -> Tuple[np.ndarray, np.ndarray]:
-    """(N, sum(dims)) float -> int8 codes and (N, L) float16 scales, one per row and level:
-    x = code * scale, |error| <= scale / 2 = max|x| / 254 of the row's level."""
-    edges = np.cumsum([0] + list(dims))
-    codes = np.zeros(features.shape, np.int8)
-    scales = np.zeros((len(features), len(dims)), np.float16)
-    for level in range(len(dims)):
-        x = features[:, edges[level]:edges[level + 1]].astype(np.float32)
-        s = (np.abs(x).max(1) / 127).astype(np.float16)  # rounded first, so codes use the stored scale
-        safe = np.where(s > 0, s.astype(np.float32), 1)[:, None]
-        codes[:, edges[level]:edges[level + 1]] = np.clip(np.rint(x / safe), -127, 127)
-        scales[:, level] = s
-    return codes, scales
-
-
-def dequantize_int8(codes: np.ndarray, scales: np.ndarray, dims: List[int]) -> List[np.ndarray]:
-    """Per level, float32 features from int8 codes and per-row scales."""
-    edges = np.cumsum([0] + list(dims))
-    return [codes[:, edges[i]:edges[i + 1]].astype(np.float32) * scales[:, i:i + 1].astype(np.float32)
-            for i in range(len(dims))]
-
-
-def fit_pca(samples: np.ndarray, components: int, max_rows: int = 50_000, seed: int = 0
-            ) -> Tuple[np.ndarray, np.ndarray]:
-    """Mean (C,) and the ``components`` leading principal directions (C, D), orthonormal columns, of
-    the rows of ``samples`` (N, C) (a seeded subset of at most ``max_rows``), float32."""
-    x = np.asarray(samples, np.float64)
-    if len(x) < components:
-        raise ValueError(f"A PCA of {components} components needs at least as many samples, not {len(x)}.")
-    if len(x) > max_rows:
-        x = x[np.sort(np.random.default_rng(seed).choice(len(x), max_rows, replace=False))]
-    mean = x.mean(0)
-    _, _, vt = np.linalg.svd(x - mean, full_matrices=False)
-    return mean.astype(np.float32), np.ascontiguousarray(vt[:components].T).astype(np.float32)
-
-
-def project(features: np.ndarray, basis: Tuple[np.ndarray, np.ndarray]) -> np.ndarray:
-    """(N, C) features -> (N, D) components of ``basis`` (mean, directions)."""
-    mean, directions = basis
-    return (np.asarray(features, np.float32) - mean) @ directions
-
-
-def reconstruct(components: np.ndarray, basis: Tuple[np.ndarray, np.ndarray]) -> np.ndarray:
-    """(N, D) components -> (N, C) features."""
-    mean, directions = basis
-    return components @ directions.T + mean
 
 
 def stored_dims(group: zarr.Group) -> List[int]:
