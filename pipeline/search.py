@@ -36,13 +36,13 @@ class SearchConfig:
     the starts that keep at least ``min_valid`` of the screening points in view (then the others, by
     cost; every start of a query is screened on the same points), or ``confidence``, the coarse
     verification confidence (the choice before: on virtual_gallery and Sacre Coeur it ranked the
-    start nearest the truth 17th and 6th of 28, the cost 1st). iters, max_points: LM iterations
+    start nearest the truth 18th and 7th of 28, the cost 1st). iters, max_points: LM iterations
     and points (a seeded subset) of the screening (256: the same recall as 1,024 on the seven
     scenes of ``pixloc benchmark search``, at 0.6x the search's time on 7-Scenes). average: the
     pose averaged over the references' covisibility cluster (the ``average`` prior) is one more
-    start, with its perturbations. The
-    top-1 reference's pose and the average pose always go on to the finer levels (then the search
-    loses nothing where ``top1`` or ``average`` converge), besides the ``keep`` best other starts.
+    start, with its perturbations. The top-1 reference's pose and the average pose always go on
+    to the finer levels (then the search loses nothing where ``top1`` or ``average`` converge),
+    besides the ``keep`` best other starts.
     merge_t, merge_R: two of these whose coarse poses lie within ``merge_t`` x the top reference's
     median point depth and ``merge_R`` degrees of each other sit in one basin, and only the first
     (top-1, average, then the others) is refined (0: only identical poses). first: the top-1 start
