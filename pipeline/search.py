@@ -142,13 +142,14 @@ def same_basin(a: np.ndarray, b: np.ndarray, depth: float, conf: SearchConfig) -
     return bool(np.linalg.norm(ca - cb) <= conf.merge_t * depth and np.degrees(np.arccos(cos)) <= conf.merge_R)
 
 
-def screening_order(evidence: List[dict], confidence: List[float], conf: SearchConfig) -> List[int]:
-    """Indices of screened starts (their coarse verification ``evidence`` and ``confidence``),
-    best first, by ``conf.rank`` (see ``SearchConfig``); ties by confidence."""
-    idx = range(len(evidence))
+def screening_order(results: List[QueryResult], conf: SearchConfig, skip=()) -> List[int]:
+    """Indices of the screened starts that converged (``results``, coarse), best first, by
+    ``conf.rank`` (see ``SearchConfig``; ``cost``: ties by confidence), leaving out ``skip``."""
     if conf.rank == "confidence":
-        return sorted(idx, key=lambda j: (-confidence[j], -evidence[j]["weighted_inliers"]))
-    return sorted(idx, key=lambda j: (evidence[j]["valid"] < conf.min_valid, evidence[j]["cost"], -confidence[j]))
+        return [j for j in rank_results(results) if j not in skip]
+    done = [j for j, r in enumerate(results) if r.refined is not None and r.evidence and j not in skip]
+    return sorted(done, key=lambda j: (results[j].evidence["valid"] < conf.min_valid, results[j].evidence["cost"],
+                                       -results[j].confidence))
 
 
 class Hypotheses(list):
@@ -215,9 +216,7 @@ def screen(localizer: Localizer, reader: MapReader, prepared: List, conf: Search
         # the top-1 reference's pose and the average pose go on (so the search loses nothing where top1
         # or average converge), with the best others by the screening rank (search.rank)
         own = [j for j in p.always if results[j].refined is not None]
-        done = [j for j, r in enumerate(results) if r.refined is not None and r.evidence and j not in own]
-        order = screening_order([results[j].evidence for j in done], [results[j].confidence for j in done], conf)
-        candidates = own + [done[k] for k in order][:conf.keep]
+        candidates = own + screening_order(results, conf, skip=own)[:conf.keep]
         if not candidates:  # no start converged at the coarsest level: the top-1 start fails with its reason
             out.append(p.first if p.first is not None else results[0])
             continue

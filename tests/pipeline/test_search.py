@@ -1,5 +1,7 @@
 """Starting poses of the search prior: turns about the camera centre, moves along the optical axis."""
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 
@@ -59,6 +61,12 @@ def test_coarse_poses_within_the_merge_tolerance_share_a_basin():
     assert same_basin(T, T, depth, SearchConfig(merge_t=0, merge_R=0))  # 0 tolerances: equal poses only
 
 
+def _screened(evidence, confidence):
+    """A start after the coarse screening (``None`` evidence: it did not converge)."""
+    return SimpleNamespace(refined=None if evidence is None else np.eye(3, 4), evidence=evidence or {},
+                           confidence=confidence)
+
+
 def test_the_screening_ranks_by_cost_among_starts_that_keep_the_points_in_view():
     # the screening of virtual_gallery's query rgb_00491 (pixloc benchmark search), three of its 28 starts:
     # the most confident ends 14 deg from the truth, the cheapest 3 deg (and converges when refined)
@@ -66,11 +74,14 @@ def test_the_screening_ranks_by_cost_among_starts_that_keep_the_points_in_view()
                 {"cost": 0.076, "valid": 0.8, "weighted_inliers": 0.0},   # yaw -15: 0.14 m, 3.2 deg
                 {"cost": 0.050, "valid": 0.3, "weighted_inliers": 0.0}]   # most points out of view
     confidence = [0.564, 0.010, 0.9]
-    assert screening_order(evidence, confidence, SearchConfig()) == [1, 0, 2]
-    assert screening_order(evidence, confidence, SearchConfig(min_valid=0.0)) == [2, 1, 0]
-    assert screening_order(evidence, confidence, SearchConfig(rank="confidence")) == [2, 0, 1]
-    tied = [dict(evidence[0]), dict(evidence[0])]
-    assert screening_order(tied, [0.2, 0.6], SearchConfig()) == [1, 0]  # equal costs: the more confident
+    results = [_screened(e, c) for e, c in zip(evidence, confidence)]
+    assert screening_order(results, SearchConfig()) == [1, 0, 2]
+    assert screening_order(results, SearchConfig(min_valid=0.0)) == [2, 1, 0]
+    assert screening_order(results, SearchConfig(rank="confidence")) == [2, 0, 1]
+    assert screening_order(results, SearchConfig(), skip=[1]) == [0, 2]  # the always-refined starts
+    assert screening_order(results + [_screened(None, 0.0)], SearchConfig()) == [1, 0, 2]  # not converged
+    tied = [_screened(evidence[0], 0.2), _screened(evidence[0], 0.6)]
+    assert screening_order(tied, SearchConfig()) == [1, 0]  # equal costs: the more confident
     with pytest.raises(ValueError, match="rank must be one of cost, confidence"):
         SearchConfig(rank="inliers").validate()
     with pytest.raises(ValueError, match="min_valid"):

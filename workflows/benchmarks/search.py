@@ -30,7 +30,7 @@ from pixloc.nets.registry import DEFAULT_MODEL
 from ..build_map import plan_build, run_sync as build_sync
 from ..localize import plan_localization, run_sync
 from .sacre_coeur import sacre_coeur
-from .verification import _demo, _seven_scenes, _strecha
+from .verification import _demo, _seven_scenes, _strecha, _write_priors
 
 THRESHOLDS = ((0.05, 1.0), (0.25, 2.0), (1.0, 5.0))
 SCENES = ("fountain", "herzjesus", "demo", "7scenes", "sacre_coeur", "sacre_coeur_night", "virtual_gallery")
@@ -84,14 +84,9 @@ def _virtual_gallery(shared: Path, work: Path, fconf):
 
 def _truth_file(queries, out: Path) -> Path:
     """The queries' ground-truth poses, as a prior poses file next to the run ``out``."""
-    from pipeline.scene import rotmat_to_qvec
     path = out.parent / "truth-poses.txt"
     path.parent.mkdir(parents=True, exist_ok=True)
-    lines = []
-    for q in queries:
-        T = np.asarray(q.cam_from_world_gt, np.float64)
-        lines.append(" ".join([q.name, *map(repr, rotmat_to_qvec(T[:, :3]).tolist()), *map(repr, T[:, 3].tolist())]))
-    path.write_text("\n".join(lines) + "\n")
+    _write_priors(path, {q.name: np.asarray(q.cam_from_world_gt, np.float64) for q in queries})
     return path
 
 
