@@ -1,5 +1,6 @@
 """COLMAP models (binary or text) via pycolmap: read, reconstruct, triangulate from known poses."""
 
+import hashlib
 import json
 import logging
 import time
@@ -101,27 +102,48 @@ def _pairs_fingerprint(pairs: PairsConfig, num_images: int, posed: bool) -> dict
     return out
 
 
+def _content_digest(path: Path) -> str:
+    with open(path, "rb") as f:
+        return hashlib.file_digest(f, "sha256").hexdigest()[:16]
+
+
 def _fingerprint(image_dir: Path, names: Sequence[str], **extra) -> dict:
-    """What a reconstruction depends on: its image files (name, size, mtime) and settings."""
-    files = []
-    for n in names:
-        st = (image_dir / n).stat() if (image_dir / n).is_file() else None
-        files.append([n, st.st_size if st else None, st.st_mtime_ns if st else None])
+    """What a reconstruction depends on: its image files (name, size, digest of the bytes) and
+    settings. Not the modification times: a dataset copied to another disk or machine keeps its
+    reconstruction (an SfM of thousands of images takes hours)."""
+    files = [[n, (image_dir / n).stat().st_size, _content_digest(image_dir / n)] if (image_dir / n).is_file()
+             else [n, None, None] for n in names]
     return json.loads(json.dumps({"images": files, **extra}))
 
 
-def _cached(work_dir: Path, marker: str, model: str, fingerprint: dict) -> Optional[pycolmap.Reconstruction]:
+def _legacy_fingerprint(image_dir: Path, fingerprint: dict) -> dict:
+    """The fingerprint of the same inputs as written before content digests (size, mtime)."""
+    files = []
+    for n, size, _ in fingerprint["images"]:
+        st = (image_dir / n).stat() if size is not None else None
+        files.append([n, st.st_size if st else None, st.st_mtime_ns if st else None])
+    return {**fingerprint, "images": files}
+
+
+def _cached(work_dir: Path, marker: str, model: str, fingerprint: dict,
+            image_dir: Path) -> Optional[pycolmap.Reconstruction]:
     """The reconstruction a previous run finished in ``work_dir`` from the same inputs, if any.
 
     pycolmap's SfM and triangulation are not deterministic (threads, RANSAC): rerunning them
     would give another map, which the store then refuses. Reusing the finished model makes a
-    rebuild a no-op and an interrupted build resumable."""
+    rebuild a no-op and an interrupted build resumable. A marker of the older format (file
+    times) is accepted while the files are untouched, and rewritten in the new one."""
     path = work_dir / marker
     if path.is_file() and (work_dir / model).is_dir():
         try:
-            if json.loads(path.read_text()) == fingerprint:
+            stored = json.loads(path.read_text())
+            if stored in (fingerprint, _legacy_fingerprint(image_dir, fingerprint)):
                 logger.info("Reusing the reconstruction in %s (same inputs).", work_dir / model)
-                return pycolmap.Reconstruction(str(work_dir / model))
+                rec = pycolmap.Reconstruction(str(work_dir / model))
+                if stored != fingerprint:
+                    path.write_text(json.dumps(fingerprint))
+                return rec
+            logger.info("The inputs of %s changed since it was made: reconstructing again.", work_dir / model)
         except (ValueError, RuntimeError) as e:
             logger.warning("Cannot reuse %s (%s): reconstructing again.", work_dir / model, e)
     return None
@@ -149,7 +171,7 @@ def run_sfm(image_dir, work_dir, names: Optional[Sequence[str]] = None, tags=Non
     names = sorted(p.name for p in image_dir.iterdir() if p.suffix.lower() in {".jpg", ".jpeg", ".png"}) \
         if names is None else list(names)
     fingerprint = _fingerprint(image_dir, names, kind="sfm", **_pairs_fingerprint(pairs, len(names), False))
-    rec = _cached(work_dir, "sfm.json", "model", fingerprint)
+    rec = _cached(work_dir, "sfm.json", "model", fingerprint, image_dir)
     if rec is not None:
         return scene_from_reconstruction(rec, image_dir, tags)
     (work_dir / "sfm.json").unlink(missing_ok=True)
@@ -191,7 +213,7 @@ def triangulate_known_poses(images: List[ImageRecord], image_root, work_dir, *,
                                cameras=[im.camera.to_json() for im in images],
                                poses=[np.round(np.asarray(im.cam_from_world, np.float64), 12).tolist() for im in images],
                                **_pairs_fingerprint(pairs, len(images), True))
-    rec = _cached(work_dir, "triangulation.json", "model", fingerprint)
+    rec = _cached(work_dir, "triangulation.json", "model", fingerprint, image_root)
     if rec is not None:
         return _known_pose_scene(rec, image_root, by_name)
     (work_dir / "triangulation.json").unlink(missing_ok=True)

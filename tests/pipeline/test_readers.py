@@ -1,3 +1,6 @@
+import json
+import shutil
+
 import numpy as np
 import pytest
 import torch
@@ -5,7 +8,8 @@ import torch
 from pipeline.build import build_map
 from pipeline.depth import _depth_camera, _load_depth, _to_cam, densify, rgbd_scene
 from pipeline.pairs import PairsConfig
-from pipeline.readers.colmap import read_colmap, run_sfm, triangulate_known_poses
+from pipeline.readers.colmap import (_cached, _fingerprint, _legacy_fingerprint, read_colmap, run_sfm,
+                                     triangulate_known_poses)
 from pipeline.readers.kapture import read_kapture
 from pipeline.readers.rgbd import read_7scenes, read_pose_txt
 from pipeline.readers.strecha import read_strecha
@@ -42,6 +46,40 @@ def test_strecha_known_poses_triangulate_below_one_pixel(shared, tmp_path):
     assert len(scene.images) == 11 and len(scene.points) > 5000
     assert scene.track_length.min() >= 2
     assert np.median(reprojection_errors(scene)) < 1.0
+    # The dataset copied elsewhere (new file times, same bytes): the triangulation is reused, not
+    # redone (pycolmap would give another map, which a store built from the first one refuses).
+    copy = tmp_path / "copy"
+    shutil.copytree(root / "images", copy, copy_function=shutil.copyfile)
+    written = {f: f.stat().st_mtime_ns for f in (tmp_path / "model").iterdir()}
+    again = triangulate_known_poses(read_strecha(root), copy, tmp_path, pairs=PairsConfig("spatial", num_neighbors=4))
+    assert {f: f.stat().st_mtime_ns for f in (tmp_path / "model").iterdir()} == written  # not rewritten
+    assert np.array_equal(again.points, scene.points) and np.array_equal(again.obs_xy, scene.obs_xy)
+    # Changed bytes are another input.
+    names = [im.name for im in read_strecha(root)]
+    before = _fingerprint(copy, names)
+    with open(copy / names[3], "r+b") as f:
+        f.seek(1000)
+        byte = f.read(1)
+        f.seek(1000)
+        f.write(bytes([byte[0] ^ 1]))
+    after = _fingerprint(copy, names)
+    assert [a == b for a, b in zip(before["images"], after["images"])] == [n != names[3] for n in names]
+
+
+def test_a_work_folder_of_the_older_format_is_reused(shared, tmp_path):
+    """Markers written before content digests (size and file time) are accepted while the
+    files are untouched, and rewritten in the new format."""
+    import pycolmap
+    image_dir = shared / "data" / "strecha" / "fountain-P11" / "images"
+    names = sorted(p.name for p in image_dir.iterdir())[:2]
+    fingerprint = _fingerprint(image_dir, names, kind="sfm")
+    marker = tmp_path / "sfm.json"
+    marker.write_text(json.dumps(_legacy_fingerprint(image_dir, fingerprint)))
+    pycolmap.Reconstruction().write(str((tmp_path / "model").mkdir() or tmp_path / "model"))
+    assert _cached(tmp_path, "sfm.json", "model", fingerprint, image_dir) is not None
+    assert json.loads(marker.read_text()) == fingerprint
+    marker.write_text(json.dumps({**fingerprint, "kind": "triangulation"}))  # other settings
+    assert _cached(tmp_path, "sfm.json", "model", fingerprint, image_dir) is None
 
 
 def test_kapture_rig_poses(shared, tmp_path):
