@@ -21,8 +21,9 @@ from .features import FeatureConfig, extract_image_features
 from .images import read_image, resize_max, to_tensor
 from .runtime import restore_malloc_thresholds, torch_threads
 from .scene import Scene
-from .store import (DONE, FAILED, PENDING, consolidate, consolidated, create_store, feature_key,
-                    image_records, init_features, mark_failed, open_store, read, unconsolidate, write_image_features)
+from .feature_groups import (consolidate, consolidated, feature_key, init_features, mark_failed, unconsolidate,
+                             write_image_features)
+from .store import DONE, FAILED, PENDING, create_store, image_records, open_store, read
 
 logger = logging.getLogger(__name__)
 REFUSED = "refused: "  # reason prefix of images that cannot be used at all (not retried)
@@ -163,7 +164,7 @@ def pending_images(store_path, conf: FeatureConfig) -> List[int]:
 
 def finish_build(store_path, conf: FeatureConfig) -> None:
     """After a build: consolidate the feature group's per-image arrays for fast opening
-    (``pipeline.store.consolidate``), unless they already are."""
+    (``pipeline.feature_groups.consolidate``), unless they already are."""
     root = open_store(store_path, mode="r+")
     group = root[f"features/{feature_key(conf)}"]
     if not consolidated(group, root.attrs["pixloc_map"]):

@@ -12,8 +12,8 @@ import numpy as np
 from .compression import dequantize_int8, reconstruct
 from .features import FeatureConfig
 from .scene import CameraRecord
-from .store import (DONE, StoreError, StoreReadError, check_feature_group, consolidated,
-                    feature_key, open_store, pca_bases, stored_dims)
+from .feature_groups import check_feature_group, consolidated, feature_key, pca_bases, stored_dims
+from .store import DONE, StoreError, StoreReadError, open_store
 from .store import read as store_read
 
 

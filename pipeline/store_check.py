@@ -14,7 +14,8 @@ from typing import Callable, List, Optional
 import numpy as np
 import zarr
 
-from .store import check_feature_group, open_store, read
+from .feature_groups import check_feature_group
+from .store import open_store, read
 
 
 @dataclass

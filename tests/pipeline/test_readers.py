@@ -15,7 +15,8 @@ from pipeline.readers.rgbd import read_7scenes, read_pose_txt
 from pipeline.readers.strecha import read_strecha
 from pipeline.features import FeatureConfig
 from pipeline.scene import CameraRecord, Scene, SceneError
-from pipeline.store import feature_key, open_store
+from pipeline.feature_groups import feature_key
+from pipeline.store import open_store
 
 
 def reprojection_errors(scene: Scene) -> np.ndarray:

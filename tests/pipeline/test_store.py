@@ -9,7 +9,8 @@ from pipeline.build import build_map, network
 from pipeline.features import FeatureConfig
 from pipeline.images import read_image, resize_max, to_tensor
 from pipeline.scene import CameraRecord, Scene, SceneError
-from pipeline.store import DONE, FAILED, StoreError, feature_key, image_rows, open_store
+from pipeline.feature_groups import feature_key
+from pipeline.store import DONE, FAILED, StoreError, image_rows, open_store
 from tests.pipeline.helpers import assert_same_store
 
 CONF = FeatureConfig(resize=512, image_scales=(4, 1))
@@ -170,7 +171,7 @@ def test_pca_storage_reconstructs_the_features_and_keeps_its_bases(built, mauper
     reconstruct every channel, close to float16 storage (measured: median cosine 0.9994 and 0.982 at
     the two reduced levels of image scale 1), and the features take under 0.35 of float16."""
     from pipeline.map_reader import MapReader
-    from pipeline.store import check_feature_group, stored_dims
+    from pipeline.feature_groups import check_feature_group, stored_dims
     conf = dataclasses.replace(CONF, dtype="int8", pca=48)
     assert feature_key(conf).endswith("_int8_pca48") and "pca" not in CONF.to_dict()
     path8 = tmp_path / "pca.zarr"
@@ -276,7 +277,7 @@ def test_a_finished_build_is_consolidated_for_fast_opening(built, maupertuis, tm
     """Per-image status and global arrays are copied into one chunk each when a build finishes
     (6,697 one-image chunks took 3.4 s each to read at open); a new build or an add undoes it."""
     from pipeline.map_reader import MapReader
-    from pipeline.store import consolidated
+    from pipeline.feature_groups import consolidated
     path, _ = built
     root = open_store(path)
     group = root[f"features/{feature_key(CONF)}"]

@@ -11,7 +11,8 @@ import pytest
 
 from pipeline.features import FeatureConfig
 from pipeline.readers.colmap import read_colmap
-from pipeline.store import DONE, feature_key, open_store
+from pipeline.feature_groups import feature_key
+from pipeline.store import DONE, open_store
 from tests.pipeline.helpers import assert_same_store
 from workflows.build_map import plan_build, run_dask, run_sync
 from workflows.process_cluster import DASK, ProcessCluster, wait_for

@@ -24,7 +24,8 @@ from pipeline.readers.hloc import parse_loc
 from pipeline.readers.rgbd import read_7scenes
 from pipeline.results import read_records
 from pipeline.shard import LocalizationJob, RetrievalConfig
-from pipeline.store import StoreError, feature_key, open_store
+from pipeline.feature_groups import feature_key
+from pipeline.store import StoreError, open_store
 from pipeline.store_check import check_store
 from workflows.localize import OutputLocked, output_lock, plan_localization, run_sync
 from workflows.sources import load_queries

@@ -29,7 +29,8 @@ from pipeline.evaluate import evaluate, fmt
 from pipeline.features import FeatureConfig
 from pipeline.localize import LocalizerConfig
 from pipeline.shard import LocalizationJob, RetrievalConfig
-from pipeline.store import feature_key, open_store
+from pipeline.feature_groups import feature_key
+from pipeline.store import open_store
 from pixloc.nets.registry import DEFAULT_MODEL
 
 from ..localize import plan_localization, run_sync

@@ -1,0 +1,207 @@
+"""The per-model feature groups of a map store (``features/<key>/``, layout in ``pipeline.store``
+and docs/map_store.md): their name, creation and checks, the writing of one image's rows, and the
+consolidated copies that readers open fast. A group's ``status`` is per image: pending, done or
+failed (with a reason)."""
+
+import functools
+import hashlib
+from pathlib import Path
+from typing import Callable, Dict, List, Optional, Tuple
+
+import numpy as np
+import zarr
+
+from .compression import project, quantize_int8
+from .features import FeatureConfig, ImageFeatures
+from .store import DONE, FAILED, PENDING, StoreError, _array, _get, _padded, _rows_array, image_rows, read
+
+
+def check_feature_group(group: zarr.Group, meta: Dict, path) -> None:
+    """Refuse a feature group whose arrays are missing or disagree with its config and dims."""
+    try:
+        dims = [int(d) for d in group.attrs["dims"]]
+        scales = len(group.attrs["config"]["image_scales"])
+    except (KeyError, TypeError, ValueError) as e:
+        raise StoreError(f"{path}: feature group {group.path} has no readable config or dims ({e}).") from None
+    I, R, L = meta["num_images"], meta["num_rows"], len(dims)  # noqa: E741
+    stored = stored_dims(group)
+    expected = {"status": (I,), "reason": (I,)}
+    for k in range(scales):
+        expected.update({f"s{k}/features": (R, sum(stored)), f"s{k}/confidences": (R, L), f"s{k}/valid": (R, L)})
+        if group.attrs["config"].get("dtype") == "int8":
+            expected[f"s{k}/scales"] = (R, L)
+        for level, (d, kept) in enumerate(zip(dims, stored)):
+            if kept < d:
+                expected[f"s{k}/pca_mean_{level}"] = (d,)
+                expected[f"s{k}/pca_basis_{level}"] = (d, kept)
+    for name, shape in expected.items():
+        array = _get(group, name, path)
+        if tuple(array.shape[1:]) != shape[1:] or array.shape[0] < shape[0] or (
+                "pca_" in name and tuple(array.shape) != shape):
+            raise StoreError(f"{path}: array {group.path}/{name} has shape {tuple(array.shape)}, expected {shape}.")
+    if _get(group, "global", path).shape[0] < I:
+        raise StoreError(f"{path}: array {group.path}/global has {group['global'].shape[0]} rows for {I} images.")
+
+
+@functools.lru_cache(maxsize=16)
+def _file_digest(path: str, size: int, mtime_ns: int) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()[:8]
+
+
+def feature_key(conf: FeatureConfig) -> str:
+    """The store group of a feature config: derived from it, so two configs never share one.
+    A model file is named by its stem and the digest of its bytes: two different ``model.pt``
+    files never share a group."""
+    name = conf.model
+    if Path(conf.model).suffix:
+        path = Path(conf.model)
+        name = path.stem
+        if path.is_file():
+            st = path.stat()
+            name = f"{name}-{_file_digest(str(path.resolve()), st.st_size, st.st_mtime_ns)}"
+    scales = "-".join(str(s) for s in conf.image_scales)
+    dtype = "" if conf.dtype == "float16" else f"_{conf.dtype}"
+    descriptor = "" if conf.descriptor == "gem" else f"_{conf.descriptor}"
+    pca = f"_pca{conf.pca}" if conf.pca else ""
+    return f"{name}_r{conf.resize}_s{scales}_p{conf.pad}{dtype}{descriptor}{pca}"
+
+
+def descriptor_dim(kind: str, channels: int) -> int:
+    """Length of the global descriptor ``kind`` of a ``channels``-channel feature map."""
+    return channels * 6 if kind == "grid" else channels
+
+
+PCABases = Dict[Tuple[int, int], Tuple[np.ndarray, np.ndarray]]
+
+
+def init_features(root: zarr.Group, conf: FeatureConfig, digest: str, dims: List[int],
+                  pca: Optional[Callable[[], PCABases]] = None) -> zarr.Group:
+    """Create (or check and reuse) the feature group of ``conf``; another model is refused.
+
+    With ``conf.pca``, creating the group needs ``pca``: a function returning, per (image scale,
+    level) stored reduced, the mean (C,) and basis (C, D) (``fit_pca``); called only then."""
+    key = feature_key(conf)
+    expected = {"config": conf.to_dict(), "model_digest": digest, "dims": list(dims)}
+    if f"features/{key}" in root:
+        group = root[f"features/{key}"]
+        stored = {k: group.attrs.get(k) for k in expected}
+        if stored != expected:
+            raise StoreError(
+                f"The store's features {key!r} were made with {stored}, not {expected}: refusing to mix "
+                "them. Use another store or feature config, or rebuild with overwrite.")
+        return group
+    meta = root.attrs["pixloc_map"]
+    I, R, L = meta["num_images"], meta["num_rows"], len(dims)  # noqa: E741
+    stored = conf.stored_dims(dims)
+    bases: PCABases = {}
+    if stored != list(dims):
+        if pca is None:
+            raise ValueError(f"Feature group {key!r} stores a PCA of the features: it is created with its bases "
+                             "(pipeline.build.write_structure fits them).")
+        bases = pca()
+    group = root.create_group(f"features/{key}")
+    group.attrs.update(expected)
+    _array(group, "status", (I,), (1,), "int8", fill_value=PENDING)
+    _array(group, "reason", (I,), (1,), str)
+    D = descriptor_dim(conf.descriptor, dims[-1])
+    _array(group, "global", (I, D), (1, D), "float32", fill_value=0)
+    for k in range(len(conf.image_scales)):
+        for level, (d, kept) in enumerate(zip(dims, stored)):
+            if kept < d:
+                mean, basis = bases[(k, level)]
+                if mean.shape != (d,) or basis.shape != (d, kept):
+                    raise ValueError(f"PCA of image scale {k}, level {level}: shapes {mean.shape} and {basis.shape}, "
+                                     f"expected {(d,)} and {(d, kept)}.")
+                _array(group, f"s{k}/pca_mean_{level}", (d,), (d,), "float32")[:] = mean
+                _array(group, f"s{k}/pca_basis_{level}", (d, kept), (d, kept), "float32")[:] = basis
+        _rows_array(group, f"s{k}/features", R, sum(stored), conf.dtype, meta, fill_value=0)
+        if conf.dtype == "int8":
+            _rows_array(group, f"s{k}/scales", R, L, "float16", meta, fill_value=0)
+        _rows_array(group, f"s{k}/confidences", R, L, "float16" if conf.dtype == "int8" else conf.dtype, meta,
+                    fill_value=0)
+        _rows_array(group, f"s{k}/valid", R, L, "bool", meta, fill_value=False)
+    return group
+
+
+def stored_dims(group: zarr.Group) -> List[int]:
+    """The channels a feature group stores per level (fewer than the network's with a PCA)."""
+    pca = int(group.attrs["config"].get("pca", 0))
+    return [min(int(d), pca) if pca else int(d) for d in group.attrs["dims"]]
+
+
+def pca_bases(group: zarr.Group) -> PCABases:
+    """{(image scale, level): (mean, directions)} of a feature group stored as a PCA (else empty)."""
+    conf = group.attrs["config"]
+    pca = int(conf.get("pca", 0))
+    if not pca:
+        return {}
+    return {(k, level): (group[f"s{k}/pca_mean_{level}"][:], group[f"s{k}/pca_basis_{level}"][:])
+            for k in range(len(conf["image_scales"])) for level, d in enumerate(group.attrs["dims"]) if d > pca}
+
+
+def write_image_features(group: zarr.Group, root: zarr.Group, i: int, feats: ImageFeatures) -> None:
+    """Write image i's rows (whole shards), then mark it done: status last, so a crash leaves it pending."""
+    rows = image_rows(root, i)
+    shard = root.attrs["pixloc_map"]["shard_rows"]
+    n = rows.stop - rows.start
+    block = slice(rows.start, rows.start + int(_padded(np.array(n), shard)))
+    n_pad = block.stop - block.start
+    dims = [int(d) for d in group.attrs["dims"]]
+    bases, stored = pca_bases(group), stored_dims(group)
+    for k in range(len(group.attrs["config"]["image_scales"])):
+        levels = [feats.samples[(k, level)] for level in range(len(dims))]
+        f = np.concatenate([project(x[0], bases[(k, level)]) if (k, level) in bases else x[0]
+                            for level, x in enumerate(levels)], 1)
+        c = np.stack([x[1] for x in levels], 1)
+        v = np.stack([x[2] for x in levels], 1)
+        g = group[f"s{k}"]
+        if "scales" in g:
+            f, scales = quantize_int8(f, stored)
+            g["scales"][block] = _pad_rows(scales, n_pad)
+        g["features"][block] = _pad_rows(f.astype(g["features"].dtype), n_pad)
+        g["confidences"][block] = _pad_rows(c.astype(g["confidences"].dtype), n_pad)
+        g["valid"][block] = _pad_rows(v.astype(bool), n_pad)
+    group["global"][i] = feats.global_descriptor.astype(np.float32)
+    group["reason"][i] = ""
+    group["status"][i] = DONE
+
+
+def _pad_rows(x: np.ndarray, n: int) -> np.ndarray:
+    out = np.zeros((n,) + x.shape[1:], x.dtype)
+    out[: len(x)] = x
+    return out
+
+
+def consolidate(root: zarr.Group, group: zarr.Group) -> None:
+    """Copy the per-image ``status`` and ``global`` arrays (one chunk per image, so that workers
+    write their own) into one chunk each, for readers: reading 6,697 one-image chunks takes
+    seconds, on every open. Called when a build has finished; ``unconsolidate`` before the next
+    one writes. The copy is valid while ``attrs["consolidated"]`` names the image count."""
+    meta = root.attrs["pixloc_map"]
+    I = meta["num_images"]  # noqa: E741
+    status, descriptors = read(group, "status", meta), read(group, "global", meta)
+    for name, values in (("status_all", status), ("global_all", descriptors)):
+        if name in group:
+            del group[name]
+        _array(group, name, values.shape, values.shape if len(values) else (1,) + values.shape[1:],
+               values.dtype)[...] = values
+    group.attrs["consolidated"] = {"num_images": I}
+
+
+def unconsolidate(group: zarr.Group) -> None:
+    """Readers go back to the per-image arrays (a build or an add is about to change them)."""
+    if group.attrs.get("consolidated"):
+        group.attrs["consolidated"] = False
+
+
+def consolidated(group: zarr.Group, meta: Dict) -> bool:
+    return group.attrs.get("consolidated") == {"num_images": meta["num_images"]} and "status_all" in group
+
+
+def mark_failed(group: zarr.Group, i: int, reason: str) -> None:
+    group["reason"][i] = reason
+    group["status"][i] = FAILED
