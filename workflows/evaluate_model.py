@@ -6,15 +6,23 @@ strecha/Herz-Jesus-P8 and 7scenes_stairs, never used in training). Each pair (re
 query) is aligned from coarse to fine starting from an initial pose a seeded fraction of the
 way from the reference pose to the truth (the training sampling); the query's pose error is
 then measured in metres and degrees. Writes ``model_eval.json`` and ``model_eval.md``.
+
+Medians and recalls of a few dozen pairs move by a pair or two between close models. So each
+model after the first is also compared with the first pair by pair (``paired``): on how many pairs
+it ends closer or farther, the pairs it brings within each recall threshold or loses, and a sign
+test of closer against farther. Per-pair errors go to ``model_eval_pairs.json``. Rerunning into
+the same ``--output`` reuses its triangulations, so that models run at different times meet the
+same pairs.
 """
 
 import argparse
 import json
 import logging
+import math
 import time
 from dataclasses import replace
 from pathlib import Path
-from typing import Dict, List, Sequence, Tuple
+from typing import Dict, List, Optional, Sequence, Tuple
 
 import torch
 
@@ -28,12 +36,16 @@ from .train import default_data_root, load_config, load_sources, pair_config
 
 logger = logging.getLogger(__name__)
 THRESHOLDS = ((0.05, 2.0), (0.25, 2.0))
+TIE_M = 1e-3  # translation errors closer than this count as a tie in the paired comparison
+Errors = Dict[str, Dict[str, List[Tuple[float, float]]]]  # model -> dataset -> (t m, R deg) per pair
 
 
 def evaluate_models(models: Sequence[str], datasets: Sequence[Tuple[str, PairDataset]], max_pairs: int,
-                    num_iters: int = 100, seed: int = 0) -> Dict[str, Dict[str, Dict[str, float]]]:
+                    num_iters: int = 100, seed: int = 0, pair_errors: Optional[Errors] = None
+                    ) -> Dict[str, Dict[str, Dict[str, float]]]:
     """{model: {dataset or 'all' or 'prior': summary}}: pose errors after alignment of the same
-    seeded pairs and initial poses for every model."""
+    seeded pairs and initial poses for every model; ``pair_errors``, if given, receives each
+    pair's errors ({model or 'prior': {dataset: [(t, R)]}})."""
     pairs = {name: ds.fixed(max_pairs, seed) for name, ds in datasets}
     results: Dict[str, Dict[str, Dict[str, float]]] = {}
 
@@ -46,7 +58,9 @@ def evaluate_models(models: Sequence[str], datasets: Sequence[Tuple[str, PairDat
         out["all"] = summarize([x for e in per.values() for x in e], THRESHOLDS)
         return out
 
-    results["prior"] = summaries({name: [errors(b.query_from_ref_init, b) for b in ps] for name, ps in pairs.items()})
+    pair_errors = {} if pair_errors is None else pair_errors
+    pair_errors["prior"] = {name: [errors(b.query_from_ref_init, b) for b in ps] for name, ps in pairs.items()}
+    results["prior"] = summaries(pair_errors["prior"])
     for model in models:
         refiner = load_refiner(model).eval()
         for s in refiner.solvers:
@@ -55,10 +69,63 @@ def evaluate_models(models: Sequence[str], datasets: Sequence[Tuple[str, PairDat
         with torch.no_grad():
             for name, ps in pairs.items():
                 per[name] = [errors(refiner(b)["query_from_ref"][-1], b) for b in ps]
+        pair_errors[model] = per
         results[model] = summaries(per)
         results[model]["all"]["seconds_per_pair"] = (time.perf_counter() - t0) / sum(map(len, pairs.values()))
         logger.info("%s: %s", model, results[model]["all"])
     return results
+
+
+def sign_test(wins: int, losses: int) -> float:
+    """Two-sided p-value of ``wins`` against ``losses`` if either were equally likely (ties left out)."""
+    n, k = wins + losses, min(wins, losses)
+    if n == 0:
+        return 1.0
+    return min(1.0, 2 * sum(math.comb(n, i) for i in range(k + 1)) / 2 ** n)
+
+
+def paired(pair_errors: Errors, baseline: str) -> Dict[str, Dict[str, Dict[str, float]]]:
+    """{model: {dataset or 'all': comparison with ``baseline`` on the same pairs}}: pairs where the
+    model ends closer / farther in translation (by more than ``TIE_M``), the sign test of the two,
+    and per recall threshold the pairs it brings within (gained) or takes out (lost)."""
+    def within(e, t, r):
+        return e[0] <= t and e[1] <= r
+
+    def compare(a: List[Tuple[float, float]], b: List[Tuple[float, float]]) -> Dict[str, float]:
+        closer = sum(eb[0] < ea[0] - TIE_M for ea, eb in zip(a, b))
+        farther = sum(eb[0] > ea[0] + TIE_M for ea, eb in zip(a, b))
+        out = {"pairs": len(a), "closer": closer, "farther": farther, "sign_test_p": sign_test(closer, farther)}
+        for t, r in THRESHOLDS:
+            out[f"gained@{t}m,{r}deg"] = sum(within(eb, t, r) and not within(ea, t, r) for ea, eb in zip(a, b))
+            out[f"lost@{t}m,{r}deg"] = sum(within(ea, t, r) and not within(eb, t, r) for ea, eb in zip(a, b))
+        return out
+
+    base = pair_errors[baseline]
+    out = {}
+    for model, per in pair_errors.items():
+        if model in (baseline, "prior"):
+            continue
+        out[model] = {name: compare(base[name], e) for name, e in per.items()}
+        out[model]["all"] = compare([x for n in per for x in base[n]], [x for e in per.values() for x in e])
+    return out
+
+
+def paired_markdown(comparison: Dict[str, Dict[str, Dict[str, float]]], baseline: str) -> str:
+    if not comparison:
+        return ""
+    first = next(iter(next(iter(comparison.values())).values()))
+    keys = [k.split("@")[1] for k in first if k.startswith("gained@")]
+    lines = [f"Pair by pair against {baseline} (same pairs; closer / farther: translation error, ties within "
+             f"{1000 * TIE_M:.0f} mm; gained / lost: pairs brought within or taken out of each threshold):", "",
+             "| model | data | pairs | closer | farther | sign test p | "
+             + " | ".join(f"gained / lost {k}" for k in keys) + " |",
+             "| --- | --- | ---: | ---: | ---: | ---: | " + " | ".join("---:" for _ in keys) + " |"]
+    for model, per in comparison.items():
+        for data, c in per.items():
+            lines.append(f"| {model} | {data} | {c['pairs']} | {c['closer']} | {c['farther']} | "
+                         f"{c['sign_test_p']:.3f} | "
+                         + " | ".join(f"{c['gained@' + k]} / {c['lost@' + k]}" for k in keys) + " |")
+    return "\n".join(lines) + "\n"
 
 
 def markdown(results: Dict[str, Dict[str, Dict[str, float]]]) -> str:
@@ -75,7 +142,8 @@ def markdown(results: Dict[str, Dict[str, Dict[str, float]]]) -> str:
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--models", nargs="+", default=["pixloc-lite0", "lite0-imagenet", "photometric"],
-                   help="model names or files (default: the shipped model, its initialisation, raw RGB)")
+                   help="model names or files (default: the shipped model, its initialisation, raw RGB); the "
+                        "others are compared pair by pair with the first")
     p.add_argument("--config", default="lite0", help="training config whose held_out sources to use")
     p.add_argument("--data-root", type=Path, help="default $PIXLOC_SHARED/data or ../shared/data")
     p.add_argument("--output", type=Path, default=Path("outputs/model_eval"))
@@ -103,10 +171,16 @@ def main(args: argparse.Namespace) -> int:
                     max_size=args.max_size or int(config.get("max_size", 320)),
                     init_range=tuple(args.init_range or config.get("init_range", (0.75, 1.0))))
     datasets = [(s.name, s.dataset(pconf)) for s in sources]
-    results = evaluate_models(args.models, datasets, args.max_pairs, args.iters, args.seed)
+    pair_errors: Errors = {}
+    results = evaluate_models(args.models, datasets, args.max_pairs, args.iters, args.seed, pair_errors)
+    comparison = paired(pair_errors, args.models[0])
     args.output.mkdir(parents=True, exist_ok=True)
     (args.output / "model_eval.json").write_text(json.dumps(results, indent=1))
+    (args.output / "model_eval_pairs.json").write_text(json.dumps(
+        {"errors": pair_errors, "paired": {"baseline": args.models[0], "models": comparison}}, indent=1))
     table = markdown(results)
+    if comparison:
+        table += "\n" + paired_markdown(comparison, args.models[0])
     (args.output / "model_eval.md").write_text(table)
     print(table)
     return 0
