@@ -103,8 +103,11 @@ def _pairs_fingerprint(pairs: PairsConfig, num_images: int, posed: bool) -> dict
 
 
 def _content_digest(path: Path) -> str:
+    h = hashlib.sha256()
     with open(path, "rb") as f:
-        return hashlib.file_digest(f, "sha256").hexdigest()[:16]
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()[:16]
 
 
 def _fingerprint(image_dir: Path, names: Sequence[str], **extra) -> dict:
