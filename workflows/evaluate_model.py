@@ -92,6 +92,8 @@ def paired(pair_errors: Errors, baseline: str) -> Dict[str, Dict[str, Dict[str, 
         return e[0] <= t and e[1] <= r
 
     def compare(a: List[Tuple[float, float]], b: List[Tuple[float, float]]) -> Dict[str, float]:
+        # a pair without a pose (NaN) counts as the worst error
+        a, b = ([tuple(x if math.isfinite(x) else math.inf for x in e) for e in side] for side in (a, b))
         closer = sum(eb[0] < ea[0] - TIE_M for ea, eb in zip(a, b))
         farther = sum(eb[0] > ea[0] + TIE_M for ea, eb in zip(a, b))
         out = {"pairs": len(a), "closer": closer, "farther": farther, "sign_test_p": sign_test(closer, farther)}

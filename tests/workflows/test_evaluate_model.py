@@ -50,6 +50,8 @@ def test_sign_test():
     assert (c["closer"], c["farther"]) == (1, 1)  # 0.5 mm is a tie
     assert (c["gained@0.25m,2.0deg"], c["lost@0.25m,2.0deg"]) == (0, 0)  # pair 3: out for both (R, then t)
     assert (c["gained@0.05m,2.0deg"], c["lost@0.05m,2.0deg"]) == (1, 0)
+    no_pose = paired({"a": {"d": [(0.1, 1.0)]}, "b": {"d": [(float("nan"), float("nan"))]}}, "a")["b"]["d"]
+    assert (no_pose["closer"], no_pose["farther"], no_pose["lost@0.25m,2.0deg"]) == (0, 1, 1)
 
 
 def test_missing_held_out_data_is_a_clear_error(tmp_path, capsys):
