@@ -4,7 +4,6 @@ consolidated copies that readers open fast. A group's ``status`` is per image: p
 failed (with a reason)."""
 
 import functools
-import hashlib
 from pathlib import Path
 from typing import Callable, Dict, List, Optional, Tuple
 
@@ -13,6 +12,7 @@ import zarr
 
 from .compression import project, quantize_int8
 from .features import FeatureConfig, ImageFeatures
+from .images import file_sha256
 from .store import DONE, FAILED, PENDING, StoreError, _array, _get, _padded, _rows_array, image_rows, read
 
 
@@ -45,11 +45,7 @@ def check_feature_group(group: zarr.Group, meta: Dict, path) -> None:
 
 @functools.lru_cache(maxsize=16)
 def _file_digest(path: str, size: int, mtime_ns: int) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()[:8]
+    return file_sha256(path)[:8]  # cached while the file keeps its size and time
 
 
 def feature_key(conf: FeatureConfig) -> str:

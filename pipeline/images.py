@@ -1,5 +1,6 @@
-"""Image reading and resizing, as official PixLoc does them (OpenCV)."""
+"""Image reading and resizing, as official PixLoc does them (OpenCV), and file digests."""
 
+import hashlib
 import os
 import sys
 import tempfile
@@ -89,3 +90,12 @@ def read_depth(path, scale: float) -> np.ndarray:
     depth = depth.astype(np.float32) * scale
     depth[invalid] = 0
     return depth
+
+
+def file_sha256(path) -> str:
+    """The SHA-256 (hex) of a file's bytes, read in 1 MiB blocks."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()

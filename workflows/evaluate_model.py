@@ -115,8 +115,7 @@ def paired(pair_errors: Errors, baseline: str) -> Dict[str, Dict[str, Dict[str, 
 def paired_markdown(comparison: Dict[str, Dict[str, Dict[str, float]]], baseline: str) -> str:
     if not comparison:
         return ""
-    first = next(iter(next(iter(comparison.values())).values()))
-    keys = [k.split("@")[1] for k in first if k.startswith("gained@")]
+    keys = [f"{t}m,{r}deg" for t, r in THRESHOLDS]
     lines = [f"Pair by pair against {baseline} (same pairs; closer / farther: translation error, ties within "
              f"{1000 * TIE_M:.0f} mm; gained / lost: pairs brought within or taken out of each threshold):", "",
              "| model | data | pairs | closer | farther | sign test p | "

@@ -1,6 +1,5 @@
 """COLMAP models (binary or text) via pycolmap: read, reconstruct, triangulate from known poses."""
 
-import hashlib
 import json
 import logging
 import time
@@ -13,6 +12,7 @@ import pycolmap
 
 from pixloc.nets.registry import DEFAULT_MODEL
 
+from ..images import file_sha256
 from ..pairs import PairsConfig, match
 from ..scene import CameraRecord, ImageRecord, Scene, SceneError
 
@@ -102,19 +102,11 @@ def _pairs_fingerprint(pairs: PairsConfig, num_images: int, posed: bool) -> dict
     return out
 
 
-def _content_digest(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()[:16]
-
-
 def _fingerprint(image_dir: Path, names: Sequence[str], **extra) -> dict:
     """What a reconstruction depends on: its image files (name, size, digest of the bytes) and
     settings. Not the modification times: a dataset copied to another disk or machine keeps its
     reconstruction (an SfM of thousands of images takes hours)."""
-    files = [[n, (image_dir / n).stat().st_size, _content_digest(image_dir / n)] if (image_dir / n).is_file()
+    files = [[n, (image_dir / n).stat().st_size, file_sha256(image_dir / n)[:16]] if (image_dir / n).is_file()
              else [n, None, None] for n in names]
     return json.loads(json.dumps({"images": files, **extra}))
 
