@@ -18,7 +18,6 @@ IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp")
 _EXIF_IFD = 0x8769
 _FOCAL_LENGTH, _FOCAL_35MM = 37386, 41989
 _PLANE_X_RES, _PLANE_UNIT = 41486, 41488
-_ORIENTATION = 274
 _UNIT_MM = {2: 25.4, 3: 10.0, 4: 1.0, 5: 1e-3}  # EXIF FocalPlaneResolutionUnit: inch, cm, mm, um
 
 
@@ -38,17 +37,24 @@ def _positive(value) -> Optional[float]:
 
 
 def exif_camera(path, name: Optional[str] = None, default_factor: float = DEFAULT_FOCAL_FACTOR) -> ExifCamera:
-    """The SIMPLE_PINHOLE camera of one image file (OSError/ValueError if it is not an image)."""
-    from PIL import Image, UnidentifiedImageError
+    """The SIMPLE_PINHOLE camera of one image file. The file is read as localize reads it
+    (``pipeline.images.read_image``: header, pixel limit, full decode), so that a list never holds
+    an image that localize would refuse; OSError/ValueError naming the file otherwise."""
+    import warnings
+
+    from PIL import Image
+
+    from .images import read_image
+
+    height, width = read_image(path).shape[:2]  # EXIF orientation applied, as localize decodes
     try:
-        with Image.open(path) as im:
-            width, height = im.size
-            exif = im.getexif()
-    except UnidentifiedImageError as e:
-        raise ValueError(f"{path}: not an image ({e})") from None
-    sub = exif.get_ifd(_EXIF_IFD)
-    if exif.get(_ORIENTATION) in (5, 6, 7, 8):  # rotated by 90 degrees when decoded
-        width, height = height, width
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            with Image.open(path) as im:
+                exif = im.getexif()
+                sub = exif.get_ifd(_EXIF_IFD)
+    except Exception:  # noqa: BLE001 - decoded by OpenCV but no EXIF PIL can read: the default focal
+        sub = {}
     size = max(width, height)
     focal, source = None, "default"
     f35 = _positive(sub.get(_FOCAL_35MM))

@@ -8,6 +8,7 @@ image observes, with the level's camera. An observation is valid at a level
 when it projects inside the image and inside the interpolation margin.
 """
 
+import logging
 from dataclasses import asdict, dataclass
 from typing import Dict, List, Tuple
 
@@ -18,8 +19,10 @@ from pixloc.interpolation import Interpolator
 from pixloc.nets.registry import DEFAULT_MODEL
 from pixloc.nets.unet import UNet
 
-from .images import read_image, resize_max, to_tensor
+from .images import read_image_for, resize_max, to_tensor
 from .scene import ImageRecord
+
+logger = logging.getLogger(__name__)
 
 
 DTYPES = ("float16", "int8", "float32")
@@ -110,8 +113,10 @@ def global_descriptor(features: torch.Tensor, kind: str = "gem") -> torch.Tensor
 def extract_image_features(net: UNet, conf: FeatureConfig, image: ImageRecord, p3d_world: np.ndarray,
                            device: str = "cpu") -> ImageFeatures:
     """Sample the features of ``image`` at the projections of ``p3d_world`` (K, 3)."""
-    rgb = read_image(image.path)
-    camera = image.camera.to_pixloc(torch.float64)
+    rgb, camera, note = read_image_for(image.path, image.camera)  # the same size rule as queries
+    if note:
+        logger.warning("Map image %s: %s", image.name, note)
+    camera = camera.to_pixloc(torch.float64)
     p3d_cam = image.pose(torch.float64).transform(torch.from_numpy(np.asarray(p3d_world, np.float64)))
     interpolator = Interpolator("linear", conf.pad)
     samples, descriptor = {}, None

@@ -1,10 +1,20 @@
-"""Image reading and resizing, as official PixLoc does them (OpenCV), and file digests."""
+"""Image reading and resizing, as official PixLoc does them (OpenCV), and file digests.
+
+Every image the pipeline uses (queries, map images, training and report images) is read by
+``read_image``: the header first (an empty file, a file that is no image, or one above
+``max_image_pixels()`` is refused before anything is decoded: a 2 MB PNG can declare 30000 x
+30000 pixels), then a full decode whose every error, of any decoder, is an ``ImageReadError``
+naming the file. ``read_image_for`` also fits the file to the camera that describes it, the same
+way for queries and map images (``fit_image``).
+"""
 
 import hashlib
 import os
 import sys
 import tempfile
 import threading
+import warnings
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional, Tuple
 
@@ -14,41 +24,123 @@ import torch
 
 
 class ImageReadError(IOError):
-    """An image file that is missing or cannot be decoded."""
+    """An image file that is missing, too large, or cannot be decoded."""
 
+
+# A documented ceiling on the pixels of one image, checked from the header before decoding
+# (150 MP: a 12,000 x 12,500 photo; decoding it takes 0.45 GB, resizing 1.8 GB). Raise it with
+# the environment variable PIXLOC_MAX_IMAGE_PIXELS (inherited by local Dask workers) or the
+# command line's --max-image-pixels, which sets that variable.
+DEFAULT_MAX_IMAGE_PIXELS = 150_000_000
+MAX_PIXELS_ENV = "PIXLOC_MAX_IMAGE_PIXELS"
 
 # What libjpeg and libpng print (they do not fail) when a file is truncated or corrupt: OpenCV
 # then returns a partly grey image as if nothing happened.
 _DECODER_ERRORS = ("Corrupt JPEG data", "Premature end of JPEG file", "JPEG datastream contains no image",
                    "libpng error", "Invalid SOS parameters", "Bogus marker length", "Huffman")
 _STDERR_LOCK = threading.Lock()
+_ROTATED = (5, 6, 7, 8)  # EXIF orientations that swap width and height
 
 
-def _decode_checked(data: bytes) -> Tuple[Optional[np.ndarray], str]:
-    """cv2.imdecode with the decoder's messages on the C stderr captured: (image, messages)."""
+def max_image_pixels() -> int:
+    """The pixel limit in force: PIXLOC_MAX_IMAGE_PIXELS, else DEFAULT_MAX_IMAGE_PIXELS."""
+    value = os.environ.get(MAX_PIXELS_ENV)
+    if not value:
+        return DEFAULT_MAX_IMAGE_PIXELS
+    try:
+        limit = int(float(value))
+    except ValueError:
+        raise ValueError(f"{MAX_PIXELS_ENV}={value!r} is not a number of pixels") from None
+    if limit < 1:
+        raise ValueError(f"{MAX_PIXELS_ENV}={value!r} must be positive")
+    return limit
+
+
+@dataclass(frozen=True)
+class ImageHeader:
+    """What a file's header says: its size as stored (pixels) and its EXIF orientation (1-8)."""
+
+    width: int
+    height: int
+    orientation: int = 1
+
+    @property
+    def oriented_size(self) -> Tuple[int, int]:
+        """(width, height) once the EXIF orientation is applied (as ``read_image`` decodes)."""
+        return (self.height, self.width) if self.orientation in _ROTATED else (self.width, self.height)
+
+
+def read_header(path) -> Optional[ImageHeader]:
+    """The header of an image file, without decoding its pixels; None for a format that PIL
+    cannot identify (OpenCV may still decode it). Refuses a missing or empty file, and one whose
+    pixels exceed ``max_image_pixels()``, with an ImageReadError naming the file."""
+    from PIL import Image, UnidentifiedImageError
+
+    path = Path(path)
+    if not path.is_file():
+        raise ImageReadError(f"image file {path} is missing" + (" (it is a folder)" if path.is_dir() else ""))
+    if path.stat().st_size == 0:
+        raise ImageReadError(f"image file {path} is empty (0 bytes)")
+    limit = max_image_pixels()
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            with Image.open(path) as im:
+                width, height = im.size
+                try:
+                    orientation = int(im.getexif().get(274, 1))
+                except Exception:  # noqa: BLE001 - a damaged EXIF block: the decoder decides
+                    orientation = 1
+    except Image.DecompressionBombError:  # PIL's own ceiling, 2 x 89 MP: above it, ours applies
+        if limit <= 2 * (Image.MAX_IMAGE_PIXELS or 0):
+            raise ImageReadError(f"image file {path} declares more than {limit:,} pixels (the limit; raise it "
+                                 f"with --max-image-pixels or {MAX_PIXELS_ENV})") from None
+        return None
+    except (UnidentifiedImageError, OSError, ValueError, SyntaxError):
+        return None
+    if width * height > limit:
+        raise ImageReadError(f"image file {path} declares {width}x{height} = {width * height:,} pixels, more than "
+                             f"the limit of {limit:,} (raise it with --max-image-pixels or {MAX_PIXELS_ENV})")
+    if width < 1 or height < 1:
+        raise ImageReadError(f"image file {path} declares an empty image ({width}x{height})")
+    return ImageHeader(int(width), int(height), orientation if 1 <= orientation <= 8 else 1)
+
+
+def _decode_checked(data: bytes, flags: int) -> Tuple[Optional[np.ndarray], str]:
+    """cv2.imdecode with the decoder's messages on the C stderr captured: (image, messages).
+    An exception of the decoder (cv2.error, memory) is returned as a None image and its words."""
     buffer = np.frombuffer(data, np.uint8)
+    error = ""
     with _STDERR_LOCK, tempfile.TemporaryFile() as capture:
         sys.stderr.flush()
         saved = os.dup(2)
         os.dup2(capture.fileno(), 2)
         try:
-            image = cv2.imdecode(buffer, cv2.IMREAD_COLOR)
+            image = cv2.imdecode(buffer, flags)
+        except (cv2.error, MemoryError, ValueError) as e:
+            image, error = None, f"{type(e).__name__}: {str(e).strip().splitlines()[-1] if str(e).strip() else ''}"
         finally:
             os.dup2(saved, 2)
             os.close(saved)
         capture.seek(0)
         messages = capture.read().decode(errors="replace")
-    return image, messages
+    return image, messages + (("\n" + error) if error else "")
 
 
-def read_image(path) -> np.ndarray:
-    """(H, W, 3) uint8 RGB, fully decoded; a missing, truncated or corrupt file raises
-    ImageReadError with the decoder's words."""
+def read_image(path, *, orientation: bool = True) -> np.ndarray:
+    """(H, W, 3) uint8 RGB, fully decoded, with the EXIF orientation applied (``orientation``;
+    False keeps the pixels as stored). A missing, empty, oversized, truncated or corrupt file
+    raises ImageReadError with the file and the decoder's words."""
     path = Path(path)
-    if not path.is_file():
-        raise ImageReadError(f"image file {path} is missing")
-    image, messages = _decode_checked(path.read_bytes())
-    problems = [line.strip() for line in messages.splitlines() if any(e in line for e in _DECODER_ERRORS)]
+    header = read_header(path)
+    flags = cv2.IMREAD_COLOR if orientation else cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION
+    try:
+        data = path.read_bytes()
+    except OSError as e:
+        raise ImageReadError(f"image file {path} cannot be read: {e.strerror or e}") from None
+    image, messages = _decode_checked(data, flags)
+    problems = [line.strip() for line in messages.splitlines()
+                if any(e in line for e in _DECODER_ERRORS) or line.startswith(("error:", "MemoryError:", "ValueError:"))]
     other = "".join(line + "\n" for line in messages.splitlines() if line.strip() and line.strip() not in problems)
     if other:
         sys.stderr.write(other)  # not ours to swallow
@@ -56,7 +148,64 @@ def read_image(path) -> np.ndarray:
         raise ImageReadError(f"image file {path} cannot be decoded" + (f": {problems[0]}" if problems else ""))
     if problems:
         raise ImageReadError(f"image file {path} is truncated or corrupt: {'; '.join(dict.fromkeys(problems))}")
+    if header is None and image.shape[0] * image.shape[1] > max_image_pixels():
+        raise ImageReadError(f"image file {path} is {image.shape[1]}x{image.shape[0]} pixels, more than the limit "
+                             f"of {max_image_pixels():,} (raise it with --max-image-pixels or {MAX_PIXELS_ENV})")
+    if image.ndim == 2:
+        image = np.repeat(image[..., None], 3, 2)
     return image[..., ::-1]
+
+
+def fit_image(camera, size: Tuple[int, int], stored: Optional[Tuple[int, int]] = None):
+    """How an image file of ``size`` (width, height, EXIF orientation applied) fits ``camera``
+    (a ``CameraRecord``): ``(camera, orientation, note, reason)``.
+
+    The same size: as is. The same aspect ratio: a resized copy, the intrinsics rescaled to the
+    file (``note`` says so). Otherwise, where the EXIF orientation swapped the sides and the size
+    as ``stored`` fits, the pixels as stored (``orientation`` False: the camera describes them,
+    as SfM tools that ignore the tag do). Else ``reason`` says why the image cannot be used."""
+    def fits(w, h):
+        if (w, h) == (camera.width, camera.height):
+            return camera, None
+        if abs(w / camera.width - h / camera.height) * max(w, h) <= 1.0:
+            return camera.rescaled(w, h), (f"image file is {w}x{h}, the camera says {camera.width}x{camera.height}: "
+                                           "intrinsics rescaled to the file")
+        return None, None
+
+    cam, note = fits(*size)
+    if cam is not None:
+        return cam, True, note, None
+    if stored is not None and stored != size:
+        cam, note = fits(*stored)
+        if cam is not None:
+            note = "; ".join(filter(None, [f"EXIF orientation ignored: the camera describes the {stored[0]}x"
+                                            f"{stored[1]} pixels as stored", note]))
+            return cam, False, note, None
+    exif = f" (EXIF orientation applied; {stored[0]}x{stored[1]} as stored)" if stored and stored != size else ""
+    return camera, True, None, (f"image file is {size[0]}x{size[1]}{exif} but the camera is declared "
+                                f"{camera.width}x{camera.height} (another aspect ratio): fix the camera or the file")
+
+
+def read_image_for(path, camera):
+    """The image at ``path`` fitted to ``camera`` (``fit_image``): ``(rgb, camera, note)``; a file
+    that cannot be read or does not fit raises ImageReadError naming it. Queries and map images
+    both go through here."""
+    header = read_header(path)
+    if header is not None:
+        size, stored = header.oriented_size, (header.width, header.height)
+        camera, oriented, note, reason = fit_image(camera, size, stored)
+        if reason:
+            raise ImageReadError(f"image file {path}: {reason}")
+        rgb = read_image(path, orientation=oriented)
+    else:
+        rgb = read_image(path)
+        camera, _, note, reason = fit_image(camera, (rgb.shape[1], rgb.shape[0]))
+        if reason:
+            raise ImageReadError(f"image file {path}: {reason}")
+    if (rgb.shape[1], rgb.shape[0]) != (camera.width, camera.height):  # a header that lied
+        raise ImageReadError(f"image file {path} decodes to {rgb.shape[1]}x{rgb.shape[0]}, its header says "
+                             f"{camera.width}x{camera.height}")
+    return rgb, camera, note
 
 
 def resize_max(image: np.ndarray, max_size: Optional[int]) -> Tuple[np.ndarray, Tuple[float, float]]:
@@ -83,7 +232,10 @@ def to_tensor(image: np.ndarray) -> torch.Tensor:
 def read_depth(path, scale: float) -> np.ndarray:
     """(H, W) float32 depth in scene units; 0 where invalid (0 or 65535 in 16-bit files)."""
     path = Path(path)
-    depth = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    try:
+        depth = cv2.imread(str(path), cv2.IMREAD_UNCHANGED) if path.is_file() and path.stat().st_size else None
+    except cv2.error:
+        depth = None
     if depth is None:
         raise ImageReadError(f"depth file {path} is missing or cannot be decoded")
     invalid = (depth == 0) | (depth == 65535) if depth.dtype == np.uint16 else ~np.isfinite(depth)

@@ -8,6 +8,7 @@ then per image scale the query's dense features and LM from the coarsest to
 the finest level. A failure at any level keeps the prior, marked failed.
 """
 
+import dataclasses
 import logging
 import time
 from dataclasses import dataclass, field
@@ -22,7 +23,7 @@ from pixloc.optim import FeaturemetricProblem, LevenbergMarquardt, alignment_con
 from pixloc.optim.cost import new_query_maps
 from pixloc.nets.unet import UNet
 
-from .images import ImageReadError, read_image, resize_max, to_tensor
+from .images import ImageReadError, read_image_for, resize_max, to_tensor
 from .map_reader import MapReader, Observations, StoreReadError
 from .queries import QueryRecord
 from .scene import pose_from_matrix
@@ -187,8 +188,11 @@ class Localizer:
                 if result.num_points < self.conf.min_points:
                     result.reason = f"references see {result.num_points} points (< {self.conf.min_points})"
                     continue
-                if st["rgb"] is None:
-                    st["rgb"] = read_image(query.path)
+                if st["rgb"] is None:  # a library caller: the same read and size rule as a shard's
+                    st["rgb"], camera, note = read_image_for(query.path, query.camera)
+                    if note:
+                        st["query"] = dataclasses.replace(query, camera=camera)
+                        result.notes.append(note)
                 st["T"] = st["prior_T"] = pose_from_matrix(prior).float()
                 st["active"] = True
             except (ImageReadError, StoreReadError, ValueError) as e:

@@ -1,13 +1,15 @@
 """Query images: names, files, intrinsics and condition tags; retrieval pairs."""
 
-from collections import defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, List, Optional
 
 import numpy as np
 
-from .scene import CameraRecord, SceneError
+from pixloc.geometry import COLMAP_MODELS
+
+from .scene import CameraRecord, SceneError, name_problem
+from .textfiles import data_lines
 
 
 @dataclass
@@ -36,12 +38,16 @@ def read_queries_with_intrinsics(path, image_dir, tags=None) -> List[QueryRecord
     path = Path(path)
     if not path.is_file():
         raise SceneError(f"Query list {path} does not exist.")
-    for line_no, line in enumerate(path.read_text().splitlines(), 1):
-        if not line.strip() or line.lstrip().startswith("#"):
-            continue
-        name, *fields = line.split()
+    for line_no, (name, *fields) in data_lines(path, "query list"):
         camera, error = None, None
-        if len(fields) < 3:
+        spaced = next((k for k, f in enumerate(fields) if f in COLMAP_MODELS), 0)
+        if spaced > 0:
+            error = (f"{path}:{line_no}: bad query line: the name has spaces "
+                     f"({' '.join([name, *fields[:spaced]])!r}); this format separates fields by whitespace: "
+                     "rename the file")
+        elif name_problem(name):
+            error = f"{path}:{line_no}: bad query line: {name_problem(name)}"
+        elif len(fields) < 3:
             error = f"{path}:{line_no}: bad query line: expected 'name MODEL width height params...'"
         else:
             model, w, h, *params = fields
@@ -55,13 +61,3 @@ def read_queries_with_intrinsics(path, image_dir, tags=None) -> List[QueryRecord
                     camera, error = None, f"{path}:{line_no}: bad query line: {reason}"
         queries.append(QueryRecord(name, Path(image_dir) / name, camera, dict(tags or {}), error=error))
     return queries
-
-
-def read_pairs(path) -> Dict[str, List[str]]:
-    """hloc/PixLoc retrieval pairs ``query reference`` per line, kept in ranked order."""
-    pairs: Dict[str, List[str]] = defaultdict(list)
-    for line in Path(path).read_text().splitlines():
-        if line.strip() and not line.lstrip().startswith("#"):
-            q, r = line.split()[:2]
-            pairs[q].append(r)
-    return dict(pairs)

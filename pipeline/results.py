@@ -80,7 +80,8 @@ def pose_name(name: str, names: str = "full") -> str:
     image folder), ``basename`` (Aachen, CMU submissions) or ``camera`` (``parentdir/basename``:
     RobotCar, 7-Scenes, Cambridge)."""
     path = Path(name)
-    return {"full": name, "basename": path.name, "camera": f"{path.parent.name}/{path.name}"}[names]
+    camera = f"{path.parent.name}/{path.name}" if path.parent.name else path.name  # never '/a.jpg'
+    return {"full": name, "basename": path.name, "camera": camera}[names]
 
 
 def pose_names_problem(names: List[str], how: str) -> Optional[str]:

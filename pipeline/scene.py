@@ -11,7 +11,7 @@ import numpy as np
 import torch
 
 from pixloc.geometry import COLMAP_MODELS, Camera, Pose, lie
-from pixloc.geometry.camera import _NUM_COLMAP_PARAMS
+from pixloc.geometry.camera import NUM_COLMAP_PARAMS
 
 
 def qvec_to_rotmat(qvec) -> np.ndarray:
@@ -30,6 +30,26 @@ def pose_from_matrix(T, dtype=torch.float64) -> Pose:
     return Pose.from_Rt(T[:, :3], T[:, 3])
 
 
+MAX_SIDE = 100_000  # pixels
+MIN_FOCAL_FACTOR, MAX_FOCAL_FACTOR = 0.004, 100.0  # x the longer side: about 179 to 0.6 deg across it
+
+
+def name_problem(name: str) -> Optional[str]:
+    """Why ``name`` cannot name an image, or None. Names are relative paths inside their image
+    folder (as COLMAP and kapture write them): not empty, not absolute, no ``..``, no control
+    characters, so that a name never reads a file outside its folder."""
+    if not name or not name.strip():
+        return "empty image name"
+    if any(ord(c) < 32 for c in name):
+        return f"image name {name!r} has control characters"
+    p = name.replace("\\", "/")
+    if p.startswith("/") or (len(p) > 1 and p[1] == ":"):
+        return f"image name {name!r} is absolute: names are relative to the image folder"
+    if ".." in p.split("/"):
+        return f"image name {name!r} leaves the image folder ('..'): names are relative paths inside it"
+    return None
+
+
 class SceneError(ValueError):
     """Input that cannot make a map (empty model, unsupported camera, NaN pose...)."""
 
@@ -44,21 +64,52 @@ class CameraRecord:
     params: tuple
 
     def check(self) -> Optional[str]:
-        """None if usable, else why not."""
+        """None if usable, else why not. Every camera is checked where it is read (query lists,
+        models, store): a supported model with its parameter count, finite parameters, a size of
+        1 to ``MAX_SIDE`` pixels a side, focal lengths that give a field of view between about
+        0.6 and 179 degrees (``MIN_FOCAL_FACTOR`` to ``MAX_FOCAL_FACTOR`` x the longer side; zero
+        or negative focal lengths are refused), and a principal point within half an image of
+        the image."""
         if self.model not in COLMAP_MODELS:
             return f"unsupported camera model {self.model!r} (supported: {', '.join(COLMAP_MODELS)})"
-        if len(self.params) != _NUM_COLMAP_PARAMS[self.model]:
-            return (f"camera model {self.model} has {_NUM_COLMAP_PARAMS[self.model]} parameters, "
+        if len(self.params) != NUM_COLMAP_PARAMS[self.model]:
+            return (f"camera model {self.model} has {NUM_COLMAP_PARAMS[self.model]} parameters, "
                     f"got {len(self.params)}")
-        if not all(math.isfinite(p) for p in self.params) or self.width <= 0 or self.height <= 0:
-            return f"invalid camera {self.model} {self.width}x{self.height} {list(self.params)}"
+        w, h = self.width, self.height
+        try:
+            whole = int(w) == w and int(h) == h
+        except (TypeError, ValueError, OverflowError):
+            whole = False
+        if not whole or not (1 <= w <= MAX_SIDE and 1 <= h <= MAX_SIDE):
+            return f"camera {self.model} has an invalid size {w}x{h} (1 to {MAX_SIDE} pixels a side)"
+        if not all(math.isfinite(p) for p in self.params):
+            return f"camera {self.model} {w}x{h} has non-finite parameters {list(self.params)}"
+        focals, (cx, cy) = self.focals(), self.principal_point()
+        side = max(w, h)
+        for f in focals:
+            if not MIN_FOCAL_FACTOR * side <= f <= MAX_FOCAL_FACTOR * side:
+                return (f"camera {self.model} {w}x{h} has focal length {f:g} px: it must be positive, between "
+                        f"{MIN_FOCAL_FACTOR:g} and {MAX_FOCAL_FACTOR:g} x the longer side")
+        if not (-0.5 * w <= cx <= 1.5 * w and -0.5 * h <= cy <= 1.5 * h):
+            return f"camera {self.model} {w}x{h} has its principal point ({cx:g}, {cy:g}) far outside the image"
         return None
+
+    def focals(self) -> tuple:
+        """(f,) or (fx, fy) in pixels, by the COLMAP model's parameter order."""
+        return tuple(self.params[:1] if self._single_focal() else self.params[:2])
+
+    def principal_point(self) -> tuple:
+        """(cx, cy), COLMAP pixel convention."""
+        return tuple(self.params[1:3] if self._single_focal() else self.params[2:4])
+
+    def _single_focal(self) -> bool:
+        return self.model.startswith("SIMPLE") or self.model == "RADIAL"
 
     def rescaled(self, width: int, height: int) -> "CameraRecord":
         """The same camera for an image of ``width`` x ``height`` (a resized copy of the file)."""
         sx, sy = width / self.width, height / self.height
         p = list(self.params)
-        if self.model.startswith("SIMPLE") or self.model == "RADIAL":
+        if self._single_focal():
             p[:3] = [p[0] * sx, p[1] * sx, p[2] * sy]
         else:
             p[:4] = [p[0] * sx, p[1] * sy, p[2] * sx, p[3] * sy]
@@ -97,7 +148,7 @@ class ImageRecord:
     source_id: int = -1  # the image's id in its source model (COLMAP image_id), -1 if none
 
     def check(self) -> Optional[str]:
-        reason = self.camera.check()
+        reason = name_problem(self.name) or self.camera.check()
         if reason:
             return reason
         T = np.asarray(self.cam_from_world)

@@ -18,7 +18,7 @@ import numpy as np
 from pixloc.nets.registry import load_refiner, state_digest
 
 from .features import FeatureConfig, global_descriptor
-from .images import ImageReadError, read_image
+from .images import ImageReadError, read_image_for
 from .localize import Localizer, LocalizerConfig, QueryResult
 from .map_reader import MapReader, by_name, global_descriptor_ranking, open_reader
 from .priors import covisibility_clusters, pose_approximation
@@ -28,6 +28,7 @@ from .results import read_records, result_to_record, write_records
 from .search import Hypotheses, SearchConfig, hypotheses, median_depth, rank_results, screen, solve, top1_first
 from .runtime import restore_malloc_thresholds, torch_threads
 from .store import StoreError
+from .textfiles import PoseTable, find_by_name, read_pairs, read_poses
 
 logger = logging.getLogger(__name__)
 
@@ -130,6 +131,12 @@ class LocalizationJob:
         for f in files:
             if not Path(f).is_file():
                 raise ValueError(f"Input file {f} does not exist.")
+        # text inputs are read in full now: a bad line is one clear error (file:line) before
+        # the run, not the same failure in every query
+        if method == "pairs":
+            _pairs(self.retrieval.pairs)
+        if self.prior == "poses":
+            read_poses_file(self.prior_poses)
 
 
 PRIORS = ("top1", "average", "hypotheses", "search", "poses", "hloc")
@@ -146,7 +153,6 @@ def localization_model(model: str, device: str = "cpu"):
 
 @functools.lru_cache(maxsize=4)
 def _pairs(path: str) -> Dict[str, List[str]]:
-    from .queries import read_pairs
     return read_pairs(path)
 
 
@@ -166,49 +172,20 @@ def _hloc_descriptors(path: str) -> Dict[str, np.ndarray]:
 
 
 @functools.lru_cache(maxsize=2)
-def read_poses_file(path: str) -> Dict[str, np.ndarray]:
-    """``name qw qx qy qz tx ty tz`` lines -> cam_from_world (3, 4), by name as written
-    and by ``parentdir/basename`` and basename where those are unambiguous."""
-    from .scene import qvec_to_rotmat
-
-    out = {}
-    for line in Path(path).read_text().splitlines():
-        if line.strip() and not line.startswith("#"):
-            name, *v = line.split()
-            out[name] = np.concatenate([qvec_to_rotmat(np.array(v[:4], float)), np.array(v[4:7], float)[:, None]], 1)
-    return out
+def read_poses_file(path: str) -> PoseTable:
+    """A poses file (priors), read once per process (``pipeline.textfiles.read_poses``)."""
+    return read_poses(path)
 
 
-@functools.lru_cache(maxsize=2)
-def _hloc_logs(path: str) -> Dict[str, PnPLog]:
-    return read_hloc_logs(path)
-
-
-def find_by_name(priors: Dict, name: str):
-    """The prior of query ``name``: exact, then ``parentdir/basename``, then a unique basename."""
-    p = Path(name)
-    for key in (name, f"{p.parent.name}/{p.name}"):
-        if key in priors:
-            return priors[key]
-    matches = [k for k in priors if Path(k).name == p.name]
-    return priors[matches[0]] if len(matches) == 1 else None
-
-
-def fit_camera(query: QueryRecord, rgb: np.ndarray) -> Tuple[QueryRecord, Optional[str]]:
-    """The query with a camera that fits its image file: a declared size that differs from the
-    file is rescaled when the aspect ratio is the same (a resized copy; logged and noted in the
-    record), and fails the query otherwise."""
-    height, width = rgb.shape[:2]
-    cam = query.camera
-    if (width, height) == (cam.width, cam.height):
-        return query, None
-    if abs(width / cam.width - height / cam.height) * max(width, height) <= 1.0:
-        note = (f"image file is {width}x{height}, the camera says {cam.width}x{cam.height}: "
-                "intrinsics rescaled to the file")
+def fit_query(query: QueryRecord) -> Tuple[QueryRecord, np.ndarray]:
+    """The query's image (``pipeline.images.read_image_for``: decoded in full, its size checked
+    against the camera) and the query with the camera that fits it; a resized copy is noted in
+    the record. Raises ImageReadError naming the file."""
+    rgb, camera, note = read_image_for(query.path, query.camera)
+    if note:
         logger.warning("%s: %s", query.name, note)
-        return dataclasses.replace(query, camera=cam.rescaled(width, height), notes=query.notes + (note,)), None
-    return query, (f"image file is {width}x{height} but the camera is declared {cam.width}x{cam.height} "
-                   "(another aspect ratio): fix the query list")
+        query = dataclasses.replace(query, camera=camera, notes=query.notes + (note,))
+    return query, rgb
 
 
 def _failure(query: QueryRecord, reason: str, prior=None, refs=None) -> QueryResult:
@@ -260,12 +237,9 @@ def prepare_query(job: LocalizationJob, reader: MapReader, localizer: Localizer,
     if reason:
         return _failure(query, reason)
     try:
-        rgb = read_image(query.path)
+        query, rgb = fit_query(query)
     except ImageReadError as e:
         return _failure(query, str(e))
-    query, reason = fit_camera(query, rgb)
-    if reason:
-        return _failure(query, reason)
     cache: Dict = {}
     if job.prior == "hloc":
         return _prepare_hloc(job, reader, query, rgb, cache)
@@ -290,7 +264,7 @@ def prepare_query(job: LocalizationJob, reader: MapReader, localizer: Localizer,
         return Hypotheses([(query, dbs[:num], T, rgb, cache) for T, _ in starts], [label for _, label in starts],
                            always=always, depth=median_depth(reader, dbs[0]))
     if job.prior == "poses":
-        prior = find_by_name(read_poses_file(job.prior_poses), query.name)
+        prior = read_poses_file(job.prior_poses).find(query.name)
         if prior is None:
             return _failure(query, f"no prior pose for this query in {job.prior_poses}", refs=dbs[:num])
         return [(query, dbs[:num], prior, rgb, cache)]
@@ -389,7 +363,7 @@ def retrieve_queries(job: LocalizationJob, queries: List[QueryRecord], out_path)
             try:
                 if q.error or q.camera is None or q.camera.check():
                     continue
-                rgb = read_image(q.path) if job.retrieval.method == "global" else None
+                rgb = fit_query(q)[1] if job.retrieval.method == "global" else None
                 dbs, sim = _retrieve(job, reader, localizer, q, rgb, {})
             except (OSError, ValueError, RuntimeError, ImageReadError) as e:
                 logger.warning("Retrieval of %s failed: %s", q.name, e)

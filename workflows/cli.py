@@ -15,6 +15,9 @@ def build_parser() -> argparse.ArgumentParser:
         description="PixLoc visual localization at scale: map building, batch localization, training.")
     parser.add_argument("--version", action="version", version=f"pixloc {pixloc.__version__}")
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    parser.add_argument("--max-image-pixels", type=int, metavar="N",
+                        help="refuse images whose header declares more pixels (default 150,000,000; "
+                             "also PIXLOC_MAX_IMAGE_PIXELS)")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
 
     from .cli_build_map import add_arguments as build_map_arguments
@@ -95,8 +98,16 @@ def main(argv: Optional[List[str]] = None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 0
+    if getattr(args, "max_image_pixels", None):
+        from pipeline.images import MAX_PIXELS_ENV
+        os.environ[MAX_PIXELS_ENV] = str(args.max_image_pixels)  # inherited by local Dask workers
     try:
         return args.func(args)
+    except KeyboardInterrupt:
+        # finished shards and images are on disk; the workers' teardown is not the user's concern
+        logging.disable(logging.CRITICAL)
+        print("pixloc: interrupted; run the same command again to resume", file=sys.stderr)
+        return 130
     except (ValueError, OSError) as e:  # bad input: SceneError, StoreError, CheckpointError, missing files
         if args.verbose:
             raise

@@ -254,9 +254,10 @@ def thresholds_of(args: argparse.Namespace):
 def ground_truth(args: argparse.Namespace, queries) -> Dict[str, Optional[np.ndarray]]:
     """The queries' ground truth (None where they have none), or that of ``--ground-truth``."""
     if args.ground_truth is not None:
-        from pipeline.shard import find_by_name, read_poses_file
-        poses = read_poses_file(_absolute(args.ground_truth))
-        return {q.name: find_by_name(poses, q.name) for q in queries}
+        from pipeline.textfiles import read_poses, warn_partial_matches
+        poses = read_poses(_absolute(args.ground_truth))  # strict: file:line for a bad line or a duplicate
+        warn_partial_matches(poses, [q.name for q in queries], "check that they are the same images")
+        return {q.name: poses.find(q.name) for q in queries}
     return {q.name: q.cam_from_world_gt for q in queries}
 
 

@@ -207,10 +207,9 @@ def example_figure(record: Dict, why: str, query: QueryRecord, reader: MapReader
     level's pose against ground truth (its update from the previous level without one)."""
     plt = _plt()
     from pipeline.images import resize_max, to_tensor
-    from pipeline.shard import fit_camera
+    from pipeline.shard import fit_query
 
-    rgb = read_image(query.path)
-    query, _ = fit_camera(query, rgb)
+    query, rgb = fit_query(query)
     dbs = [reader.index[n] for n in record["references"] if n in reader.index]
     obs = reader.observations(dbs, 1)
     xyz = reader.xyz[np.unique(obs.point)]

@@ -1,5 +1,6 @@
 """Map sources: what users have (a COLMAP model, images, known poses, kapture, RGB-D), as a Scene."""
 
+import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import List, Optional, Tuple
@@ -9,6 +10,7 @@ import numpy as np
 from pipeline.depth import densify, rgbd_scene
 from pipeline.pairs import PairsConfig
 from pipeline.queries import QueryRecord, read_queries_with_intrinsics
+from pipeline.scene import name_problem
 from pipeline.readers.colmap import read_colmap, run_sfm, triangulate_known_poses
 from pipeline.readers.kapture import read_kapture
 from pipeline.images import read_image
@@ -113,4 +115,6 @@ def load_queries(kind: str, path: Path, images: Optional[Path] = None, sequences
     if names is not None:
         keep = set(names)
         queries = [q for q in queries if q.name in keep]
-    return queries
+    # every source's names are relative paths inside its image folder (pipeline.scene.name_problem)
+    return [q if q.error or not name_problem(q.name) else dataclasses.replace(q, error=name_problem(q.name))
+            for q in queries]

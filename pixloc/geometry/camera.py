@@ -19,7 +19,7 @@ COLMAP_MODELS = {
     "FULL_OPENCV": "full_opencv",
     "OPENCV_FISHEYE": "fisheye",
 }
-_NUM_COLMAP_PARAMS = {"SIMPLE_PINHOLE": 3, "PINHOLE": 4, "SIMPLE_RADIAL": 4, "RADIAL": 5,
+NUM_COLMAP_PARAMS = {"SIMPLE_PINHOLE": 3, "PINHOLE": 4, "SIMPLE_RADIAL": 4, "RADIAL": 5,
                       "OPENCV": 8, "FULL_OPENCV": 12, "OPENCV_FISHEYE": 8}
 # Official PixLoc infers the model from the parameter count.
 _KIND_FROM_LENGTH = {6: "none", 8: "radial", 10: "opencv", 14: "full_opencv"}
@@ -68,8 +68,8 @@ class Camera(TensorWrapper):
         if model not in COLMAP_MODELS:
             raise ValueError(f"Unsupported camera model {model!r}; supported: {', '.join(COLMAP_MODELS)}.")
         params = [float(p) for p in params]
-        if len(params) != _NUM_COLMAP_PARAMS[model]:
-            raise ValueError(f"Camera model {model} has {_NUM_COLMAP_PARAMS[model]} parameters, "
+        if len(params) != NUM_COLMAP_PARAMS[model]:
+            raise ValueError(f"Camera model {model} has {NUM_COLMAP_PARAMS[model]} parameters, "
                              f"got {len(params)}.")
         if model.startswith("SIMPLE") or model == "RADIAL":
             f, cx, cy, *dist = params

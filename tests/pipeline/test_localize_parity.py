@@ -15,7 +15,8 @@ from pipeline.build import build_map
 from pipeline.features import FeatureConfig
 from pipeline.localize import Localizer, LocalizerConfig
 from pipeline.map_reader import MapReader
-from pipeline.queries import read_pairs, read_queries_with_intrinsics
+from pipeline.queries import read_queries_with_intrinsics
+from pipeline.textfiles import read_pairs
 from pipeline.readers.colmap import read_colmap
 from pipeline.verify import VerificationConfig
 from pixloc.geometry import Pose

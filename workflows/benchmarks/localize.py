@@ -21,7 +21,8 @@ from pathlib import Path
 from pipeline.build import build_map
 from pipeline.features import FeatureConfig
 from pipeline.localize import LocalizerConfig
-from pipeline.queries import read_pairs, read_queries_with_intrinsics
+from pipeline.queries import read_queries_with_intrinsics
+from pipeline.textfiles import read_pairs
 from pipeline.readers.colmap import read_colmap
 from pipeline.shard import LocalizationJob, RetrievalConfig
 

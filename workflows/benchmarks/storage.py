@@ -125,7 +125,8 @@ def oracle_rows(args) -> List[Dict]:
     from pipeline.build import build_map
     from pipeline.localize import Localizer
     from pipeline.map_reader import MapReader
-    from pipeline.queries import read_pairs, read_queries_with_intrinsics
+    from pipeline.queries import read_queries_with_intrinsics
+    from pipeline.textfiles import read_pairs
     from pipeline.readers.colmap import read_colmap
     from pipeline.verify import VerificationConfig
     from pixloc.geometry import Pose
