@@ -23,7 +23,7 @@ from .runtime import restore_malloc_thresholds, torch_threads
 from .scene import Scene
 from .feature_groups import (consolidate, consolidated, feature_key, init_features, mark_failed, unconsolidate,
                              write_image_features)
-from .store import DONE, FAILED, PENDING, create_store, image_records, open_store, read
+from .store import DONE, FAILED, PENDING, create_store, image_records, open_store, read, store_index
 
 logger = logging.getLogger(__name__)
 REFUSED = "refused: "  # reason prefix of images that cannot be used at all (not retried)
@@ -63,13 +63,14 @@ def write_structure(scene: Scene, store_path, conf: FeatureConfig, *, chunk_rows
     status, reasons = read(group, "status", meta), read(group, "reason", meta)
     if not consolidated(group, meta) or (status != DONE).any():
         unconsolidate(group)  # images will be written: readers use the per-image arrays meanwhile
-    for i in range(len(scene.images)):
-        if i in problems and status[i] != DONE:
-            mark_failed(group, i, f"{REFUSED}{problems[i]}")
-            logger.warning("Image %s left out of the map: %s", scene.images[i].name, problems[i])
-        elif i not in problems and status[i] == FAILED and str(reasons[i]).startswith(REFUSED):
+    index = store_index(root, scene)  # scene order -> store order (an added session may differ)
+    for k, i in enumerate(index):
+        if k in problems and status[i] != DONE:
+            mark_failed(group, i, f"{REFUSED}{problems[k]}")
+            logger.warning("Image %s left out of the map: %s", scene.images[k].name, problems[k])
+        elif k not in problems and status[i] == FAILED and str(reasons[i]).startswith(REFUSED):
             group["status"][i] = PENDING  # the problem is gone (e.g. the file is back): retry
-    return problems
+    return {index[k]: reason for k, reason in problems.items()}
 
 
 def fit_store_pca(scene: Scene, conf: FeatureConfig, net, problems: Dict[int, str], device: str = "cpu",

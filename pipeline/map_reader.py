@@ -2,6 +2,7 @@
 
 import functools
 import json
+import logging
 from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
@@ -13,8 +14,10 @@ from .compression import dequantize_int8, reconstruct
 from .features import FeatureConfig
 from .scene import CameraRecord
 from .feature_groups import check_feature_group, consolidated, feature_key, pca_bases, stored_dims
-from .store import DONE, StoreError, StoreReadError, open_store
+from .store import DONE, FAILED, StoreError, StoreReadError, missing_objects, open_store
 from .store import read as store_read
+
+logger = logging.getLogger(__name__)
 
 
 @dataclass
@@ -83,6 +86,7 @@ class MapReader:
         self.image_source_id = read(root, "images/source_id")
         self.point_source_id = read(root, "points/source_id")
         self.global_descriptors = read(self.group, "global_all" if self.static else "global")
+        self._leave_out_lost()
         self._read = read
         self.stats = {"blocks": 0, "hits": 0, "bytes": 0}
         self._blocks: "OrderedDict[Tuple[int, int], Tuple]" = OrderedDict()
@@ -90,8 +94,30 @@ class MapReader:
         self._cached_bytes = 0
         self._points = functools.lru_cache(maxsize=4 * cache_images)(self._read_points)
 
+    def _leave_out_lost(self) -> None:
+        """Descriptors are unit vectors: a done image's zero one is a missing chunk read as fill
+        values. Such images are left out of the run, named in the log."""
+        lost = np.flatnonzero((self.status == DONE) & ~np.abs(self.global_descriptors).any(1))
+        if len(lost):
+            logger.error("%s: %d reference images marked done have no global descriptor on disk (%s): left out "
+                         "of this run; run pixloc check-store", self.path, len(lost),
+                         ", ".join(self.names[i] for i in lost[:3]))
+            self.status = self.status.copy()
+            self.status[lost] = FAILED
+
+    def _check_present(self, i: int, arrays) -> None:
+        """A done image whose rows are not all on disk fails the query that needs it, named; its
+        rows are never read as fill values (zeros, point -1)."""
+        s = slice(int(self.row_start[i]), int(self.row_start[i] + self.num_obs[i]))
+        missing = [m for a in arrays for m in missing_objects(a, s)]
+        if missing:
+            raise StoreReadError(f"map store {self.path}: reference image {self.names[i]} is marked done but "
+                                 f"{len(missing)} of its files are missing ({', '.join(missing[:2])}"
+                                 f"{' ...' if len(missing) > 2 else ''}): rebuild it (run pixloc check-store)")
+
     def _read_points(self, i: int) -> np.ndarray:
         s = slice(int(self.row_start[i]), int(self.row_start[i] + self.num_obs[i]))
+        self._check_present(i, [self._obs_point])
         try:
             return self._obs_point[s]
         except Exception as e:  # noqa: BLE001
@@ -108,6 +134,8 @@ class MapReader:
         ``open_reader`` then opens it again)."""
         if not self.static:
             self.status = self._read(self.group, "status")
+            self.global_descriptors = self._read(self.group, "global")
+            self._leave_out_lost()
 
     def usable(self, i: int) -> bool:
         return int(self.status[i]) == DONE
@@ -138,6 +166,8 @@ class MapReader:
         confidences (N, L) float32 and valid (N, L)."""
         s = slice(int(self.row_start[i]), int(self.row_start[i] + self.num_obs[i]))
         g = self.group[f"s{scale}"]
+        names = [n for n in ("features", "scales", "confidences", "valid") if n != "scales" or self.conf.dtype == "int8"]
+        self._check_present(i, [g[n] for n in names])
         out = {}
         for name in ("features", "scales", "confidences", "valid"):
             if name == "scales" and self.conf.dtype != "int8":

@@ -9,6 +9,7 @@ import numpy as np
 
 from .localize import QueryResult
 from .scene import CameraRecord, rotmat_to_qvec
+from .textfiles import read_json_lines, write_atomic
 
 
 REJECTED = "rejected: "  # reason prefix of refinements that verification did not accept
@@ -45,17 +46,13 @@ def result_to_record(r: QueryResult, tags: Optional[Dict[str, str]] = None) -> D
 
 
 def write_records(records: Iterable[Dict], path) -> None:
-    """JSON lines, written to a temporary file then renamed: a record file is complete or absent."""
-    path = Path(path)
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    with open(tmp, "w") as f:
-        for rec in records:
-            f.write(json.dumps(rec) + "\n")
-    tmp.replace(path)
+    """JSON lines, written atomically: a record file is complete or absent."""
+    write_atomic(path, "".join(json.dumps(rec) + "\n" for rec in records))
 
 
 def read_records(path) -> List[Dict]:
-    return [json.loads(line) for line in Path(path).read_text().splitlines() if line.strip()]
+    """The records of a JSON-lines file; a damaged line is an InputError with ``file:line``."""
+    return read_json_lines(path, "records file")
 
 
 def record_pose(rec: Dict) -> Optional[np.ndarray]:
@@ -68,7 +65,7 @@ def write_failed(records: Iterable[Dict], path) -> int:
     """``name<TAB>outcome<TAB>reason`` per query without a verified pose (their line in poses.txt,
     if any, is the prior); returns the count."""
     lines = [f"{r['name']}\t{outcome(r)}\t{r['reason']}" for r in records if not r["success"]]
-    Path(path).write_text("".join(line + "\n" for line in lines))
+    write_atomic(path, "".join(line + "\n" for line in lines))
     return len(lines)
 
 
@@ -111,7 +108,7 @@ def write_poses(records: Iterable[Dict], path, names: str = "full") -> int:
             continue
         q = rotmat_to_qvec(T[:, :3])
         lines.append(" ".join([name, *(f"{v:.10g}" for v in q), *(f"{v:.10g}" for v in T[:, 3])]))
-    Path(path).write_text("\n".join(lines) + ("\n" if lines else ""))
+    write_atomic(path, "\n".join(lines) + ("\n" if lines else ""))
     return len(lines)
 
 
@@ -146,9 +143,7 @@ def write_kapture(records: Iterable[Dict], cameras: Dict[str, CameraRecord], fol
                              ("records_camera.txt", "# timestamp, device_id, image_path", record_rows),
                              ("trajectories.txt", "# timestamp, device_id, qw, qx, qy, qz, tx, ty, tz",
                               trajectory_rows)):
-        tmp = sensors / (name + ".tmp")
-        tmp.write_text(KAPTURE_HEADER + head + "\n" + "".join(r + "\n" for r in rows))
-        tmp.replace(sensors / name)
+        write_atomic(sensors / name, KAPTURE_HEADER + head + "\n" + "".join(r + "\n" for r in rows))
     return len(trajectory_rows)
 
 

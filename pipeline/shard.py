@@ -28,7 +28,7 @@ from .results import read_records, result_to_record, write_records
 from .search import Hypotheses, SearchConfig, hypotheses, median_depth, rank_results, screen, solve, top1_first
 from .runtime import restore_malloc_thresholds, torch_threads
 from .store import StoreError
-from .textfiles import PoseTable, find_by_name, read_pairs, read_poses
+from .textfiles import PoseTable, find_by_name, read_pairs, read_poses, write_atomic
 
 logger = logging.getLogger(__name__)
 
@@ -370,9 +370,7 @@ def retrieve_queries(job: LocalizationJob, queries: List[QueryRecord], out_path)
                 continue
             out[q.name] = {"dbs": [reader.names[i] for i in dbs],
                            "similarity": None if sim is None else [float(x) for x in sim]}
-    tmp = out_path.with_suffix(".tmp")
-    tmp.write_text(json.dumps(out))
-    tmp.replace(out_path)
+    write_atomic(out_path, json.dumps(out))
     return out
 
 

@@ -66,6 +66,26 @@ def _rows_array(group: zarr.Group, name: str, rows: int, width: Optional[int], d
                   shards=(meta["shard_rows"],) + tail, **kwargs)
 
 
+STORE_ENTRIES = {"zarr.json", "images", "points", "observations", "features"}
+
+
+def refuse_foreign(path: Path) -> None:
+    """--overwrite erases only what is recognisably a map store (or an empty folder): a folder of
+    anything else is refused, named, with what it holds."""
+    if path.is_file():
+        raise StoreError(f"{path} is a file, not a map store: --overwrite only replaces a map store.")
+    entries = {p.name for p in path.iterdir()}
+    header = path / "zarr.json"
+    try:
+        ours = header.is_file() and "pixloc_map" in header.read_text(errors="replace")
+    except OSError:
+        ours = False
+    if entries and not ours and not entries <= STORE_ENTRIES:
+        raise StoreError(f"{path} is not a PixLoc map store (it holds {', '.join(sorted(entries)[:4])}"
+                         f"{' ...' if len(entries) > 4 else ''}): --overwrite only replaces a map store; choose "
+                         "another --store.")
+
+
 def default_shard_rows(num_obs: np.ndarray, chunk_rows: int, max_chunks: int = 64) -> int:
     """Rows per shard: the 90th percentile of the images' observation counts in whole chunks
     (at most ``max_chunks``), so that most images fill one shard and few span several."""
@@ -117,7 +137,10 @@ def create_store(path, scene: Scene, chunk_rows: int = 256, overwrite: bool = Fa
         meta = root.attrs["pixloc_map"]
         # the scene that built or last extended the store (an added session keeps only the new
         # images' observations, so the store may hold fewer than that scene)
-        if stored == names and int(meta.get("scene_observations", meta["num_observations"])) == len(scene.obs_point):
+        # compared as sets: an added session's images may sort before the stored ones, and the
+        # store keeps its own order (build stages map images by name, ``store_index``)
+        if set(stored) == set(names) and len(stored) == len(names) and int(
+                meta.get("scene_observations", meta["num_observations"])) == len(scene.obs_point):
             return root
         if len(stored) < len(names) and set(stored) <= set(names):
             extend_store(root, scene)
@@ -125,6 +148,8 @@ def create_store(path, scene: Scene, chunk_rows: int = 256, overwrite: bool = Fa
         raise StoreError(f"{path} holds another map (other images or observations); "
                          "choose another path, rebuild it with --overwrite, or add images with a scene that "
                          "holds every image of the map.")
+    if path.exists():
+        refuse_foreign(path)
     order = np.lexsort((scene.obs_point, scene.obs_image))
     obs_image, obs_point, obs_xy = scene.obs_image[order], scene.obs_point[order], scene.obs_xy[order]
     num_obs = np.bincount(obs_image, minlength=len(scene.images))
@@ -253,6 +278,34 @@ def extend_store(root: zarr.Group, scene: Scene) -> List[int]:
     return list(range(I, I2))
 
 
+def missing_objects(array: zarr.Array, rows: slice) -> List[str]:
+    """The storage objects (shard files, or chunks of unsharded arrays) that hold rows ``rows`` of
+    ``array`` and are absent, or not plain files: zarr reads those as fill values (zeros, -1),
+    so every reader of an image's rows asks here first. Keys relative to the store."""
+    from zarr.core.sync import sync
+
+    unit = (array.shards or array.chunks)[0]
+    stop = max(rows.stop, rows.start + 1)
+    out = []
+    for k in range(rows.start // unit, -(-stop // unit)):
+        key = array.metadata.encode_chunk_key((k,) + (0,) * (array.ndim - 1))
+        if not sync((array.store_path / key).exists()):
+            out.append(f"{array.path}/{key}")
+    return out
+
+
+def image_row_arrays(root: zarr.Group, group: Optional[zarr.Group] = None) -> List[zarr.Array]:
+    """The per-row arrays an image's data lives in: its observations, and the rows of every image
+    scale of the feature ``group`` (all groups when None)."""
+    arrays = [root["observations/point"], root["observations/xy"]]
+    groups = [group] if group is not None else ([g for _, g in root["features"].groups()] if "features" in root
+                                                else [])
+    for g in groups:
+        for _, scale in sorted(g.groups()):
+            arrays += [a for name, a in sorted(scale.arrays()) if not name.startswith("pca_")]
+    return arrays
+
+
 def open_store(path, mode: str = "r") -> zarr.Group:
     """Open a map store after checking its layout (``check_layout``); a bad one is refused
     with a StoreError that says what is wrong."""
@@ -308,6 +361,38 @@ def check_layout(root: zarr.Group, path) -> None:
         array = _get(root, name, path)
         if tuple(array.shape[1:]) != shape[1:] or array.shape[0] < shape[0]:  # longer: an add was interrupted
             raise StoreError(f"{path}: array {name} has shape {tuple(array.shape)}, the map attributes say {shape}.")
+
+
+def store_fingerprint(path, key: str) -> Dict:
+    """What localization results depend on, for ``job.json``: a digest of the map's content (image
+    names and poses, points, the map counts) and of feature group ``key`` (its config and model
+    digest), and how many of its images are not built yet (``pending``). A store rebuilt from
+    other images or with another model gets another digest; finishing a build does not."""
+    import hashlib
+
+    root = open_store(path)
+    meta = root.attrs["pixloc_map"]
+    h = hashlib.sha256(json.dumps({k: meta[k] for k in ("num_images", "num_points", "num_observations")},
+                                  sort_keys=True).encode())
+    for name in ("images/name", "images/cam_from_world", "points/xyz"):
+        values = read(root, name, meta)
+        h.update("\n".join(map(str, values)).encode() if values.dtype.kind in "UOT" else
+                 np.ascontiguousarray(values).tobytes())
+    group = f"features/{key}"
+    pending = None
+    if group in root:
+        attrs = root[group].attrs
+        h.update(json.dumps([attrs.get("config"), attrs.get("model_digest"), attrs.get("dims")], sort_keys=True,
+                            default=str).encode())
+        status = read(root[group], "status", meta)
+        pending = int((status == PENDING).sum())
+    return {"digest": h.hexdigest()[:16], "features": key, "pending": pending}
+
+
+def store_index(root: zarr.Group, scene: Scene) -> List[int]:
+    """The store's index of each image of ``scene`` (by name: the store keeps its own order)."""
+    index = {str(n): i for i, n in enumerate(read(root, "images/name"))}
+    return [index[im.name] for im in scene.images]
 
 
 def image_records(root: zarr.Group) -> List[ImageRecord]:

@@ -9,13 +9,13 @@ import itertools
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, List, Optional
+from typing import Callable, Dict, List, Optional
 
 import numpy as np
 import zarr
 
-from .feature_groups import check_feature_group
-from .store import open_store, read
+from .feature_groups import check_feature_group, consolidated, unconsolidate
+from .store import DONE, FAILED, PENDING, image_row_arrays, missing_objects, open_store, read
 
 
 @dataclass
@@ -34,20 +34,45 @@ class StoreCheck:
     bytes: int = 0
     bad: List[BadChunk] = field(default_factory=list)
     problems: List[str] = field(default_factory=list)
+    pending: Dict[str, List[str]] = field(default_factory=dict)  # feature group -> images not built yet
 
     @property
     def ok(self) -> bool:
-        return not self.bad and not self.problems
+        return not self.bad and not self.problems and not any(self.pending.values())
+
+    def bad_images(self) -> List[str]:
+        """The images whose features are damaged or missing (``--repair`` has them rebuilt)."""
+        return sorted({name for b in self.bad if b.array.startswith("features/") for name in b.images})
 
     def summary(self) -> str:
+        num_pending = sum(len(v) for v in self.pending.values())
+        state = ("all chunks verified" if self.ok else
+                 ", ".join(f"{n} {what}" for n, what in ((len(self.bad), "bad chunks"), (len(self.problems),
+                           "layout problems"), (num_pending, "images pending")) if n))
         lines = [f"{self.path}: {self.arrays} arrays, {self.chunks} chunks, {self.bytes / 2**20:.1f} MiB on disk: "
-                 + ("all chunks verified" if self.ok else f"{len(self.bad)} bad chunks, {len(self.problems)} "
-                                                         "layout problems")]
+                 + state]
         lines += [f"  layout: {p}" for p in self.problems]
+        for key, names in self.pending.items():
+            if names:
+                lines.append(f"  pending in features/{key}: {len(names)} images not built yet "
+                             f"({', '.join(names[:5])}{' ...' if len(names) > 5 else ''}): run the build-map command "
+                             "again to finish them")
         for b in self.bad:
             images = f" (images {', '.join(b.images[:5])}{' ...' if len(b.images) > 5 else ''})" if b.images else ""
-            lines.append(f"  bad chunk {b.array} {b.chunk}{images}: {b.error}")
+            lines.append(f"  bad chunk {b.array} {b.chunk}{images}: {_short(b.error)}")
+        if self.bad_images():
+            lines.append(f"  to fix: pixloc check-store {self.path} --repair marks the {len(self.bad_images())} "
+                         "damaged images pending; the same build-map command then rebuilds only them")
+        if any(not b.array.startswith("features/") for b in self.bad):
+            lines.append("  to fix: the damaged arrays hold the map's structure: rebuild the store "
+                         "(build-map --overwrite)")
         return "\n".join(lines)
+
+
+def _short(error: str, limit: int = 160) -> str:
+    """A codec's error without the raw bytes it may quote."""
+    error = error.splitlines()[0] if error else error
+    return error if len(error) <= limit else error[:limit] + " ..."
 
 
 def _arrays(group: zarr.Group, prefix: str = ""):
@@ -98,4 +123,55 @@ def check_store(path, progress: Optional[Callable[[str], None]] = None) -> Store
             except Exception as e:  # the codec's error names the problem  # noqa: BLE001
                 first, last = (sl[0].start, sl[0].stop) if sl else (0, 0)
                 out.bad.append(BadChunk(name, index, images_of(name, first, last), f"{type(e).__name__}: {e}"))
+    _check_images(root, meta, names, row_start, num_obs, out)
     return out
+
+
+def _check_images(root, meta, names, row_start, num_obs, out: StoreCheck) -> None:
+    """Every image's observation rows, and the feature rows of every image marked done, are on
+    disk as files (zarr would read a missing one as fill values); pending images are listed."""
+    def rows(i):
+        return slice(int(row_start[i]), int(row_start[i] + num_obs[i]))
+
+    seen = {(b.array, b.chunk) for b in out.bad}
+
+    def report(array, i, missing):
+        for key in missing:
+            chunk = tuple(int(c) for c in key.rsplit("/c/", 1)[-1].split("/"))
+            if (array.path, chunk) not in seen:
+                seen.add((array.path, chunk))
+                out.bad.append(BadChunk(array.path, chunk, [names[i]], f"missing: {key} is absent or not a file"))
+
+    for array in image_row_arrays(root, None)[:2]:
+        for i in range(len(names)):
+            report(array, i, missing_objects(array, rows(i)))
+    if "features" not in root:
+        return
+    for key, group in root["features"].groups():
+        try:
+            status = read(group, "status_all" if consolidated(group, meta) else "status", meta)
+        except Exception:  # noqa: BLE001 - reported by the chunk loop
+            continue
+        out.pending[key] = [names[i] for i in np.flatnonzero(status == PENDING)]
+        arrays = image_row_arrays(root, group)[2:]
+        for i in np.flatnonzero(status == DONE):
+            for array in arrays:
+                report(array, int(i), missing_objects(array, rows(int(i))))
+
+
+def mark_pending(path, images: List[str]) -> int:
+    """Mark ``images`` pending in every feature group where they are done or failed (their files
+    are damaged or missing): the next build-map rebuilds them. Returns the count marked."""
+    root = open_store(path, mode="r+")
+    meta = root.attrs["pixloc_map"]
+    index = {str(n): i for i, n in enumerate(read(root, "images/name", meta))}
+    marked = 0
+    for _, group in root["features"].groups() if "features" in root else []:
+        unconsolidate(group)  # the build consolidates again when it is done
+        for name in images:
+            i = index[name]
+            if int(group["status"][i]) in (DONE, FAILED):
+                group["reason"][i] = ""
+                group["status"][i] = PENDING
+                marked += 1
+    return marked

@@ -9,6 +9,7 @@ path ends with it, only where that is unambiguous (``PoseTable.find``).
 
 import json
 import logging
+import os
 from pathlib import Path
 from typing import Dict, Iterator, List, Optional, Tuple
 
@@ -173,3 +174,37 @@ def read_pairs(path) -> Dict[str, List[str]]:
         pairs.setdefault(fields[0], []).append(fields[1])
     return pairs
 
+
+
+def write_atomic(path, data) -> None:
+    """Write ``data`` (str or bytes) to ``path`` through a temporary file in the same folder, then
+    rename: a reader sees the old file or the new one, never a part (a full disk, a kill). The
+    temporary is removed when anything fails."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        with open(tmp, "wb") as f:
+            f.write(data.encode() if isinstance(data, str) else data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+def read_json_lines(path, what: str, key: str = "name") -> List[Dict]:
+    """JSON objects, one per line, each with ``key``; InputError with ``file:line`` otherwise
+    (a truncated or foreign file)."""
+    out = []
+    for line_no, line in enumerate(read_text(path, what).splitlines(), 1):
+        if not line.strip():
+            continue
+        try:
+            value = json.loads(line)
+        except json.JSONDecodeError as e:
+            raise InputError(f"{path}:{line_no}: {what}: not a JSON record ({e.msg}); the file is damaged") from None
+        if not isinstance(value, dict) or key not in value:
+            raise InputError(f"{path}:{line_no}: {what}: a record without {key!r}; the file is damaged or foreign")
+        out.append(value)
+    return out

@@ -12,6 +12,7 @@ from pixloc.nets.registry import DEFAULT_MODEL
 
 from . import executor
 from .build_map import pending_batches, plan_build, prepare_structure, run_dask, run_sync
+from .localize import store_lock
 from .sources import KINDS, MapSource, load_scene
 
 _F = FeatureConfig()
@@ -58,7 +59,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="spatial/retrieval: neighbours per image")
     p.add_argument("--batch-size", type=int, default=1, help="images per task")
     p.add_argument("--device", default="cpu")
-    p.add_argument("--work-dir", type=Path, help="SfM/triangulation files (default: STORE.work)")
+    p.add_argument("--work-dir", type=Path, help="SfM/triangulation files (default: the store's path with .work for its suffix: "
+                   "map.work for map.zarr)")
     p.add_argument("--scheduler", help="address of an existing Dask scheduler (default: a local cluster)")
     p.add_argument("--workers", type=int, default=2, help="worker processes of the local cluster")
     p.add_argument("--sync", action="store_true", help="run in this process, without Dask")
@@ -66,6 +68,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--dry-run", action="store_true", help="print the plan and exit")
     p.add_argument("--preset", help="dataset preset with the paper's settings (see workflows/presets)")
     p.set_defaults(func=main)
+
+
+# sources whose map is reconstructed first (SfM, or triangulation from known poses)
+RECONSTRUCTED = {"sfm": "SIFT, matching and SfM", "strecha": "SIFT, matching and triangulation from the known poses",
+                 "kapture": "SIFT, matching and triangulation from the known poses"}
 
 
 def main(args: argparse.Namespace) -> int:
@@ -81,25 +88,34 @@ def main(args: argparse.Namespace) -> int:
                         args.pairs_neighbors, path=str(absolute(args.pairs_file)) if args.pairs_file else None)
     work_dir = absolute(args.work_dir) or store.with_suffix(".work")
     t0 = time.time()
-    scene = load_scene(source, work_dir, pairs)
-    plan = plan_build(scene, store, conf, batch_size=args.batch_size, device=args.device,
-                      chunk_rows=args.chunk_rows, shard_rows=args.shard_rows, source=source.to_dict(),
-                      overwrite=args.overwrite)
-    print(plan.describe())
-    if args.dry_run:
+    if args.dry_run and source.kind in RECONSTRUCTED:  # a dry run computes and writes nothing
+        print(f"map store      {store}" + (" (overwritten)" if args.overwrite else "") + f"\nsource         "
+              f"{source.to_dict()}\nfeatures       {conf.to_dict()} on {args.device}\nstages:\n"
+              f"  0 reconstruction  {RECONSTRUCTED[source.kind]} of the images in {source.path}, in {work_dir} "
+              "(reused there when it finished with the same images and settings)\n"
+              "  1 structure, 2 features: counted once the reconstruction exists\n(dry run: nothing computed or "
+              "written)")
         return 0
-    if not plan.overwrite and store.exists():
-        prepare_structure(plan)  # cheap; re-admits refused images whose problem is gone
-        if not pending_batches(plan):
-            print(f"\nAll {len(scene.images)} images of {store} already have features (or were refused): nothing "
-                  "to do (--overwrite rebuilds it).")
+    with store_lock(store):
+        scene = load_scene(source, work_dir, pairs)
+        plan = plan_build(scene, store, conf, batch_size=args.batch_size, device=args.device,
+                          chunk_rows=args.chunk_rows, shard_rows=args.shard_rows, source=source.to_dict(),
+                          overwrite=args.overwrite)
+        print(plan.describe())
+        if args.dry_run:
             return 0
-    if args.sync:
-        results = run_sync(plan, progress=True)
-    else:
-        with executor.dask_client(args.scheduler, args.workers, args.device) as client:
-            print(f"Dask dashboard: {client.dashboard_link}")
-            results = run_dask(plan, client, progress=True)
+        if not plan.overwrite and store.exists():
+            prepare_structure(plan)  # cheap; re-admits refused images whose problem is gone
+            if not pending_batches(plan):
+                print(f"\nAll {len(scene.images)} images of {store} already have features (or were refused): "
+                      "nothing to do (--overwrite rebuilds it).")
+                return 0
+        if args.sync:
+            results = run_sync(plan, progress=True)
+        else:
+            with executor.dask_client(args.scheduler, args.workers, args.device) as client:
+                print(f"Dask dashboard: {client.dashboard_link}")
+                results = run_dask(plan, client, progress=True)
     counts = Counter(r.status for r in results)
     already = len(scene.images) - sum(len(b) for b in plan.batches) + counts.get("skipped", 0)
     print(f"\n{counts.get('done', 0)} images extracted, {already} already done or refused, "
@@ -112,6 +128,8 @@ def main(args: argparse.Namespace) -> int:
 
 def add_check_store_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("store", type=Path, help="a map store (.zarr folder)")
+    p.add_argument("--repair", action="store_true", help="mark the images whose files are damaged or missing "
+                   "pending, so that the same build-map command rebuilds only them")
     p.set_defaults(func=check_store_main)
 
 
@@ -120,4 +138,9 @@ def check_store_main(args: argparse.Namespace) -> int:
     from pipeline.store_check import check_store
     report = check_store(args.store, progress=lambda name: logger.debug("checking %s", name))
     print(report.summary())
+    if args.repair and report.bad_images():
+        from pipeline.store_check import mark_pending
+        n = mark_pending(args.store, report.bad_images())
+        print(f"repair: {len(report.bad_images())} images marked pending ({n} feature rows); run the build-map "
+              "command again to rebuild them")
     return 0 if report.ok else 1

@@ -17,10 +17,11 @@ import numpy as np
 from pipeline.evaluate import DEFAULT_THRESHOLDS, INDOOR_THRESHOLDS, evaluate, fmt, parse_thresholds, to_json
 from pipeline.features import FeatureConfig
 from pipeline.localize import LocalizerConfig
-from pipeline.results import POSE_NAMES, outcome, pose_names_problem, read_records, reason_groups
+from pipeline.results import POSE_NAMES, REJECTED, outcome, pose_names_problem, read_records, reason_groups
 from pipeline.shard import POINT_SELECTIONS, PRIORS, LocalizationJob, RetrievalConfig
 from pipeline.store import StoreError, open_store
 from pipeline.verify import VerificationConfig
+from pipeline.textfiles import write_atomic
 
 from . import executor
 from .localize import ORDERS, REGION_MIN_QUERIES, plan_localization, run_dask, run_sync
@@ -107,7 +108,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--sync", action="store_true", help="run in this process, without Dask")
     p.add_argument("--keep-failures", action="store_true",
                    help="a rerun keeps earlier failures instead of retrying them")
-    p.add_argument("--overwrite", action="store_true", help="redo a run whose output folder holds another job")
+    p.add_argument("--overwrite", action="store_true", help="redo a run whose output folder holds another job, "
+                   "or results against another map")
+    p.add_argument("--allow-partial-map", action="store_true", help="localize against a store whose build has "
+                   "not finished (refused by default: the results would change as the build goes on)")
+    p.add_argument("--ground-truth", type=Path, help="ground-truth poses file (name qw qx qy qz tx ty tz, "
+                   "cam_from_world): the accuracy table is printed after the run")
     p.add_argument("--dry-run", action="store_true", help="print the plan and exit; writes nothing")
     p.add_argument("--preset", help="dataset preset with the paper's settings (see workflows/presets)")
     p.set_defaults(func=main)
@@ -163,9 +169,11 @@ def main(args: argparse.Namespace) -> int:
     resolve(args, LOCALIZE_DEFAULTS)
     job = build_job(args)
     queries = _load_queries(args)
+    gt = ground_truth(args, queries)  # read before the run: a bad file fails now, not after it
     output = Path(_absolute(args.output))
     plan = plan_localization(job, queries, output, args.shard_size, workers=1 if args.sync else args.workers,
-                             keep_failures=args.keep_failures, overwrite=args.overwrite, order=args.order)
+                             keep_failures=args.keep_failures, overwrite=args.overwrite, order=args.order,
+                             allow_partial_map=args.allow_partial_map)
     problem = pose_names_problem([q.name for q in queries], args.pose_names)
     if problem:
         raise ValueError(problem[0].upper() + problem[1:] + ".")
@@ -193,7 +201,8 @@ def main(args: argparse.Namespace) -> int:
           f"{output / 'kapture'}, {output / 'failed.txt'}, {output / 'records.jsonl'}"
           + (f", {output / f'poses_{plan.pose_names}.txt'}" if plan.pose_names != "full" else ""))
     for kind, _, group in reason_groups(records)[:5]:  # reasons that differ only in their figures count as one
-        print(f"  {len(group)} {kind}: {group[0]['reason']}" + (f" (and {len(group) - 1} like it)" if len(group) > 1 else ""))
+        reason = group[0]["reason"].removeprefix(REJECTED)
+        print(f"  {len(group)} {kind}: {reason}" + (f" (and {len(group) - 1} like it)" if len(group) > 1 else ""))
     io = store_io(records)
     if io:
         print(f"  map store reads: {io['bytes_per_query'] / 2**20:.2f} MiB per query, {io['blocks']} reference "
@@ -206,7 +215,6 @@ def main(args: argparse.Namespace) -> int:
               f"{job.localizer.min_track_length} map images left out (--min-track-length), "
               + ", ".join(f"{v} observations invalid at image scale index {k.rsplit('_s', 1)[1]}"
                           for k, v in dropped.items() if k.startswith("invalid_observations")))
-    gt = {q.name: q.cam_from_world_gt for q in queries}
     if any(T is not None for T in gt.values()):
         args.thresholds, args.indoor = None, False  # localize has no such options: the preset's, or defaults
         print("\n" + format_summary(evaluate(records, gt, thresholds_of(args))))
@@ -268,7 +276,7 @@ def evaluate_main(args: argparse.Namespace) -> int:
         raise ValueError("These queries have no ground truth to evaluate against: pass --ground-truth POSES.")
     records = read_records(args.output / "records.jsonl")
     summary = evaluate(records, gt, thresholds_of(args))
-    (args.output / "evaluation.json").write_text(to_json(summary))
+    write_atomic(args.output / "evaluation.json", to_json(summary))
     print(format_summary(summary))
     return 0
 

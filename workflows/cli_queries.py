@@ -5,6 +5,7 @@ from collections import Counter
 from pathlib import Path
 
 from pipeline.exif import DEFAULT_FOCAL_FACTOR, exif_camera, find_images, format_line
+from pipeline.textfiles import write_atomic
 
 SOURCES = {"35mm-equivalent": "from the 35 mm equivalent focal length",
            "focal-plane": "from the focal length and the focal plane resolution",
@@ -37,10 +38,8 @@ def main(args: argparse.Namespace) -> int:
         except (OSError, ValueError) as e:
             skipped.append((name, str(e)))
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = args.out.with_name(args.out.name + ".tmp")
-    tmp.write_text("# name MODEL width height params (from EXIF, pixloc queries)\n"
-                   + "".join(format_line(c) + "\n" for c in cameras))
-    tmp.replace(args.out)
+    write_atomic(args.out, "# name MODEL width height params (from EXIF, pixloc queries)\n"
+                 + "".join(format_line(c) + "\n" for c in cameras))
     by = Counter(c.source for c in cameras)
     print(f"{len(cameras)} of {len(found)} images -> {args.out}")
     for source, text in SOURCES.items():

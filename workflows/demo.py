@@ -23,6 +23,7 @@ from pipeline.localize import LocalizerConfig
 from pipeline.scene import CameraRecord
 from pipeline.shard import LocalizationJob, RetrievalConfig
 from pipeline.synthetic import SyntheticConfig, ensure_generated, read_synthetic
+from pipeline.textfiles import write_atomic
 
 from . import build_map, executor, localize
 from .report import make_report
@@ -82,7 +83,7 @@ def run_demo(output: Path, model: str = "pixloc-lite0", num_references: int = 30
     _stage(4, "evaluation per condition")
     gt = {q.name: q.cam_from_world_gt for q in queries}
     summary = evaluate(records, gt, DEMO_THRESHOLDS, tag_keys=["condition"])
-    (output / "evaluation.json").write_text(to_json(summary))
+    write_atomic(output / "evaluation.json", to_json(summary))
     _stage(5, "report")
     report = make_report(output / "localization", queries, num_examples=3, thresholds=DEMO_THRESHOLDS)
     print()

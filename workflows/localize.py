@@ -31,8 +31,13 @@ import numpy as np
 
 from pipeline.queries import QueryRecord
 from pipeline.regions import camera_centres, region_order
-from pipeline.results import is_retryable, read_records, write_failed, write_kapture, write_poses, write_records
+from pipeline.feature_groups import feature_key
+from pipeline.localize import QueryResult
+from pipeline.results import (is_retryable, read_records, result_to_record, write_failed, write_kapture, write_poses,
+                              write_records)
+from pipeline.store import StoreError, store_fingerprint
 from pipeline.shard import LocalizationJob, localize_shard, retrieve_queries
+from pipeline.textfiles import InputError, read_json, write_atomic
 
 from . import executor
 
@@ -41,6 +46,7 @@ LOCK = ".pixloc.lock"
 ORDERS = ("auto", "list", "region")
 REGION_MIN_QUERIES = 64  # ``auto`` shards by region from this many queries on
 RETRIEVAL_PART = 32  # queries per task of the retrieval stage
+LOST = "no record: its shard file had lost it; run again to localize it"
 
 
 class OutputLocked(ValueError):
@@ -63,6 +69,8 @@ class LocalizationPlan:
     pose_names: str = "full"  # names of an extra poses file for benchmarks (pipeline.results.pose_name)
     order: str = "list"  # ``list`` (query order) or ``region`` (by the map region of the top-1 reference)
     queries: List[QueryRecord] = field(default_factory=list)  # in list order
+    store: Dict = field(default_factory=dict)  # the store's fingerprint (``store_fingerprint``), into job.json
+    damaged: set = field(default_factory=set)  # finished shards whose file cannot be read: run again
 
     def retrieval_path(self, part: int) -> Path:
         return self.output / "retrieval" / f"part-{part:05d}.json"
@@ -98,11 +106,18 @@ class LocalizationPlan:
         self.todo = {}
         self.whole = set(self.pending())
         for k, shard in enumerate(self.shards):
+            if k not in self.whole:
+                try:
+                    done = {r["name"]: r for r in _shard_records(self, k, commit=False)}
+                except InputError as e:  # written atomically, so damaged by something else: redo it
+                    logger.warning("%s: its %d queries are run again", e, len(shard))
+                    self.damaged.add(k)
+                    self.whole.add(k)
             if k in self.whole:
                 self.todo[k] = shard
-            elif not self.keep_failures:
-                done = {r["name"]: r for r in _shard_records(self, k, commit=False)}
-                retry = [q for q in shard if is_retryable(done.get(q.name))]
+            else:  # a query without a record (a shard file cut short) is always run again
+                retry = [q for q in shard if q.name not in done
+                         or (not self.keep_failures and is_retryable(done[q.name]))]
                 if retry:
                     self.todo[k] = retry
 
@@ -113,7 +128,8 @@ class LocalizationPlan:
         return self.output / "shards" / f"shard-{k:05d}.retry.jsonl"
 
     def pending(self) -> List[int]:
-        return [k for k in range(len(self.shards)) if self.overwrite or not self.shard_path(k).exists()]
+        return [k for k in range(len(self.shards))
+                if self.overwrite or k in self.damaged or not self.shard_path(k).exists()]
 
     def counts(self) -> Dict[str, int]:
         n = sum(len(s) for s in self.shards)
@@ -132,9 +148,31 @@ class LocalizationPlan:
                 f"  output  {self.output}\n  model   {self.job.model}\n  job     {self.job.to_dict()}")
 
 
-def _stored_job(output: Path) -> Optional[Dict]:
+OURS = {"job.json", LOCK, "shards", "retrieval"}  # what a run writes before its first shard is done
+
+
+def _stored_job(output: Path, overwrite: bool = False) -> Optional[Dict]:
+    """The job recorded in ``output`` (None if there is none). A folder that holds files but no
+    job of ours is refused: its poses.txt or records.jsonl are someone else's. A damaged job.json
+    is refused with its file and line, and ignored with ``overwrite`` (which redoes the run)."""
     path = output / "job.json"
-    return json.loads(path.read_text()) if path.is_file() else None
+    if not path.exists():
+        foreign = sorted(p.name for p in output.iterdir() if p.name not in OURS) if output.is_dir() else []
+        if foreign:
+            raise ValueError(f"{output} holds files that no pixloc run wrote there ({', '.join(foreign[:4])}"
+                             f"{' ...' if len(foreign) > 4 else ''}): choose an empty or new --output.")
+        return None
+    try:
+        stored = read_json(path, "job file")
+        if not (isinstance(stored.get("job"), dict) and isinstance(stored.get("queries"), list)
+                and isinstance(stored.get("shard_size"), int)):
+            raise InputError(f"{path}: not a pixloc job file (it needs 'job', 'queries' and 'shard_size')")
+    except InputError as e:
+        if overwrite:
+            logger.warning("%s; --overwrite: the run is redone", e)
+            return None
+        raise InputError(f"{e}: use --overwrite to redo the run, or another --output") from None
+    return stored
 
 
 def auto_shard_size(num_queries: int, workers: int) -> int:
@@ -163,16 +201,29 @@ def resolve_order(order: str, job: LocalizationJob, num_queries: int) -> str:
 
 def plan_localization(job: LocalizationJob, queries: List[QueryRecord], output, shard_size: Optional[int] = None, *,
                       workers: int = 2, keep_failures: bool = False, overwrite: bool = False,
-                      order: str = "auto") -> LocalizationPlan:
-    """Plan a run into ``output``; writes nothing. A folder holding another job is refused
-    (unless ``overwrite``, which redoes everything). Without ``shard_size``, a run of the same
+                      order: str = "auto", allow_partial_map: bool = False) -> LocalizationPlan:
+    """Plan a run into ``output``; writes nothing. A folder holding another job, a run against
+    another map (``pipeline.store.store_fingerprint``), or files of no run, is refused (the first
+    two unless ``overwrite``, which redoes everything); so is a store with images not built yet,
+    unless ``allow_partial_map``. Without ``shard_size``, a run of the same
     job and queries keeps its shard size, and a new one gets ``auto_shard_size``. ``order``:
     ``list``, ``region`` or ``auto`` (``resolve_order``)."""
     if not queries:
         raise ValueError("The query list is empty: nothing to localize.")
     names = [q.name for q in queries]
     order = resolve_order(order, job, len(queries))
-    stored = _stored_job(Path(output))
+    stored = _stored_job(Path(output), overwrite)
+    store = store_fingerprint(job.store, feature_key(job.features))
+    if store["pending"] is None:
+        raise StoreError(f"{job.store} has no features for this configuration ({feature_key(job.features)}): "
+                         "build them with pixloc build-map and the same feature settings.")
+    if store["pending"] and not allow_partial_map:
+        raise StoreError(f"{job.store}: {store['pending']} map images are not built yet (a build is running or was "
+                         "interrupted): finish it with the same build-map command, or pass --allow-partial-map to "
+                         "localize against the images done so far.")
+    if stored is not None and not overwrite and "store" in stored and stored["store"]["digest"] != store["digest"]:
+        raise ValueError(f"{output} holds results against another map (the store {job.store} was rebuilt or "
+                         "changed since): use another --output, or --overwrite to redo the run against this map.")
     if shard_size is None:
         same = stored is not None and not overwrite and stored.get("queries") == names \
             and stored.get("job") == _job_json(job, names, 1, order)["job"] and stored.get("order", "list") == order
@@ -184,12 +235,13 @@ def plan_localization(job: LocalizationJob, queries: List[QueryRecord], output, 
         raise ValueError(f"Query names must be unique; repeated: {dup[:5]}.")
     job.validate()
     output = Path(output)
-    if stored is not None and not overwrite and stored != _job_json(job, names, shard_size, order):
+    if stored is not None and not overwrite and {k: v for k, v in stored.items() if k != "store"} != _job_json(
+            job, names, shard_size, order):
         raise ValueError(f"{output} holds a run with another job, query list or order: use another --output, "
                          "or --overwrite to redo it.")
     shards = [queries[i:i + shard_size] for i in range(0, len(queries), shard_size)]
     plan = LocalizationPlan(job, shards, output, overwrite=overwrite, shard_size=shard_size,
-                            keep_failures=keep_failures, order=order, queries=list(queries))
+                            keep_failures=keep_failures, order=order, queries=list(queries), store=store)
     if not plan.needs_retrieval():
         if order == "region":
             plan.apply_regions()
@@ -200,19 +252,28 @@ def plan_localization(job: LocalizationJob, queries: List[QueryRecord], output, 
     return plan
 
 
-def _job_json(job: LocalizationJob, names: List[str], shard_size: int, order: str = "list") -> Dict:
+def _job_json(job: LocalizationJob, names: List[str], shard_size: int, order: str = "list",
+              store: Optional[Dict] = None) -> Dict:
     out = {"job": job.to_dict(), "queries": names, "shard_size": shard_size}
     if order != "list":
         out["order"] = order
+    if store:
+        out["store"] = {k: v for k, v in store.items() if k != "pending"}
     return json.loads(json.dumps(out))
 
 
 @contextlib.contextmanager
 def output_lock(output: Path):
-    """Exclusive use of ``output`` by this process; a live holder's lock is refused, a dead one's
-    (a killed run) taken over."""
+    """Exclusive use of ``output`` by this process (``file_lock`` on ``output/.pixloc.lock``)."""
     output.mkdir(parents=True, exist_ok=True)
-    path = output / LOCK
+    with file_lock(output / LOCK, f"{output} is in use by another pixloc run"):
+        yield
+
+
+@contextlib.contextmanager
+def file_lock(path: Path, busy: str):
+    """Hold the lock file ``path``; a live holder's lock is refused (OutputLocked, ``busy`` and
+    the holder), a dead one's (a killed run) taken over."""
     me = f"{socket.gethostname()} {os.getpid()}"
     for _ in range(2):
         try:
@@ -222,8 +283,8 @@ def output_lock(output: Path):
             if len(holder) == 2 and holder[0] == socket.gethostname() and not _alive(int(holder[1])):
                 path.unlink(missing_ok=True)  # left by a run that was killed
                 continue
-            raise OutputLocked(f"{output} is in use by another pixloc run ({' pid '.join(holder) or 'unknown'}); "
-                               f"wait for it to finish, or remove {path} if no run is going on.") from None
+            raise OutputLocked(f"{busy} ({' pid '.join(holder) or 'unknown'}); wait for it to finish, or remove "
+                               f"{path} if no run is going on.") from None
         with os.fdopen(fd, "w") as f:
             f.write(me)
         break
@@ -231,6 +292,14 @@ def output_lock(output: Path):
         yield
     finally:
         path.unlink(missing_ok=True)
+
+
+def store_lock(store: Path):
+    """The lock a build takes on its store: ``STORE.lock`` beside it (the store itself may be
+    erased and recreated under it by --overwrite)."""
+    store = Path(store)
+    store.parent.mkdir(parents=True, exist_ok=True)
+    return file_lock(store.with_name(store.name + ".lock"), f"{store} is being built by another pixloc build-map")
 
 
 def _alive(pid: int) -> bool:
@@ -253,7 +322,7 @@ def _start(plan: LocalizationPlan, run_calls) -> None:
                 shutil.rmtree(plan.output / folder)
     plan.overwrite = False  # done once: from here on the run resumes like any other
     (plan.output / "shards").mkdir(parents=True, exist_ok=True)
-    (plan.output / "job.json").write_text(json.dumps(_job_json(plan.job, names, plan.shard_size, plan.order),
+    write_atomic(plan.output / "job.json", json.dumps(_job_json(plan.job, names, plan.shard_size, plan.order, plan.store),
                                                      indent=1))
     if plan.order == "region":
         parts = plan.retrieval_parts()
@@ -306,7 +375,9 @@ def _shard_records(plan: LocalizationPlan, k: int, commit: bool = True) -> List[
     retry = plan.retry_path(k)
     if retry.exists():
         redone = {r["name"]: r for r in read_records(retry)}
-        records = [redone.get(r["name"], r) for r in records]
+        kept = {r["name"]: r for r in records}
+        # in the shard's query order: a query the shard file had lost comes back from the retry
+        records = [redone.get(q.name) or kept[q.name] for q in plan.shards[k] if q.name in redone or q.name in kept]
         if commit:
             write_records(records, plan.shard_path(k))
             retry.unlink()
@@ -319,6 +390,14 @@ def merge(plan: LocalizationPlan) -> List[Dict]:
     records = []
     for k in range(len(plan.shards)):
         records += _shard_records(plan, k)
+    # exactly one record per query of the list, checked before the run says it is done
+    have = {r["name"] for r in records}
+    lost = [q for s in plan.shards for q in s if q.name not in have]
+    for q in lost:
+        records.append(result_to_record(QueryResult(q.name, False, None, None, [], reason=LOST), q.tags))
+    if lost:
+        logger.error("%d queries have no record (%s): listed as failed; rerun to localize them", len(lost),
+                     ", ".join(q.name for q in lost[:3]))
     if plan.queries:  # region order: back to the order of the query list
         rank = {q.name: i for i, q in enumerate(plan.queries)}
         records.sort(key=lambda r: rank.get(r["name"], len(rank)))

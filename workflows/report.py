@@ -24,6 +24,7 @@ from pipeline.features import FeatureConfig
 from pipeline.map_reader import MapReader
 from pipeline.queries import QueryRecord
 from pipeline.results import outcome, read_records, reason_groups
+from pipeline.textfiles import write_atomic
 
 from .report_figures import error_curves, example_figure, natural_key, query_errors, refinement_confidence, top_view
 
@@ -268,7 +269,7 @@ def make_report(output: Path, queries: List[QueryRecord], num_examples: int = 3,
         parts.append(f"<div class='example'><h3>{html.escape(rec['name'])} ({html.escape(why)})</h3>"
                      f"{_img(figure, rec['name'], 'jpeg')}</div>")
     path = output / "report.html"
-    path.write_text("<!doctype html><html><head><meta charset='utf-8'><title>PixLoc report</title>"
-                    f"<style>{STYLE}</style></head><body>" + "".join(parts)
-                    + f"<script>{SORT_SCRIPT}</script></body></html>")
+    write_atomic(path, "<!doctype html><html><head><meta charset='utf-8'><title>PixLoc report</title>"
+                 f"<style>{STYLE}</style></head><body>" + "".join(parts)
+                 + f"<script>{SORT_SCRIPT}</script></body></html>")
     return path
