@@ -53,6 +53,13 @@ def _median(x: np.ndarray) -> Optional[float]:
     return float(np.median(x)) if len(x) else None
 
 
+def recall_label(key: str, units: str = "m") -> str:
+    """'0.25 m, 2 deg' for the summary key 'recall@0.25m,2deg' (keys keep 'm' whatever the map's
+    units: ``units`` is what the distance is in, e.g. 'SfM units')."""
+    t, r = key[len("recall@"):].split(",")
+    return f"{float(t.removesuffix('m')):.3g} {units}, {float(r.removesuffix('deg')):g} deg"
+
+
 def summarize(errors: Sequence[Tuple[float, float]], thresholds=DEFAULT_THRESHOLDS) -> Dict:
     """Median errors over the queries with a pose, and recall (fraction of all queries within each
     (distance, degrees) pair; a query without a pose is never within). None where undefined."""

@@ -47,7 +47,9 @@ class PairBatch:
     def stack(batches: Sequence["PairBatch"]) -> "PairBatch":
         """One batch of several, all with the same image sizes and number of points."""
         cat = lambda k: torch.cat([getattr(b, k) for b in batches])
-        wrapped = lambda k: type(getattr(batches[0], k))(torch.cat([getattr(b, k)._data for b in batches]))
+        # the wrappers' own concatenation: a camera keeps its distortion model (a FISHEYE batch
+        # rebuilt from its 10 values alone would be read as OPENCV)
+        wrapped = lambda k: type(getattr(batches[0], k)).cat([getattr(b, k) for b in batches])
         return PairBatch(cat("image_ref"), cat("image_query"), wrapped("camera_ref"), wrapped("camera_query"),
                          cat("p3d_ref"), wrapped("query_from_ref_init"), wrapped("query_from_ref_gt"),
                          cat("mask_points") if batches[0].mask_points is not None else None)

@@ -14,14 +14,15 @@ from typing import Dict, Optional
 
 import numpy as np
 
-from pipeline.evaluate import DEFAULT_THRESHOLDS, INDOOR_THRESHOLDS, evaluate, fmt, parse_thresholds, to_json
+from pipeline.evaluate import (DEFAULT_THRESHOLDS, INDOOR_THRESHOLDS, evaluate, fmt, parse_thresholds, recall_label,
+                               to_json)
 from pipeline.features import FeatureConfig
 from pipeline.localize import LocalizerConfig
 from pipeline.results import POSE_NAMES, REJECTED, outcome, pose_names_problem, read_records, reason_groups
 from pipeline.shard import POINT_SELECTIONS, PRIORS, LocalizationJob, RetrievalConfig
 from pipeline.store import StoreError, open_store
 from pipeline.verify import VerificationConfig
-from pipeline.textfiles import write_atomic
+from pipeline.textfiles import read_json, write_atomic
 
 from . import executor
 from .localize import ORDERS, REGION_MIN_QUERIES, plan_localization, run_dask, run_sync
@@ -217,7 +218,7 @@ def main(args: argparse.Namespace) -> int:
                           for k, v in dropped.items() if k.startswith("invalid_observations")))
     if any(T is not None for T in gt.values()):
         args.thresholds, args.indoor = None, False  # localize has no such options: the preset's, or defaults
-        print("\n" + format_summary(evaluate(records, gt, thresholds_of(args))))
+        print("\n" + format_summary(evaluate(records, gt, thresholds_of(args)), store_units(job.store)))
     return 0
 
 
@@ -277,17 +278,27 @@ def evaluate_main(args: argparse.Namespace) -> int:
     records = read_records(args.output / "records.jsonl")
     summary = evaluate(records, gt, thresholds_of(args))
     write_atomic(args.output / "evaluation.json", to_json(summary))
-    print(format_summary(summary))
+    job = read_json(args.output / "job.json", "job file") if (args.output / "job.json").is_file() else {}
+    print(format_summary(summary, store_units(job["job"]["store"]) if "job" in job else "m"))
     return 0
 
 
-def format_summary(summary) -> str:
+def store_units(store) -> str:
+    """The distance unit of a store's map (``workflows.report.map_units`` of its source)."""
+    from .report import map_units
+    try:
+        return map_units(dict(open_store(store).attrs["pixloc_map"]).get("source", {}))
+    except StoreError:  # the store was moved since the run: its unit is unknown
+        return "scene units"
+
+
+def format_summary(summary, units: str = "m") -> str:
     lines = []
     missing = summary["all"].get("no_ground_truth", 0)
     for key, s in summary.items():
         for which, label in (("prior", "prior"), ("refined", "result")):
             r = s[which]
-            recalls = "  ".join(f"{k[len('recall@'):]}: {fmt(100 * v if v is not None else None, '5.1f')}%"
+            recalls = "  ".join(f"{recall_label(k, units)}: {fmt(100 * v if v is not None else None, '5.1f')}%"
                                 for k, v in r.items() if k.startswith("recall@"))
             lines.append(f"{key:<28} {label:<8} n={r['count']:<4} median {fmt(r['median_t'], '.3f')} / "
                          f"{fmt(r['median_R'], '.2f')} deg  {recalls}")

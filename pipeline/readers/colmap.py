@@ -179,7 +179,11 @@ def run_sfm(image_dir, work_dir, names: Optional[Sequence[str]] = None, tags=Non
     options.num_threads = 2
     models = pycolmap.incremental_mapping(database, image_dir, work_dir / "sparse", options=options)
     if not models:
-        raise SceneError(f"SfM could not reconstruct any model from {len(names)} images in {image_dir}.")
+        raise SceneError(
+            f"SfM could not reconstruct any model from {len(names)} images in {image_dir}: no initial image pair "
+            f"had enough matches with enough baseline (pairs matched: {pairs.method}). What to try: more images of "
+            "the same place with overlap (each part seen by three or more), '--pairs exhaustive' to match every "
+            "pair, the images at their full resolution (not downscaled copies), and images that show one scene.")
     rec = max(models.values(), key=lambda r: r.num_reg_images())
     missing = set(names) - {im.name for im in rec.images.values() if im.has_pose}
     if missing:

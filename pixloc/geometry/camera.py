@@ -62,6 +62,13 @@ class Camera(TensorWrapper):
         return super().stack(objects, dim)
 
     @classmethod
+    def cat(cls, objects: Sequence["Camera"], dim: int = 0) -> "Camera":
+        kinds = {o.distortion for o in objects}
+        if len(kinds) > 1:
+            raise ValueError(f"Cannot concatenate cameras with different distortion models: {sorted(kinds)}.")
+        return super().cat(objects, dim)
+
+    @classmethod
     def from_colmap(cls, model: str, width: float, height: float,
                     params: Sequence[float], dtype=torch.float32) -> "Camera":
         """From a COLMAP camera (model name, size, params in COLMAP's convention)."""

@@ -74,6 +74,13 @@ class TensorWrapper:
             dim -= 1  # skip the data dimension
         return objects[0]._new(torch.stack([o._data for o in objects], dim=dim))
 
+    @classmethod
+    def cat(cls, objects: Sequence["TensorWrapper"], dim: int = 0):
+        """Concatenate along a batch dimension; the result keeps the first object's kind."""
+        if dim < 0:
+            dim -= 1  # skip the data dimension
+        return objects[0]._new(torch.cat([o._data for o in objects], dim=dim))
+
     def isfinite(self) -> Tensor:
         """(...) True where every parameter is finite."""
         return torch.isfinite(self._data).all(-1)
