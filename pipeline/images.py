@@ -10,10 +10,10 @@ way for queries and map images (``fit_image``).
 
 import hashlib
 import os
+import struct
 import sys
 import tempfile
 import threading
-import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional, Tuple
@@ -39,6 +39,7 @@ MAX_PIXELS_ENV = "PIXLOC_MAX_IMAGE_PIXELS"
 _DECODER_ERRORS = ("Corrupt JPEG data", "Premature end of JPEG file", "JPEG datastream contains no image",
                    "libpng error", "Invalid SOS parameters", "Bogus marker length", "Huffman")
 _STDERR_LOCK = threading.Lock()
+_PIL_LOCK = threading.Lock()
 _ROTATED = (5, 6, 7, 8)  # EXIF orientations that swap width and height
 
 
@@ -83,20 +84,18 @@ def read_header(path) -> Optional[ImageHeader]:
         raise ImageReadError(f"image file {path} is empty (0 bytes)")
     limit = max_image_pixels()
     try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
-            with Image.open(path) as im:
-                width, height = im.size
-                try:
-                    orientation = int(im.getexif().get(274, 1))
-                except Exception:  # noqa: BLE001 - a damaged EXIF block: the decoder decides
-                    orientation = 1
-    except Image.DecompressionBombError:  # PIL's own ceiling, 2 x 89 MP: above it, ours applies
-        if limit <= 2 * (Image.MAX_IMAGE_PIXELS or 0):
-            raise ImageReadError(f"image file {path} declares more than {limit:,} pixels (the limit; raise it "
-                                 f"with --max-image-pixels or {MAX_PIXELS_ENV})") from None
-        return None
-    except (UnidentifiedImageError, OSError, ValueError, SyntaxError):
+        with _PIL_LOCK:  # PIL's own ceiling is a global: ours, from the header, replaces it here
+            saved, Image.MAX_IMAGE_PIXELS = Image.MAX_IMAGE_PIXELS, None
+            try:
+                with Image.open(path) as im:
+                    width, height = im.size
+                    try:
+                        orientation = int(im.getexif().get(274, 1))
+                    except Exception:  # noqa: BLE001 - a damaged EXIF block: the decoder decides
+                        orientation = 1
+            finally:
+                Image.MAX_IMAGE_PIXELS = saved
+    except (UnidentifiedImageError, OSError, ValueError, SyntaxError, struct.error):
         return None
     if width * height > limit:
         raise ImageReadError(f"image file {path} declares {width}x{height} = {width * height:,} pixels, more than "

@@ -28,7 +28,7 @@ from .results import read_records, result_to_record, write_records
 from .search import Hypotheses, SearchConfig, hypotheses, median_depth, rank_results, screen, solve, top1_first
 from .runtime import restore_malloc_thresholds, torch_threads
 from .store import StoreError
-from .textfiles import PoseTable, find_by_name, read_pairs, read_poses, write_atomic
+from .textfiles import InputError, PoseTable, find_by_name, read_pairs, read_poses, write_atomic
 
 logger = logging.getLogger(__name__)
 
@@ -175,6 +175,11 @@ def _hloc_descriptors(path: str) -> Dict[str, np.ndarray]:
 def read_poses_file(path: str) -> PoseTable:
     """A poses file (priors), read once per process (``pipeline.textfiles.read_poses``)."""
     return read_poses(path)
+
+
+@functools.lru_cache(maxsize=2)
+def _hloc_logs(path: str) -> Dict[str, PnPLog]:
+    return read_hloc_logs(path)
 
 
 def fit_query(query: QueryRecord) -> Tuple[QueryRecord, np.ndarray]:
@@ -378,7 +383,10 @@ def localize_shard(job: LocalizationJob, queries: List[QueryRecord], out_path) -
     """Localize ``queries`` and write their records to ``out_path``; a finished shard is read back."""
     out_path = Path(out_path)
     if out_path.exists():
-        return read_records(out_path)
+        try:
+            return read_records(out_path)
+        except InputError as e:  # damaged since it was written (atomically): this shard runs again
+            logger.warning("%s: the shard runs again", e)
     restore_malloc_thresholds()
     with torch_threads(1):  # one thread per task: parallelism comes from workers
         refiner, digest = localization_model(job.model, job.device)

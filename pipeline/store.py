@@ -280,7 +280,7 @@ def extend_store(root: zarr.Group, scene: Scene) -> List[int]:
 
 def missing_objects(array: zarr.Array, rows: slice) -> List[str]:
     """The storage objects (shard files, or chunks of unsharded arrays) that hold rows ``rows`` of
-    ``array`` and are absent, or not plain files: zarr reads those as fill values (zeros, -1),
+    ``array`` and are absent, empty, or not plain files: zarr reads those as fill values (zeros, -1),
     so every reader of an image's rows asks here first. Keys relative to the store."""
     from zarr.core.sync import sync
 
@@ -289,7 +289,9 @@ def missing_objects(array: zarr.Array, rows: slice) -> List[str]:
     out = []
     for k in range(rows.start // unit, -(-stop // unit)):
         key = array.metadata.encode_chunk_key((k,) + (0,) * (array.ndim - 1))
-        if not sync((array.store_path / key).exists()):
+        where = array.store_path / key
+        # an empty object is as missing as an absent one: a chunk or a shard index is never 0 bytes
+        if not sync(where.exists()) or not sync(where.store.getsize(where.path)):
             out.append(f"{array.path}/{key}")
     return out
 
@@ -361,6 +363,12 @@ def check_layout(root: zarr.Group, path) -> None:
         array = _get(root, name, path)
         if tuple(array.shape[1:]) != shape[1:] or array.shape[0] < shape[0]:  # longer: an add was interrupted
             raise StoreError(f"{path}: array {name} has shape {tuple(array.shape)}, the map attributes say {shape}.")
+        if not name.startswith("observations/"):  # the map's structure: every chunk holds data
+            missing = missing_objects(array, slice(0, shape[0])) if shape[0] else []
+            if missing:
+                raise StoreError(f"{path}: {len(missing)} files of array {name} are missing ({missing[0]}): the "
+                                 "map's structure is incomplete (a damaged or partly copied store); rebuild it "
+                                 "with build-map --overwrite.")
 
 
 def store_fingerprint(path, key: str) -> Dict:

@@ -15,7 +15,7 @@ import numpy as np
 import zarr
 
 from .feature_groups import check_feature_group, consolidated, unconsolidate
-from .store import DONE, FAILED, PENDING, image_row_arrays, missing_objects, open_store, read
+from .store import DONE, FAILED, PENDING, StoreError, image_row_arrays, missing_objects, open_store, read
 
 
 @dataclass
@@ -89,8 +89,13 @@ def check_store(path, progress: Optional[Callable[[str], None]] = None) -> Store
     out.bytes = sum(f.stat().st_size for f in path.rglob("*") if f.is_file())
     root = open_store(path)  # refuses a bad layout with a clear StoreError
     meta = root.attrs["pixloc_map"]
-    names = [str(n) for n in read(root, "images/name")]
-    row_start, num_obs = read(root, "images/row_start"), read(root, "images/num_obs")
+    try:  # the structure every other check needs: damaged, the store is refused whole
+        names = [str(n) for n in read(root, "images/name")]
+        row_start, num_obs = read(root, "images/row_start"), read(root, "images/num_obs")
+    except Exception as e:  # noqa: BLE001 - the codecs raise many types
+        raise StoreError(f"{path}: the map's image arrays cannot be read ({type(e).__name__}: "
+                         f"{str(e).splitlines()[0][:120]}): the store is damaged; rebuild it with build-map "
+                         "--overwrite") from None
     if "features" in root:
         for key, group in root["features"].groups():
             try:
@@ -157,6 +162,17 @@ def _check_images(root, meta, names, row_start, num_obs, out: StoreCheck) -> Non
         for i in np.flatnonzero(status == DONE):
             for array in arrays:
                 report(array, int(i), missing_objects(array, rows(int(i))))
+            # a done image's descriptor is a unit vector: its chunk is always written
+            report(group["global"], int(i), missing_objects(group["global"], slice(int(i), int(i) + 1)))
+        if consolidated(group, meta):  # the readers' copies must say what the per-image arrays say
+            try:
+                differ = np.flatnonzero((read(group, "status", meta) != status) | (
+                    read(group, "global", meta) != read(group, "global_all", meta)).any(1))
+            except Exception:  # noqa: BLE001 - reported by the chunk loop
+                differ = []
+            for i in differ:
+                out.bad.append(BadChunk(f"{group.path}/status", (int(i),), [names[i]], "the per-image status or "
+                                        "descriptor differs from the consolidated copy (a file was lost or replaced)"))
 
 
 def mark_pending(path, images: List[str]) -> int:

@@ -105,7 +105,8 @@ def main(argv: Optional[List[str]] = None) -> int:
         return args.func(args)
     except KeyboardInterrupt:
         # finished shards and images are on disk; the workers' teardown is not the user's concern
-        logging.disable(logging.CRITICAL)
+        for noisy in ("distributed", "tornado", "asyncio"):
+            logging.getLogger(noisy).setLevel(logging.CRITICAL)
         print("pixloc: interrupted; run the same command again to resume", file=sys.stderr)
         return 130
     except (ValueError, OSError) as e:  # bad input: SceneError, StoreError, CheckpointError, missing files

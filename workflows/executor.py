@@ -40,6 +40,12 @@ def dask_client(scheduler: Optional[str] = None, workers: int = 2, device: str =
                           dashboard_address=":0" if dashboard else None) as cluster, Client(cluster) as client:
             try:
                 yield client
+            except KeyboardInterrupt:
+                # Ctrl-C: the cluster is torn down with tasks in flight; its comm errors are not
+                # the user's concern (finished shards are on disk: a rerun resumes)
+                for noisy in ("distributed", "tornado", "asyncio"):
+                    logging.getLogger(noisy).setLevel(logging.CRITICAL)
+                raise
             finally:
                 # closing: a worker still releasing torch is killed after the timeout, and the nanny's
                 # "Worker process still alive ... killing" is noise once every task has finished

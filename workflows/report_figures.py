@@ -11,7 +11,6 @@ import numpy as np
 import torch
 
 from pipeline.evaluate import fmt, pose_errors
-from pipeline.images import read_image
 from pipeline.map_reader import MapReader
 from pipeline.queries import QueryRecord
 from pipeline.results import REJECTED, outcome, record_pose

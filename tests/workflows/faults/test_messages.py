@@ -1,0 +1,87 @@
+"""Fault catalogue, class 5: what a user reads. Errors name their file; a dry run computes
+nothing; Ctrl-C is one line; summaries say each thing once, in the map's units."""
+
+import pytest
+
+from pipeline.evaluate import recall_label
+from pipeline.scene import SceneError
+
+from .conftest import pixloc
+
+
+def test_localize_takes_ground_truth_and_prints_the_table_once_per_thing(cli_run):
+    """Before: localize had no --ground-truth (no accuracy table for a query list), and the summary
+    printed '1 rejected: rejected: confidence ...'."""
+    assert "rejected: rejected" not in cli_run.stdout
+    table = [line for line in cli_run.stdout.splitlines() if line.startswith("all ")]
+    # a store built through the library records no source: its distances are 'scene units'
+    assert len(table) == 2 and "n=2" in table[1] and "0.25 scene units, 2 deg:" in table[1]
+
+
+def test_recall_labels_are_in_the_map_units():
+    """Before: 'recall@0.0532305m,1.0deg' for a map in SfM units, also with --units."""
+    assert recall_label("recall@0.0532305m,1.0deg", "SfM units") == "0.0532 SfM units, 1 deg"
+
+
+def test_dry_run_of_a_map_to_triangulate_computes_and_writes_nothing(shared, tmp_path):
+    """Before: build-map --dry-run of a map from known poses ran SIFT, matching and triangulation
+    (3 min 42 s) and wrote the work folder."""
+    out = pixloc("build-map", "strecha", shared / "data" / "strecha" / "Herz-Jesus-P8", "--store",
+                 tmp_path / "map.zarr", "--dry-run", timeout=60)
+    assert out.returncode == 0, out.stderr
+    assert "0 reconstruction" in out.stdout and "nothing computed or written" in out.stdout
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
+
+
+def test_interrupt_is_one_line(monkeypatch, capsys):
+    """Before: Ctrl-C during a Dask localize printed KeyboardInterrupt/CommClosedError tracebacks."""
+    from workflows import cli, cli_localize
+
+    def interrupted(args):
+        raise KeyboardInterrupt
+    monkeypatch.setattr(cli_localize, "main", interrupted)
+    rc = cli.main(["localize", "list", "x.txt", "--store", "s.zarr", "--output", "o"])
+    err = capsys.readouterr().err
+    assert rc == 130 and err == "pixloc: interrupted; run the same command again to resume\n"
+
+
+def test_sfm_that_finds_no_initial_pair_says_what_to_try(shared, tmp_path):
+    """Before: 'no good initial image pair' and nothing about what to change."""
+    from pipeline.readers.colmap import run_sfm
+    images = tmp_path / "images"
+    images.mkdir()
+    for path in (sorted((shared / "data" / "robotcar_daynight").glob("db*.jpg"))[0],
+                 sorted((shared / "data" / "sacre_coeur" / "mapping").iterdir())[0]):
+        (images / path.name).write_bytes(path.read_bytes())
+    with pytest.raises(SceneError, match="What to try: more images .* '--pairs exhaustive'"):
+        run_sfm(images, tmp_path / "work")
+
+
+def test_ctrl_c_during_a_dask_localize_is_one_line_and_resumable(stairs, tmp_path):
+    """Before: KeyboardInterrupt and CommClosedError tracebacks. Ctrl-C reaches the whole process
+    group (the client, the nannies and the workers of the local cluster), as from a terminal."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from .conftest import ROOT
+    args = ["localize", "7scenes", stairs.root, "--query-sequences", "1", "4", "--store", stairs.job.store,
+            "--output", tmp_path / "out", "--workers", "2", "--iters", "400", "--shard-size", "1"]
+    p = subprocess.Popen([sys.executable, "-m", "workflows.cli", *map(str, args)], stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, text=True, start_new_session=True,
+                         env={**os.environ, "PYTHONPATH": str(ROOT)})
+    head = []
+    for line in p.stderr:  # the tasks are running
+        head.append(line)
+        if "queries to do" in line:
+            break
+    time.sleep(0.5)
+    os.killpg(p.pid, signal.SIGINT)
+    _, err = p.communicate(timeout=120)
+    assert p.returncode == 130, "".join(head) + err
+    assert "Traceback" not in err and "Error" not in err
+    assert err.rstrip().splitlines()[-1] == "pixloc: interrupted; run the same command again to resume"
+    out = pixloc(*args[:-4], "--iters", "400", "--shard-size", "1", "--sync")
+    assert out.returncode == 0 and "6 queries" in out.stdout

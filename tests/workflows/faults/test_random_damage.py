@@ -1,0 +1,198 @@
+"""Fault catalogue, the property behind every class: random damage to each reader's input, and to
+any file of a store, gives a clear error naming the file (and line), or a correct result; never a
+traceback of another kind, never a wrong success."""
+
+import json
+import shutil
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from pipeline.images import ImageReadError, read_image_for
+from pipeline.queries import read_queries_with_intrinsics
+from pipeline.results import read_records
+from pipeline.scene import CameraRecord, name_problem
+from pipeline.store import StoreError
+from pipeline.store_check import check_store
+from pipeline.textfiles import InputError, read_pairs, read_poses
+from workflows.localize import _stored_job
+
+ODD = ["nan", "inf", "-inf", "-1", "0", "1e999", "x", "", "../a.jpg", "/abs.jpg", "a b", "\u00e9", "0x10", "-0"]
+SETTINGS = dict(deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
+
+
+@st.composite
+def damaged(draw, text: str) -> bytes:
+    """``text`` after one to three kinds of damage: truncation, byte flips, a field replaced,
+    dropped or added, a line repeated."""
+    data = text.encode()
+    for _ in range(draw(st.integers(1, 3))):
+        kind = draw(st.sampled_from(["truncate", "flip", "field", "drop", "add", "repeat"]))
+        lines = data.split(b"\n")
+        k = draw(st.integers(0, max(len(lines) - 1, 0)))
+        fields = lines[k].split(b" ")
+        j = draw(st.integers(0, max(len(fields) - 1, 0)))
+        if kind == "truncate":
+            data = data[:draw(st.integers(0, len(data)))]
+            continue
+        if kind == "flip" and data:
+            i = draw(st.integers(0, len(data) - 1))
+            data = data[:i] + bytes([draw(st.integers(0, 255))]) + data[i + 1:]
+            continue
+        if kind == "field":
+            fields[j] = draw(st.sampled_from(ODD)).encode()
+        elif kind == "drop" and len(fields) > 1:
+            del fields[j]
+        elif kind == "add":
+            fields.insert(j, draw(st.sampled_from(ODD)).encode())
+        elif kind == "repeat":
+            lines.insert(k, lines[k])
+        if kind != "repeat":
+            lines[k] = b" ".join(fields)
+        data = b"\n".join(lines)
+    return data
+
+
+def _write(data: bytes, name: str) -> Path:
+    path = Path(tempfile.mkdtemp()) / name
+    path.write_bytes(data)
+    return path
+
+
+POSES = ("seq-01/frame-000000.color.jpg 0.9 0.1 0.2 0.3 1.5 -0.2 3\n"
+         "seq-01/frame-000001.color.jpg 1 0 0 0 0 0 0\n# a comment\n"
+         "seq-04/frame-000000.color.jpg 0.5 0.5 0.5 0.5 -1 2 0.25\n")
+
+
+@settings(max_examples=150, **SETTINGS)
+@given(damaged(POSES))
+def test_poses_file(data):
+    path = _write(data, "poses.txt")
+    try:
+        table = read_poses(path)
+    except InputError as e:
+        assert str(e).startswith(f"{path}:")
+        return
+    for name, T in table.poses.items():  # what was read is a pose, by its whole name
+        assert T.shape == (3, 4) and np.isfinite(T).all()
+        np.testing.assert_allclose(T[:, :3] @ T[:, :3].T, np.eye(3), atol=1e-6)
+        assert table.find(name) is T
+
+
+@settings(max_examples=100, **SETTINGS)
+@given(damaged("q1.jpg db1.jpg\nq1.jpg db2.jpg\nq2.jpg db1.jpg\n"))
+def test_pairs_file(data):
+    path = _write(data, "pairs.txt")
+    try:
+        pairs = read_pairs(path)
+    except InputError as e:
+        assert str(e).startswith(f"{path}:")
+        return
+    assert all(isinstance(q, str) and refs and all(isinstance(r, str) for r in refs) for q, refs in pairs.items())
+
+
+@settings(max_examples=150, **SETTINGS)
+@given(damaged("a.jpg PINHOLE 640 480 525 525 320 240\nsub/b.jpg SIMPLE_RADIAL 1024 768 800 512 384 0.01\n"
+               "c.jpg OPENCV 640 480 500 500 320 240 0.1 0.01 0 0\n"))
+def test_query_list(data):
+    path = _write(data, "list.txt")
+    try:
+        queries = read_queries_with_intrinsics(path, path.parent)
+    except InputError as e:
+        assert str(e).startswith(f"{path}:")
+        return
+    for q in queries:  # each query fails with its line, or is a usable query inside its folder
+        if q.error:
+            assert q.error.startswith(f"{path}:") and q.camera is None or q.error.startswith(f"{path}:")
+        else:
+            assert q.camera.check() is None and name_problem(q.name) is None
+
+
+JOB = json.dumps({"job": {"store": "/x/map.zarr", "prior": "top1"}, "queries": ["a.jpg", "b.jpg"], "shard_size": 8})
+
+
+@settings(max_examples=100, **SETTINGS)
+@given(damaged(JOB))
+def test_job_file(data):
+    path = _write(data, "job.json")
+    try:
+        job = _stored_job(path.parent)
+    except ValueError as e:  # InputError, or a folder that is not ours
+        assert str(path.parent) in str(e)
+        return
+    assert isinstance(job["job"], dict) and isinstance(job["queries"], list) and isinstance(job["shard_size"], int)
+
+
+@settings(max_examples=100, **SETTINGS)
+@given(damaged(json.dumps({"name": "a.jpg", "success": True}) + "\n" + json.dumps({"name": "b", "x": [1]}) + "\n"))
+def test_records_file(data):
+    path = _write(data, "shard-00000.jsonl")
+    try:
+        records = read_records(path)
+    except InputError as e:
+        assert str(e).startswith(f"{path}:")
+        return
+    assert all(isinstance(r, dict) and "name" in r for r in records)
+
+
+@pytest.fixture(scope="module")
+def image_bytes(shared):
+    jpeg = (shared / "data" / "7scenes_stairs" / "seq-01" / "frame-000000.color.jpg").read_bytes()
+    png = sorted((shared / "data" / "middlebury").rglob("*.png"))[0].read_bytes()
+    return {"jpg": jpeg, "png": png}
+
+
+@settings(max_examples=60, **SETTINGS)
+@given(kind=st.sampled_from(["jpg", "png"]), cut=st.floats(0, 1), flips=st.lists(st.tuples(st.floats(0, 1),
+       st.integers(0, 255)), max_size=4))
+def test_image_file(image_bytes, kind, cut, flips):
+    data = bytearray(image_bytes[kind])
+    for where, value in flips:
+        data[int(where * (len(data) - 1))] = value
+    if cut < 0.5:
+        data = data[:int(cut * 2 * len(data))]
+    path = _write(bytes(data), f"image.{kind}")
+    camera = CameraRecord("PINHOLE", 640, 480, (525.0, 525.0, 320.0, 240.0))
+    try:
+        rgb, cam, _ = read_image_for(path, camera)
+    except ImageReadError as e:
+        assert str(path) in str(e)
+        return
+    assert rgb.shape == (cam.height, cam.width, 3) and cam.check() is None
+
+
+@settings(max_examples=25, **SETTINGS)
+@given(choice=st.floats(0, 1), damage=st.sampled_from(["delete", "truncate", "flip", "folder"]), at=st.floats(0, 1))
+def test_store_file(stairs, choice, damage, at):
+    """Any chunk or shard file of a store, deleted, cut, flipped or replaced by a folder, is found
+    by check-store (or refused when the store is opened), naming the store."""
+    work = Path(tempfile.mkdtemp())
+    store = work / "map.zarr"
+    shutil.copytree(stairs.job.store, store)
+    files = sorted(p for p in store.rglob("*") if p.is_file() and "/c/" in p.as_posix() or p.parent.name == "c"
+                   and p.is_file())
+    victim = files[int(choice * (len(files) - 1))]
+    data = victim.read_bytes()
+    if damage == "delete":
+        victim.unlink()
+    elif damage == "truncate":
+        victim.write_bytes(data[:int(at * (len(data) - 1))])
+    elif damage == "flip":
+        i = int(at * (len(data) - 1))
+        victim.write_bytes(data[:i] + bytes([data[i] ^ 0x5A]) + data[i + 1:])
+    else:
+        victim.unlink()
+        victim.mkdir()
+    try:
+        report = check_store(store)
+    except StoreError as e:
+        assert str(store) in str(e)
+        return
+    finally:
+        pass
+    assert not report.ok, f"{damage} of {victim.relative_to(store)} was not found"
+    shutil.rmtree(work)
