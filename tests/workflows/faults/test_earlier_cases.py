@@ -30,7 +30,7 @@ from pipeline.store_check import check_store
 from workflows.localize import OutputLocked, output_lock, plan_localization, run_sync
 from workflows.sources import load_queries
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 FCONF = FeatureConfig(resize=320, image_scales=(1,))
 LCONF = LocalizerConfig(num_dbs=3, num_iters=15)
 
