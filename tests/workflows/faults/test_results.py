@@ -125,3 +125,15 @@ def test_priors_of_another_sequence_are_not_used(stairs, tmp_path):
     job = dataclasses.replace(stairs.job, prior="poses", prior_poses=str(_poses_file(tmp_path / "p.txt", seq4)))
     records = run_sync(plan_localization(job, seq1, tmp_path / "out"))
     assert not records[0]["success"] and "no prior pose" in records[0]["reason"]
+
+
+def test_one_bad_line_of_a_pairs_file_is_refused_before_the_run(stairs, tmp_path):
+    """Before: one bad line of a --pairs file failed every query with 'not enough values to
+    unpack', and no file or line."""
+    q = stairs.queries[0]
+    names = [str(n) for n in open_store(stairs.job.store)["images/name"][:]]
+    (tmp_path / "pairs.txt").write_text(f"{q.name} {names[0]}\n{q.name}\n")
+    job = dataclasses.replace(stairs.job, retrieval=dataclasses.replace(stairs.job.retrieval, method="pairs",
+                                                                          pairs=str(tmp_path / "pairs.txt")))
+    with pytest.raises(InputError, match=r"pairs.txt:2: expected 'query reference', got 1 fields"):
+        plan_localization(job, [q], tmp_path / "out")
