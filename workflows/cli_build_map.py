@@ -110,12 +110,8 @@ def main(args: argparse.Namespace) -> int:
                 print(f"\nAll {len(scene.images)} images of {store} already have features (or were refused): "
                       "nothing to do (--overwrite rebuilds it).")
                 return 0
-        if args.sync:
-            results = run_sync(plan, progress=True)
-        else:
-            with executor.dask_client(args.scheduler, args.workers, args.device) as client:
-                print(f"Dask dashboard: {client.dashboard_link}")
-                results = run_dask(plan, client, progress=True)
+        results = executor.run_plan(plan, run_sync, run_dask, sync=args.sync, scheduler=args.scheduler,
+                                    workers=args.workers, device=args.device)
     counts = Counter(r.status for r in results)
     already = len(scene.images) - sum(len(b) for b in plan.batches) + counts.get("skipped", 0)
     print(f"\n{counts.get('done', 0)} images extracted, {already} already done or refused, "

@@ -188,12 +188,9 @@ def main(args: argparse.Namespace) -> int:
         print(f"{counts['queries']} of {counts['queries']} queries already done in {output}: nothing to do "
               "(--overwrite redoes them).")
         records = run_sync(plan)  # merges the finished shards (poses.txt, failed.txt) and nothing else
-    elif args.sync:
-        records = run_sync(plan, progress=True)
     else:
-        with executor.dask_client(args.scheduler, args.workers, args.device) as client:
-            print(f"Dask dashboard: {client.dashboard_link}")
-            records = run_dask(plan, client, progress=True)
+        records = executor.run_plan(plan, run_sync, run_dask, sync=args.sync, scheduler=args.scheduler,
+                                    workers=args.workers, device=args.device)
     by = Counter(outcome(r) for r in records)
     ran = (f"{counts['to_run']} run in {time.time() - t0:.1f} s, {counts['reused_queries']} reused" if counts["to_run"]
            else "all reused")

@@ -54,6 +54,17 @@ def dask_client(scheduler: Optional[str] = None, workers: int = 2, device: str =
         nanny.setLevel(level)
 
 
+def run_plan(plan, run_sync: Callable, run_dask: Callable, *, sync: bool, scheduler: Optional[str] = None,
+             workers: int = 2, device: str = "cpu"):
+    """``run_sync(plan, progress=True)``, or ``run_dask(plan, client, progress=True)`` on a client of
+    ``scheduler`` (or of a local cluster of ``workers``): what the commands do with a plan."""
+    if sync:
+        return run_sync(plan, progress=True)
+    with dask_client(scheduler, workers, device) as client:
+        print(f"Dask dashboard: {client.dashboard_link}")
+        return run_dask(plan, client, progress=True)
+
+
 def check_resources(client, resources: Optional[Dict[str, float]]) -> None:
     """Refuse to submit tasks that no worker of the cluster could ever run."""
     if not resources:

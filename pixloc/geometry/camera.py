@@ -25,6 +25,12 @@ NUM_COLMAP_PARAMS = {"SIMPLE_PINHOLE": 3, "PINHOLE": 4, "SIMPLE_RADIAL": 4, "RAD
 _KIND_FROM_LENGTH = {6: "none", 8: "radial", 10: "opencv", 14: "full_opencv"}
 
 
+def _one_distortion(cameras: Sequence["Camera"], what: str) -> None:
+    kinds = {c.distortion for c in cameras}
+    if len(kinds) > 1:
+        raise ValueError(f"Cannot {what} cameras with different distortion models: {sorted(kinds)}.")
+
+
 class Camera(TensorWrapper):
     """A batch of cameras, stored as (..., 6 + D) = [w, h, fx, fy, cx, cy, dist...].
 
@@ -56,16 +62,12 @@ class Camera(TensorWrapper):
 
     @classmethod
     def stack(cls, objects: Sequence["Camera"], dim: int = 0) -> "Camera":
-        kinds = {o.distortion for o in objects}
-        if len(kinds) > 1:
-            raise ValueError(f"Cannot stack cameras with different distortion models: {sorted(kinds)}.")
+        _one_distortion(objects, "stack")
         return super().stack(objects, dim)
 
     @classmethod
     def cat(cls, objects: Sequence["Camera"], dim: int = 0) -> "Camera":
-        kinds = {o.distortion for o in objects}
-        if len(kinds) > 1:
-            raise ValueError(f"Cannot concatenate cameras with different distortion models: {sorted(kinds)}.")
+        _one_distortion(objects, "concatenate")
         return super().cat(objects, dim)
 
     @classmethod

@@ -63,6 +63,17 @@ def _write(data: bytes, name: str) -> Path:
     return path
 
 
+def _read(reader, data: bytes, name: str, errors=InputError):
+    """``reader(path)`` of ``data`` written to a file ``name``: its result, or None when it refused
+    the file with an error that starts with the file's path (and line)."""
+    path = _write(data, name)
+    try:
+        return reader(path)
+    except errors as e:
+        assert str(e).startswith(f"{path}:") or str(path.parent) in str(e), str(e)
+        return None
+
+
 POSES = ("seq-01/frame-000000.color.jpg 0.9 0.1 0.2 0.3 1.5 -0.2 3\n"
          "seq-01/frame-000001.color.jpg 1 0 0 0 0 0 0\n# a comment\n"
          "seq-04/frame-000000.color.jpg 0.5 0.5 0.5 0.5 -1 2 0.25\n")
@@ -71,13 +82,8 @@ POSES = ("seq-01/frame-000000.color.jpg 0.9 0.1 0.2 0.3 1.5 -0.2 3\n"
 @settings(max_examples=150, **SETTINGS)
 @given(damaged(POSES))
 def test_poses_file(data):
-    path = _write(data, "poses.txt")
-    try:
-        table = read_poses(path)
-    except InputError as e:
-        assert str(e).startswith(f"{path}:")
-        return
-    for name, T in table.poses.items():  # what was read is a pose, by its whole name
+    table = _read(read_poses, data, "poses.txt")
+    for name, T in (table.poses.items() if table else []):  # what was read is a pose, by its whole name
         assert T.shape == (3, 4) and np.isfinite(T).all()
         np.testing.assert_allclose(T[:, :3] @ T[:, :3].T, np.eye(3), atol=1e-6)
         assert table.find(name) is T
@@ -86,12 +92,7 @@ def test_poses_file(data):
 @settings(max_examples=100, **SETTINGS)
 @given(damaged("q1.jpg db1.jpg\nq1.jpg db2.jpg\nq2.jpg db1.jpg\n"))
 def test_pairs_file(data):
-    path = _write(data, "pairs.txt")
-    try:
-        pairs = read_pairs(path)
-    except InputError as e:
-        assert str(e).startswith(f"{path}:")
-        return
+    pairs = _read(read_pairs, data, "pairs.txt") or {}
     assert all(isinstance(q, str) and refs and all(isinstance(r, str) for r in refs) for q, refs in pairs.items())
 
 
@@ -99,15 +100,10 @@ def test_pairs_file(data):
 @given(damaged("a.jpg PINHOLE 640 480 525 525 320 240\nsub/b.jpg SIMPLE_RADIAL 1024 768 800 512 384 0.01\n"
                "c.jpg OPENCV 640 480 500 500 320 240 0.1 0.01 0 0\n"))
 def test_query_list(data):
-    path = _write(data, "list.txt")
-    try:
-        queries = read_queries_with_intrinsics(path, path.parent)
-    except InputError as e:
-        assert str(e).startswith(f"{path}:")
-        return
+    path, queries = _read(lambda p: (p, read_queries_with_intrinsics(p, p.parent)), data, "list.txt") or (None, [])
     for q in queries:  # each query fails with its line, or is a usable query inside its folder
         if q.error:
-            assert q.error.startswith(f"{path}:") and q.camera is None or q.error.startswith(f"{path}:")
+            assert q.error.startswith(f"{path}:")
         else:
             assert q.camera.check() is None and name_problem(q.name) is None
 
@@ -118,24 +114,15 @@ JOB = json.dumps({"job": {"store": "/x/map.zarr", "prior": "top1"}, "queries": [
 @settings(max_examples=100, **SETTINGS)
 @given(damaged(JOB))
 def test_job_file(data):
-    path = _write(data, "job.json")
-    try:
-        job = _stored_job(path.parent)
-    except ValueError as e:  # InputError, or a folder that is not ours
-        assert str(path.parent) in str(e)
-        return
-    assert isinstance(job["job"], dict) and isinstance(job["queries"], list) and isinstance(job["shard_size"], int)
+    job = _read(lambda p: _stored_job(p.parent), data, "job.json", ValueError)  # or a folder not ours
+    assert job is None or (isinstance(job["job"], dict) and isinstance(job["queries"], list)
+                           and isinstance(job["shard_size"], int))
 
 
 @settings(max_examples=100, **SETTINGS)
 @given(damaged(json.dumps({"name": "a.jpg", "success": True}) + "\n" + json.dumps({"name": "b", "x": [1]}) + "\n"))
 def test_records_file(data):
-    path = _write(data, "shard-00000.jsonl")
-    try:
-        records = read_records(path)
-    except InputError as e:
-        assert str(e).startswith(f"{path}:")
-        return
+    records = _read(read_records, data, "shard-00000.jsonl") or []
     assert all(isinstance(r, dict) and "name" in r for r in records)
 
 
