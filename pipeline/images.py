@@ -139,7 +139,8 @@ def read_image(path, *, orientation: bool = True) -> np.ndarray:
         raise ImageReadError(f"image file {path} cannot be read: {e.strerror or e}") from None
     image, messages = _decode_checked(data, flags)
     problems = [line.strip() for line in messages.splitlines()
-                if any(e in line for e in _DECODER_ERRORS) or line.startswith(("error:", "MemoryError:", "ValueError:"))]
+                if any(e in line for e in _DECODER_ERRORS)
+                or line.startswith(("error:", "MemoryError:", "ValueError:"))]
     other = "".join(line + "\n" for line in messages.splitlines() if line.strip() and line.strip() not in problems)
     if other:
         sys.stderr.write(other)  # not ours to swallow

@@ -166,7 +166,8 @@ class MapReader:
         confidences (N, L) float32 and valid (N, L)."""
         s = slice(int(self.row_start[i]), int(self.row_start[i] + self.num_obs[i]))
         g = self.group[f"s{scale}"]
-        names = [n for n in ("features", "scales", "confidences", "valid") if n != "scales" or self.conf.dtype == "int8"]
+        names = [n for n in ("features", "scales", "confidences", "valid")
+                 if n != "scales" or self.conf.dtype == "int8"]
         self._check_present(i, [g[n] for n in names])
         out = {}
         for name in ("features", "scales", "confidences", "valid"):

@@ -41,7 +41,8 @@ def result_to_record(r: QueryResult, tags: Optional[Dict[str, str]] = None) -> D
     return {"name": r.name, "success": r.success, "prior": mat(r.prior), "refined": mat(r.refined),
             "references": r.references, "num_points": r.num_points,
             "cost": None if not np.isfinite(r.cost) else r.cost, "iterations": r.iterations,
-            "reason": r.reason, "confidence": r.confidence, "evidence": r.evidence, "notes": r.notes, "filters": r.filters, "timings": r.timings,
+            "reason": r.reason, "confidence": r.confidence, "evidence": r.evidence, "notes": r.notes,
+            "filters": r.filters, "timings": r.timings,
             "tags": dict(tags or {}), "per_level": r.per_level}
 
 

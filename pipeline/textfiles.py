@@ -179,12 +179,19 @@ def read_pairs(path) -> Dict[str, List[str]]:
 def write_atomic(path, data) -> None:
     """Write ``data`` (str or bytes) to ``path`` through a temporary file in the same folder, then
     rename: a reader sees the old file or the new one, never a part (a full disk, a kill). The
-    temporary is removed when anything fails."""
+    temporary is removed when anything fails. A file that already holds these bytes is not
+    written again."""
     path = Path(path)
+    data = data.encode() if isinstance(data, str) else data
+    try:
+        if path.stat().st_size == len(data) and path.read_bytes() == data:
+            return  # the same bytes: left untouched (a no-op rerun keeps its outputs' times)
+    except OSError:
+        pass
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     try:
         with open(tmp, "wb") as f:
-            f.write(data.encode() if isinstance(data, str) else data)
+            f.write(data)
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)

@@ -21,7 +21,8 @@ The confidence is ``c^2 / (c^2 + s^2)`` for the contrast ``c`` and the scale ``s
 (``contrast_scale``), 1/2 where the contrast equals the scale. Below a strong contrast
 (``strong_contrast``), a refinement with fewer points in view than ``min_valid`` or a finest
 level that turned more than ``max_last_turn`` has its confidence capped below 1/2, at
-``valid / min_valid / 2`` and ``max_last_turn / last turn / 2``. The defaults were chosen by measurement on the shared scenes:
+``valid / min_valid / 2`` and ``max_last_turn / last turn / 2``. The defaults were chosen by measurement on
+the shared scenes:
 see docs/verification.md (``pixloc benchmark verification``).
 """
 

@@ -9,8 +9,29 @@ from typing import List, Optional
 import pixloc
 
 
+class HelpFormatter(argparse.HelpFormatter):
+    """Shows an option's default after its help, unless the help already says it or there is none."""
+
+    def _get_help_string(self, action):
+        text = action.help or ""
+        default = action.default
+        if ("default" in text or default in (None, False, argparse.SUPPRESS, [], ())
+                or not action.option_strings):
+            return text
+        shown = " ".join(map(str, default)) if isinstance(default, (list, tuple)) else default
+        return f"{text} (default: {shown})"
+
+
+class Parser(argparse.ArgumentParser):
+    """Every pixloc command's parser: its options show their defaults (``HelpFormatter``)."""
+
+    def __init__(self, *args, **kwargs):
+        kwargs.setdefault("formatter_class", HelpFormatter)
+        super().__init__(*args, **kwargs)
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = Parser(
         prog="pixloc",
         description="PixLoc visual localization at scale: map building, batch localization, training.")
     parser.add_argument("--version", action="version", version=f"pixloc {pixloc.__version__}")
@@ -75,9 +96,11 @@ def build_parser() -> argparse.ArgumentParser:
             ("build-map", bench_build_map, "map building: images/s and bytes per observation, 1 vs 2 workers"),
             ("localize", bench_localize, "queries/s with stored features vs the official re-extraction"),
             ("verification", bench_verification, "precision and rejections of pose verification per threshold"),
-            ("rgbd", bench_rgbd, "time per 7-Scenes query: gradient maps and points per cell against the official sampler"),
+            ("rgbd", bench_rgbd,
+             "time per 7-Scenes query: gradient maps and points per cell against the official sampler"),
             ("search", bench_search, "recall and time of the search prior against top1, average, hypotheses"),
-            ("scale", bench_scale, "S1-S5, P3: an Aachen-size store, cities built and localized at size, adding a session"),
+            ("scale", bench_scale,
+             "S1-S5, P3: an Aachen-size store, cities built and localized at size, adding a session"),
             ("storage", bench_storage, "bytes per observation and recall of int8 against float16 feature storage")]:
         p = bench_sub.add_parser(name, help=text)
         module.add_arguments(p)

@@ -27,7 +27,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--store", type=Path, required=True, help="output map store (a .zarr folder)")
     p.add_argument("--images", type=Path, help="image folder of a COLMAP model (default: PATH/../images)")
     p.add_argument("--sequences", type=int, nargs="+", default=[], help="7-Scenes sequences of the map")
-    p.add_argument("--rgbd-points", choices=["tsdf", "frames"], default="tsdf")
+    p.add_argument("--rgbd-points", choices=["tsdf", "frames"], default="tsdf",
+                   help="RGB-D sources: map points from a TSDF fusion of the depth maps, or from each frame's depth")
     p.add_argument("--densify", action="store_true", help="move SfM points onto the depth maps")
     p.add_argument("--intrinsics", type=float, nargs=4, default=[], metavar=("FX", "FY", "CX", "CY"),
                    help="posetxt: pinhole intrinsics of colour and depth (COLMAP convention)")
@@ -58,8 +59,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--pairs-neighbors", type=int, default=PairsConfig().num_neighbors,
                    help="spatial/retrieval: neighbours per image")
     p.add_argument("--batch-size", type=int, default=1, help="images per task")
-    p.add_argument("--device", default="cpu")
-    p.add_argument("--work-dir", type=Path, help="SfM/triangulation files (default: the store's path with .work for its suffix: "
+    p.add_argument("--device", default="cpu", help="torch device of the feature network (cpu, cuda, cuda:1)")
+    p.add_argument("--work-dir", type=Path, help="SfM/triangulation files (default: the store's path with .work "
+                   "for its suffix: "
                    "map.work for map.zarr)")
     p.add_argument("--scheduler", help="address of an existing Dask scheduler (default: a local cluster)")
     p.add_argument("--workers", type=int, default=2, help="worker processes of the local cluster")

@@ -51,7 +51,8 @@ def add_query_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("query_kind", choices=QUERY_KINDS, help="where the queries come from")
     p.add_argument("query_path", type=Path, help="query list file, or dataset root")
     p.add_argument("--query-images", type=Path, help="image folder of a query list or COLMAP model")
-    p.add_argument("--query-sequences", type=int, nargs="+", default=[])
+    p.add_argument("--query-sequences", type=int, nargs="+", default=[],
+                   help="7scenes queries: the sequences to localize (official test split: 1 4)")
     p.add_argument("--query-names", nargs="+", help="keep only these queries")
 
 
@@ -65,7 +66,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--retrieval-k", type=int, help=f"references retrieved (default {d['retrieval_k']})")
     p.add_argument("--same-tag", help="restrict references to those sharing this tag with the query")
     p.add_argument("--descriptors", type=Path, help="hloc HDF5 global descriptors for retrieval (e.g. NetVLAD)")
-    p.add_argument("--prior", choices=PRIORS, help=f"pose prior (default {d['prior']}); search: many starts around the top "
+    p.add_argument("--prior", choices=PRIORS, help=f"pose prior (default {d['prior']}); search: many starts around "
+                   "the top "
                    "references, screened at the coarsest level; hloc: refinement mode from an hloc _logs.pkl "
                    "(its PnP poses and inliers)")
     p.add_argument("--prior-poses", type=Path, help="refinement mode: poses file of another pipeline")
@@ -103,7 +105,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "descriptors that stage runs the network once more per query), list (query order), or "
                         f"auto (default: region from {REGION_MIN_QUERIES} queries with --pairs or --descriptors, "
                         "else list)")
-    p.add_argument("--device", default="cpu")
+    p.add_argument("--device", default="cpu", help="torch device of the network and the LM (cpu, cuda)")
     p.add_argument("--scheduler", help="address of an existing Dask scheduler")
     p.add_argument("--workers", type=int, default=2, help="worker processes of the local cluster (default 2)")
     p.add_argument("--sync", action="store_true", help="run in this process, without Dask")

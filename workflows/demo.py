@@ -32,6 +32,9 @@ logger = logging.getLogger(__name__)
 DEMO_SEED = 7  # the training configs use other seeds
 DEMO_CAMERA = CameraRecord("PINHOLE", 320, 240, (250.0, 250.0, 160.0, 120.0))
 DEMO_THRESHOLDS = ((0.1, 1.0), (0.25, 2.0), (1.0, 5.0))  # (metres, degrees)
+# The references stand on a circle looking outwards, 360 / n degrees apart, with a 65 degree field
+# of view: below 18 a facade point is seen by fewer than three of them and the map has no points.
+MIN_REFERENCES = 18
 
 
 def _stage(k: int, text: str) -> float:
@@ -43,6 +46,11 @@ def run_demo(output: Path, model: str = "pixloc-lite0", num_references: int = 30
              workers: int = 2, sync: bool = False, num_iters: int = 50, seed: int = DEMO_SEED,
              query_spread: float = 0.5, prior: str = "top1", client=None) -> Dict[str, Dict]:
     """Run the demo into ``output``; returns the evaluation summary (per condition)."""
+    if num_references < MIN_REFERENCES:
+        raise ValueError(f"--references {num_references}: the demo needs at least {MIN_REFERENCES} (its references "
+                         "stand on a circle looking outwards; with fewer, no point is seen by three of them)")
+    if queries_per_condition < 1:
+        raise ValueError(f"--queries-per-condition {queries_per_condition}: at least 1")
     output = Path(output).resolve()  # recorded absolute in job.json
     t_start = _stage(1, f"generating the synthetic scene (seed {seed}): {num_references} references, "
                         f"{queries_per_condition} queries per condition")
@@ -117,11 +125,14 @@ def format_table(summary: Dict[str, Dict]) -> str:
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--output", type=Path, default=Path("outputs/demo"), help="output folder (default outputs/demo)")
     p.add_argument("--model", default="pixloc-lite0", help="feature model (default: the shipped pixloc-lite0)")
-    p.add_argument("--references", type=int, default=30)
-    p.add_argument("--queries-per-condition", type=int, default=5)
+    p.add_argument("--references", type=int, default=30,
+                   help=f"map images of the synthetic scene (at least {MIN_REFERENCES})")
+    p.add_argument("--queries-per-condition", type=int, default=5,
+                   help="queries of each condition (day, dusk, night, occluded)")
     p.add_argument("--workers", type=int, default=2, help="Dask workers (processes)")
     p.add_argument("--sync", action="store_true", help="localize in this process, without Dask")
-    p.add_argument("--prior", choices=["top1", "average", "hypotheses", "search"], default="top1")
+    p.add_argument("--prior", choices=["top1", "average", "hypotheses", "search"], default="top1",
+                   help="pose prior of the localization (see pixloc localize --help)")
     p.set_defaults(func=main)
 
 

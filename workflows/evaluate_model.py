@@ -135,7 +135,8 @@ def markdown(results: Dict[str, Dict[str, Dict[str, float]]]) -> str:
         "| --- | --- | ---: | ---: | ---: | " + " | ".join("---:" for _ in keys) + " |"]
     for model, per in results.items():
         for data, s in per.items():
-            lines.append(f"| {model} | {data} | {s['count']} | {fmt(100 * s['median_t'] if s['median_t'] is not None else None, '.1f')} | "
+            median_cm = 100 * s["median_t"] if s["median_t"] is not None else None
+            lines.append(f"| {model} | {data} | {s['count']} | {fmt(median_cm, '.1f')} | "
                          f"{fmt(s['median_R'], '.2f')} | "
                          + " | ".join(fmt(s[k], ".3f") for k in keys) + " |")
     return "\n".join(lines) + "\n"
@@ -147,11 +148,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "others are compared pair by pair with the first")
     p.add_argument("--config", default="lite0", help="training config whose held_out sources to use")
     p.add_argument("--data-root", type=Path, help="default $PIXLOC_SHARED/data or ../shared/data")
-    p.add_argument("--output", type=Path, default=Path("outputs/model_eval"))
+    p.add_argument("--output", type=Path, default=Path("outputs/model_eval"),
+                   help="folder of the tables, the per-pair errors and the reused triangulation")
     p.add_argument("--max-pairs", type=int, default=40, help="pairs per held-out source (seeded choice)")
     p.add_argument("--max-size", type=int, help="longer image side (default: the config's)")
     p.add_argument("--iters", type=int, default=100, help="LM iterations per level")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0, help="seed of the initial poses (the same pairs for every model)")
     p.add_argument("--init-range", type=float, nargs=2, metavar=("LO", "HI"),
                    help="initial poses this fraction of the way from the reference pose to the truth "
                         "(default: the config's init_range, [0.75, 1]; e.g. 0.25 0.5 for far starts)")

@@ -322,7 +322,8 @@ def _start(plan: LocalizationPlan, run_calls) -> None:
                 shutil.rmtree(plan.output / folder)
     plan.overwrite = False  # done once: from here on the run resumes like any other
     (plan.output / "shards").mkdir(parents=True, exist_ok=True)
-    write_atomic(plan.output / "job.json", json.dumps(_job_json(plan.job, names, plan.shard_size, plan.order, plan.store),
+    write_atomic(plan.output / "job.json", json.dumps(_job_json(plan.job, names, plan.shard_size, plan.order,
+                                                                plan.store),
                                                      indent=1))
     if plan.order == "region":
         parts = plan.retrieval_parts()

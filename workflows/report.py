@@ -65,6 +65,13 @@ def _tags_text(tags: Dict) -> str:
     return ", ".join(f"{k}={v}" for k, v in sorted(tags.items()))
 
 
+TEXT_COLUMNS = ("query", "tags", "outcome", "reason", "references")
+
+
+def _references_text(references: List[str]) -> str:
+    return ", ".join(references[:3]) + (" ..." if len(references) > 3 else "")
+
+
 def query_table(records: List[Dict], errors: Dict[str, Dict], thresholds, units: str) -> str:
     """Every query, failures first, then by error (largest first); sortable by clicking a header."""
     rows = sorted(records, key=lambda r: (OUTCOME_ORDER[outcome(r)], -_score(errors[r["name"]], thresholds)
@@ -72,18 +79,19 @@ def query_table(records: List[Dict], errors: Dict[str, Dict], thresholds, units:
     cols = ["query", "tags", "outcome", f"error t ({units})", "error R (deg)", f"prior t ({units})",
             "prior R (deg)", "confidence", "reason", "references", "points", "iterations", "time (s)"]
     out = ["<table id='queries' class='sortable'><thead><tr>"
-           + "".join(f"<th data-type='{'text' if c in ('query', 'tags', 'outcome', 'reason', 'references') else 'num'}'>"
-                     f"{html.escape(c)}</th>" for c in cols) + "</tr></thead><tbody>"]
+           + "".join(f"<th data-type='{'text' if c in TEXT_COLUMNS else 'num'}'>{html.escape(c)}</th>" for c in cols)
+           + "</tr></thead><tbody>"]
     for r in rows:
         e = errors[r["name"]]
         o = outcome(r)
         num = (lambda v, spec: f"<td data-v='{v if v is not None else ''}'>{fmt(v, spec)}</td>")
         out.append(
-            f"<tr class='{o}'><td>{html.escape(r['name'])}</td><td class='text'>{html.escape(_tags_text(r.get('tags', {})))}</td>"
+            f"<tr class='{o}'><td>{html.escape(r['name'])}</td>"
+            f"<td class='text'>{html.escape(_tags_text(r.get('tags', {})))}</td>"
             f"<td data-v='{OUTCOME_ORDER[o]}'>{o}</td>" + num(e["t"], ".3f") + num(e["R"], ".2f")
             + num(e["prior_t"], ".3f") + num(e["prior_R"], ".2f") + num(refinement_confidence(r), ".2f")
             + f"<td class='text'>{html.escape(r['reason'])}</td>"
-            f"<td class='text'>{html.escape(', '.join(r['references'][:3]) + (' ...' if len(r['references']) > 3 else ''))}</td>"
+            f"<td class='text'>{html.escape(_references_text(r['references']))}</td>"
             + num(r.get("num_points"), "d") + num(r.get("iterations"), "d")
             + num(r.get("timings", {}).get("total"), ".2f") + "</tr>")
     out.append("</tbody></table>")
@@ -259,7 +267,8 @@ def make_report(output: Path, queries: List[QueryRecord], num_examples: int = 3,
     parts.append(f"<h2 id='queries-section'>Queries</h2><p class='note'>{len(records)} rows: failed (red) and "
                  "rejected (yellow) first, then by error, largest first. Click a header to sort.</p>"
                  f"<div class='scroll'>{query_table(records, errors, thresholds, units)}</div>")
-    parts.append("<h2 id='map'>Top view of the map</h2>" + _img(top_view(reader, records, gt, family, units), "top view"))
+    parts.append("<h2 id='map'>Top view of the map</h2>"
+                 + _img(top_view(reader, records, gt, family, units), "top view"))
     parts.append("<h2 id='examples'>Examples</h2><p class='note'>Points of the query's references projected at the "
                  "prior (red), refined (green) and ground-truth (blue) poses.</p>")
     by_name = {q.name: q for q in queries}

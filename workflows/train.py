@@ -267,7 +267,8 @@ def contact_sheet(config: Dict, out: Path, data_root: Path, pairs_per_source: in
                                                                           (b.query_from_ref_gt, (0, 200, 0))])):
                 im = np.ascontiguousarray((image[0].permute(1, 2, 0).numpy() * 255).astype(np.uint8))
                 for T, colour in poses:
-                    T = T if T is not None else type(b.query_from_ref_gt).from_Rt(torch.eye(3), torch.zeros(3)).reshape(1)
+                    if T is None:
+                        T = type(b.query_from_ref_gt).from_Rt(torch.eye(3), torch.zeros(3)).reshape(1)
                     draw(im, camera, T, b.p3d_ref, b.mask_points, colour)
                 canvas = np.full((size, size, 3), 255, np.uint8)
                 canvas[:im.shape[0], :im.shape[1]] = im[:size, :size]
@@ -340,7 +341,8 @@ def train(config: Dict, out: Path, data_root: Path, resume: bool = True, threads
     info = {"architecture": arch, "init": model, "data": [s.name for s in sources], "skipped_data": skipped,
             "held_out": config.get("held_out", []), "max_size": pconf.max_size, "lr": tconf.lr, "ema": tconf.ema,
             "hardware": f"{platform.processor() or platform.machine()}, {torch.get_num_threads()} threads, "
-                        f"{tconf.device}" + (f" ({torch.cuda.get_device_name()})" if tconf.device.startswith("cuda") else "")}
+                        f"{tconf.device}"
+                        + (f" ({torch.cuda.get_device_name()})" if tconf.device.startswith("cuda") else "")}
 
     def checkpoint():
         tmp = ckpt_path.with_suffix(".tmp")

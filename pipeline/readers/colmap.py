@@ -210,7 +210,8 @@ def triangulate_known_poses(images: List[ImageRecord], image_root, work_dir, *,
     fingerprint = _fingerprint(image_root, names, kind="triangulation", min_track_length=min_track_length,
                                max_reprojection_error=max_reprojection_error,
                                cameras=[im.camera.to_json() for im in images],
-                               poses=[np.round(np.asarray(im.cam_from_world, np.float64), 12).tolist() for im in images],
+                               poses=[np.round(np.asarray(im.cam_from_world, np.float64), 12).tolist()
+                                      for im in images],
                                **_pairs_fingerprint(pairs, len(images), True))
     rec = _cached(work_dir, "triangulation.json", "model", fingerprint, image_root)
     if rec is not None:

@@ -6,4 +6,5 @@ from .evidence import alignment_contrast, alignment_depth_contrast, alignment_ev
 from .solver import LevenbergMarquardt, LMResult, StoppingRule, solve_damped
 
 __all__ = ["ConstantDamping", "FeaturemetricProblem", "LearnedDamping", "LevenbergMarquardt",
-           "Linearization", "LMResult", "StoppingRule", "alignment_contrast", "alignment_depth_contrast", "alignment_evidence", "build_system", "linearize", "solve_damped"]
+           "Linearization", "LMResult", "StoppingRule", "alignment_contrast", "alignment_depth_contrast",
+           "alignment_evidence", "build_system", "linearize", "solve_damped"]

@@ -158,7 +158,7 @@ def test_command_line_refinement_mode(sacre, oracle, tmp_path):
     """``pixloc localize --prior hloc`` runs the same refinement as the job above."""
     from workflows.cli import main
     _, work, _, query, _ = sacre
-    line = next(l for l in (oracle / "queries_with_intrinsics.txt").read_text().splitlines() if l.startswith(QUERY))
+    line = next(x for x in (oracle / "queries_with_intrinsics.txt").read_text().splitlines() if x.startswith(QUERY))
     (tmp_path / "queries.txt").write_text(line + "\n")
     assert main(["localize", "list", str(tmp_path / "queries.txt"), "--query-images", str(query.path.parent),
                  "--store", str(work / "map.zarr"), "--output", str(tmp_path / "out"), "--prior", "hloc",

@@ -49,7 +49,8 @@ def test_interrupted_training_resumes_to_the_same_state(config, tmp_path):
     val = rows(tmp_path / "b" / "validation.csv")
     assert [r["step"] for r in val] == ["0", "2", "4"]
     lrs = [float(r["lr"]) for r in rb]
-    assert lrs[0] == pytest.approx(1e-3) and lrs[-1] == pytest.approx(1e-3 * (0.1 + 0.9 * 0.5 * (1 + math.cos(0.75 * math.pi))))
+    assert lrs[0] == pytest.approx(1e-3)
+    assert lrs[-1] == pytest.approx(1e-3 * (0.1 + 0.9 * 0.5 * (1 + math.cos(0.75 * math.pi))))
     assert [float(r["lr"]) for r in ra] == lrs  # the resumed run followed the same schedule
     best = json.loads((tmp_path / "b" / "best.json").read_text())
     errors = [float(r["error_px_median"]) for r in val]

@@ -21,10 +21,11 @@ from ..build_map import plan_build, run_dask
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--shared", type=Path, default=Path(os.environ.get("PIXLOC_SHARED", "../shared")))
+    p.add_argument("--shared", type=Path, default=Path(os.environ.get("PIXLOC_SHARED", "../shared")),
+                   help="the shared data folder (default: $PIXLOC_SHARED, else ../shared)")
     p.add_argument("--repeat", type=int, default=6, help="copies of the 4 Maupertuis images")
-    p.add_argument("--resize", type=int, default=1024)
-    p.add_argument("--workers", type=int, nargs="+", default=[1, 2])
+    p.add_argument("--resize", type=int, default=1024, help="longer image side of the features")
+    p.add_argument("--workers", type=int, nargs="+", default=[1, 2], help="worker counts to compare")
 
 
 def _peak_rss_mib() -> float:

@@ -205,7 +205,8 @@ def bare_run(args, root: Path, store: Path, parts: int) -> Dict:
         shutil.rmtree(out, ignore_errors=True)
     procs = [subprocess.Popen([sys.executable, "-c", DRIVER, str(root), str(store), str(out), f"sync:{k}/{parts}",
                                str(args.p3_queries), "list", "1"], env={**os.environ, "OMP_NUM_THREADS": "1"},
-                              stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True) for k, out in enumerate(outs)]
+                              stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+             for k, out in enumerate(outs)]
     done = [lines(p)[-1] for p in procs]
     n = sum(d["queries"] for d in done)
     elapsed = max(d["elapsed"] for d in done)
@@ -250,7 +251,8 @@ def report(args) -> None:
         rows = p3(args, city)
         base = rows[0]["queries_per_s"]
         print(f"\n| P3: {rows[0]['queries']} queries | workers | order | s | queries/s | x 1 worker | "
-              "store MiB read / query | block-cache hit rate |\n| --- | ---: | --- | ---: | ---: | ---: | ---: | ---: |")
+              "store MiB read / query | block-cache hit rate |\n"
+              "| --- | ---: | --- | ---: | ---: | ---: | ---: | ---: |")
         bare = next(r["queries_per_s"] for r in rows if r["order"] == "bare processes")
         for r in rows:
             ratio = r["queries_per_s"] / (bare if r["order"] == "bare processes" else base)

@@ -21,10 +21,10 @@ from pixloc.optim import ConstantDamping, FeaturemetricProblem, LevenbergMarquar
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--problems", type=int, nargs="+", default=[1, 16], help="batch sizes")
     parser.add_argument("--points", type=int, nargs="+", default=[1000, 10000], help="points per problem")
-    parser.add_argument("--channels", type=int, default=128)
+    parser.add_argument("--channels", type=int, default=128, help="feature channels of the problems")
     parser.add_argument("--iters", type=int, default=10, help="LM iterations per solve")
     parser.add_argument("--repeats", type=int, default=3, help="timed repeats (best is kept)")
-    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--device", default="cpu", help="torch device")
     parser.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
 
 

@@ -31,10 +31,11 @@ from ..localize import plan_localization, run_dask
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--shared", type=Path, default=Path(os.environ.get("PIXLOC_SHARED", "../shared")))
-    p.add_argument("--workers", type=int, nargs="+", default=[1, 2])
-    p.add_argument("--iters", type=int, default=100)
-    p.add_argument("--resize", type=int, default=1024)
+    p.add_argument("--shared", type=Path, default=Path(os.environ.get("PIXLOC_SHARED", "../shared")),
+                   help="the shared data folder (default: $PIXLOC_SHARED, else ../shared)")
+    p.add_argument("--workers", type=int, nargs="+", default=[1, 2], help="worker counts to compare")
+    p.add_argument("--iters", type=int, default=100, help="LM iterations per level")
+    p.add_argument("--resize", type=int, default=1024, help="longer image side of the features")
     p.add_argument("--repeat", type=int, default=4, help="copies of the 3 oracle queries (fixed costs amortise)")
 
 

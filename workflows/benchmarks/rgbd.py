@@ -33,8 +33,9 @@ WAYS = (("baseline", False, 0.0), ("gradient maps", True, 0.0), ("+ points per c
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--shared", type=Path, default=Path(os.environ.get("PIXLOC_SHARED", "../shared")))
-    p.add_argument("--work", type=Path, default=Path("outputs/benchmark-rgbd"))
+    p.add_argument("--shared", type=Path, default=Path(os.environ.get("PIXLOC_SHARED", "../shared")),
+                   help="the shared data folder (default: $PIXLOC_SHARED, else ../shared)")
+    p.add_argument("--work", type=Path, default=Path("outputs/benchmark-rgbd"), help="work folder (maps, runs)")
     p.add_argument("--queries", type=int, default=6, help="of the 6 test frames")
 
 

@@ -48,11 +48,13 @@ GOALS = {"bytes": 10e9, "files": 150_000, "rss": 2 * 2**30}
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--parts", nargs="+", default=["S3"], choices=["S1", "S2", "S3", "S4", "S5", "P3"])
+    p.add_argument("--parts", nargs="+", default=["S3"], choices=["S1", "S2", "S3", "S4", "S5", "P3"],
+                   help="the parts of the benchmark to run (docs/scaling.md)")
     p.add_argument("--cities", type=int, nargs="+", default=[2, 4, 10],
                    help="S2: blocks per side of each city (96, 384 and 2,400 references)")
     p.add_argument("--city-queries", type=int, default=8, help="S2: queries per condition (4 conditions)")
-    p.add_argument("--s1-blocks", type=int, default=10, help="S1, P3: blocks per side of the city (10: 2,400 references)")
+    p.add_argument("--s1-blocks", type=int, default=10,
+                   help="S1, P3: blocks per side of the city (10: 2,400 references)")
     p.add_argument("--s1-queries", type=int, default=5000, help="S1: queries (a quarter per condition)")
     p.add_argument("--p3-queries", type=int, default=480, help="P3: queries localized with 1 and 2 workers")
     p.add_argument("--s4-images", type=int, nargs="+", default=[200, 2000],
@@ -60,15 +62,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--s4-neighbors", type=int, default=10, help="S4: spatial pairs per image")
     p.add_argument("--s4-from", choices=["centre", "corner"], default="centre",
                    help="S4: the references triangulated are those nearest the city's centre (default) or corner")
-    p.add_argument("--work", type=Path, default=Path("outputs/benchmark-scale"))
+    p.add_argument("--work", type=Path, default=Path("outputs/benchmark-scale"),
+                   help="work folder (stores, cities, runs)")
     p.add_argument("--fraction", type=float, default=1.0, help="of the Aachen v1.1 counts (default 1: full size)")
-    p.add_argument("--dtype", default="int8", choices=["int8", "float16"])
+    p.add_argument("--dtype", default="int8", choices=["int8", "float16"], help="feature storage of the S3 store")
     p.add_argument("--image-scales", type=int, nargs="+", default=[1],
                    help="image scales stored (default [1]; the Aachen preset's [4, 1] doubles the features)")
     p.add_argument("--pca", type=int, default=0,
                    help="S3: store the 128-channel levels as this many components (random bases; default 0: off)")
     p.add_argument("--queries", type=int, default=50, help="queries whose reads are timed")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0, help="seed of the generated data")
     p.add_argument("--reuse", action="store_true", help="S3: measure the store a previous run wrote (same counts)")
 
 
@@ -141,7 +144,8 @@ for q in range(queries):
 print(json.dumps({"open_s": open_s, "rss_before": before, "rss_open": opened, "rss_end": rss(),
                   "peak_rss": hwm(),
                   "read_ms_median": 1e3 * float(np.median(lat)), "read_ms_p90": 1e3 * float(np.quantile(lat, 0.9)),
-                  "obs_per_query": int(len(obs.rows)), "bytes_read": reader.stats["bytes"], "blocks": reader.stats["blocks"]}))
+                  "obs_per_query": int(len(obs.rows)), "bytes_read": reader.stats["bytes"],
+                  "blocks": reader.stats["blocks"]}))
 """
 
 
@@ -206,7 +210,8 @@ def city_rows(args) -> list:
         conf = FeatureConfig(resize=160, image_scales=(1,), dtype="int8", descriptor="grid")
         build_sync(plan_build(scene, store, conf))
         t2 = time.perf_counter()
-        out = subprocess.run([sys.executable, "-c", LOCALIZE, str(root), str(store), str(args.work / f"city-{n}x{n}-run")],
+        out = subprocess.run([sys.executable, "-c", LOCALIZE, str(root), str(store),
+                              str(args.work / f"city-{n}x{n}-run")],
                              capture_output=True, text=True, check=True)
         r = json.loads(out.stdout.strip().splitlines()[-1])
         rows.append({**r, "blocks": f"{n}x{n}", "images": len(mapping), "map_points": len(scene.points),
@@ -317,7 +322,7 @@ def main(args: argparse.Namespace) -> int:
         print("\n| S2: city | images | points | observations | render + build s | queries | points / query | "
               "LM iterations / query | s / query | x smallest | peak RSS MiB | x smallest | store MiB read / query | "
               "recall 25 cm, 2 deg | 1 m, 5 deg |")
-        print("| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |")
+        print("| --- |" + " ---: |" * 14)
         for r in rows:
             rec = list(r["recall"].values())
             print(f"| {r['blocks']} | {r['images']} | {r['map_points']} | {r['observations']} | "
@@ -339,7 +344,8 @@ def store_at_scale(args: argparse.Namespace) -> int:
                          f"{f'-pca{args.pca}' if args.pca else ''}.zarr")
     args.work.mkdir(parents=True, exist_ok=True)
     print(f"S3: a store of {counts['images']} images, {counts['points']} points, {counts['observations']} "
-          f"observations ({args.fraction:g} x Aachen v1.1), {args.dtype}, image scales {args.image_scales}, PCA {args.pca or 'off'} -> {store}")
+          f"observations ({args.fraction:g} x Aachen v1.1), {args.dtype}, image scales {args.image_scales}, "
+          f"PCA {args.pca or 'off'} -> {store}")
     from pipeline.store import open_store
     if args.reuse and store.exists():
         root = open_store(store)
@@ -363,9 +369,11 @@ def store_at_scale(args: argparse.Namespace) -> int:
     r = json.loads(out.stdout.strip().splitlines()[-1])
     v2 = v2_figures(num_obs, len(args.image_scales))
     scale = 1 / args.fraction
-    rows = [("bytes on disk", f"{size / 1e9:.2f} GB", f"{size * scale / 1e9:.2f} GB", f"{v2['bytes'] * scale / 1e9:.1f} GB",
+    rows = [("bytes on disk", f"{size / 1e9:.2f} GB", f"{size * scale / 1e9:.2f} GB",
+             f"{v2['bytes'] * scale / 1e9:.1f} GB",
              f"<= {GOALS['bytes'] / 1e9:.0f} GB", f"{size * scale / GOALS['bytes']:.2f}"),
-            ("bytes per observation", f"{size / counts['observations']:.0f}", "same", f"{1047 / 2 * len(args.image_scales):.0f}", "<= 300",
+            ("bytes per observation", f"{size / counts['observations']:.0f}", "same",
+             f"{1047 / 2 * len(args.image_scales):.0f}", "<= 300",
              f"{size / counts['observations'] / 300:.2f}"),
             ("files", f"{len(files)}", f"{len(files) * scale:.0f}", f"{v2['files'] * scale:.0f}",
              f"<= {GOALS['files']}", f"{len(files) * scale / GOALS['files']:.2f}"),

@@ -41,10 +41,11 @@ HELD_OUT = {"fountain": ("fountain-P11", ["0002.jpg", "0004.jpg", "0006.jpg", "0
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--shared", type=Path, default=Path(os.environ.get("PIXLOC_SHARED", "../shared")))
+    p.add_argument("--shared", type=Path, default=Path(os.environ.get("PIXLOC_SHARED", "../shared")),
+                   help="the shared data folder (default: $PIXLOC_SHARED, else ../shared)")
     p.add_argument("--work", type=Path, default=Path("outputs/benchmark-verification"),
                    help="maps and runs (default: the verification benchmark's folder, whose maps it reuses)")
-    p.add_argument("--scenes", nargs="+", default=list(SCENES), choices=SCENES)
+    p.add_argument("--scenes", nargs="+", default=list(SCENES), choices=SCENES, help="scenes to run")
     p.add_argument("--priors", nargs="+", default=["top1", "average", "hypotheses", "search"],
                    choices=["top1", "average", "hypotheses", "search", "truth"],
                    help="truth: refine from the ground-truth pose (prior poses), the most any prior can reach")

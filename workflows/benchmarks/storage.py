@@ -42,11 +42,12 @@ DTYPES = ("float16", "int8")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--shared", type=Path, default=Path(os.environ.get("PIXLOC_SHARED", "../shared")))
+    p.add_argument("--shared", type=Path, default=Path(os.environ.get("PIXLOC_SHARED", "../shared")),
+                   help="the shared data folder (default: $PIXLOC_SHARED, else ../shared)")
     p.add_argument("--work", type=Path, default=Path("outputs/benchmark-verification"),
                    help="the verification benchmark's folder (its triangulations are reused); stores and "
                         "runs go to WORK/storage")
-    p.add_argument("--scenes", nargs="+", default=list(SCENES), choices=SCENES)
+    p.add_argument("--scenes", nargs="+", default=list(SCENES), choices=SCENES, help="scenes to run")
     p.add_argument("--storage", nargs="+", default=list(DTYPES), metavar="TYPE",
                    help="storage types compared with the first: float16, int8, float32, optionally with a PCA "
                         "of D components as TYPE-pcaD (e.g. int8-pca48); default float16 int8")

@@ -38,16 +38,17 @@ PERTURBATIONS = ((0.05, 3.0), (0.15, 8.0), (0.4, 20.0))
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--shared", type=Path, default=Path(os.environ.get("PIXLOC_SHARED", "../shared")))
-    p.add_argument("--work", type=Path, default=Path("outputs/benchmark-verification"))
+    p.add_argument("--shared", type=Path, default=Path(os.environ.get("PIXLOC_SHARED", "../shared")),
+                   help="the shared data folder (default: $PIXLOC_SHARED, else ../shared)")
+    p.add_argument("--work", type=Path, default=Path("outputs/benchmark-verification"), help="work folder (maps, runs)")
     p.add_argument("--model", default=None, help="feature model (default: the shipped model)")
-    p.add_argument("--scenes", nargs="+", default=["fountain", "herzjesus", "demo", "7scenes"])
+    p.add_argument("--scenes", nargs="+", default=["fountain", "herzjesus", "demo", "7scenes"], help="scenes to run")
     p.add_argument("--seed", type=int, default=0, help="seed of the perturbations (0: the one the defaults were "
                    "chosen on; others give a check on other starts)")
     p.add_argument("--tabulate", action="store_true", help="only tabulate the rows.json of an earlier run in --work "
                    "(to try other verification settings without localizing again)")
-    p.add_argument("--thresholds", type=float, nargs="+",
-                   default=[0.0, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9])
+    p.add_argument("--thresholds", type=float, nargs="+", default=[0.0, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9],
+                   help="minimum confidences to tabulate precision and rejections at")
 
 
 def _strecha(shared: Path, work: Path, folder: str, held_out: List[str], fconf: FeatureConfig,

@@ -250,7 +250,8 @@ def test_bad_job_settings_are_refused_before_any_query(stairs, tmp_path):
     for bad, text in [(dataclasses.replace(job, retrieval=RetrievalConfig("netvlad")), "retrieval method"),
                       (dataclasses.replace(job, prior="best"), "Unknown prior"),
                       (dataclasses.replace(job, point_selection="inliers"), "needs the hloc prior"),
-                      (dataclasses.replace(job, prior="poses", prior_poses=str(tmp_path / "no.txt")), "does not exist")]:
+                      (dataclasses.replace(job, prior="poses", prior_poses=str(tmp_path / "no.txt")),
+                       "does not exist")]:
         with pytest.raises(ValueError, match=text):
             plan_localization(bad, queries, tmp_path / "out")
     assert not (tmp_path / "out").exists()

@@ -179,7 +179,8 @@ def test_names_are_relative_paths_inside_their_folder(stairs, tmp_path):
     q = stairs.queries[0]
     (tmp_path / "outside.jpg").write_bytes(q.path.read_bytes())
     cam = "PINHOLE 640 480 525 525 320 240"
-    (tmp_path / "list.txt").write_text(f"my photo.jpg {cam}\n../../outside.jpg {cam}\n{tmp_path / 'outside.jpg'} {cam}\n")
+    (tmp_path / "list.txt").write_text(
+        f"my photo.jpg {cam}\n../../outside.jpg {cam}\n{tmp_path / 'outside.jpg'} {cam}\n")
     listed = load_queries("list", tmp_path / "list.txt", images)
     reasons = [x.error for x in listed]
     assert "name has spaces ('my photo.jpg')" in reasons[0]
