@@ -61,3 +61,37 @@ def read_queries_with_intrinsics(path, image_dir, tags=None) -> List[QueryRecord
                     camera, error = None, f"{path}:{line_no}: bad query line: {reason}"
         queries.append(QueryRecord(name, Path(image_dir) / name, camera, dict(tags or {}), error=error))
     return queries
+
+
+def also_in_map(queries: List[QueryRecord], map_names: List[str], map_paths: List[Path]) -> List[str]:
+    """The queries that are map images too: the same name, or a file of the same bytes (a query
+    localized against itself retrieves itself, and its error says nothing). File sizes are
+    compared first; only files of a size that a map image has are hashed."""
+    from .images import file_sha256
+
+    names = set(map_names)
+    sizes: Dict[int, List[Path]] = {}
+    for p in map_paths:
+        try:
+            sizes.setdefault(Path(p).stat().st_size, []).append(Path(p))
+        except OSError:
+            continue
+    digests: Dict[Path, str] = {}
+
+    def digest(p: Path) -> str:
+        if p not in digests:
+            digests[p] = file_sha256(p)
+        return digests[p]
+
+    out = []
+    for q in queries:
+        if q.name in names:
+            out.append(q.name)
+            continue
+        try:
+            same_size = sizes.get(q.path.stat().st_size, [])
+            if same_size and any(digest(q.path) == digest(p) for p in same_size):
+                out.append(q.name)
+        except OSError:
+            continue
+    return out

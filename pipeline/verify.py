@@ -91,8 +91,10 @@ def verify(evidence: Dict[str, float], conf: VerificationConfig = VerificationCo
         return c, (f"rejected: the camera moved {evidence['move_t']:.2f} scene depths from its prior "
                    f"(> {conf.max_move_t:g})")
     if c < conf.min_confidence:
+        contrast = 100 * evidence.get("contrast_3px", 0.0)
+        lower = f"{contrast:.1f}% lower" if contrast >= 0.05 else "no lower"  # never '-0.0% lower'
         return c, (f"rejected: confidence {c:.2f} < {conf.min_confidence:g} (the cost is "
-                   f"{100 * evidence.get('contrast_3px', 0.0):.1f}% lower at the pose than 3 px around it, "
+                   f"{lower} at the pose than 3 px around it, "
                    f"{100 * evidence.get('valid', 0.0):.0f}% of the points in view, finest level turned "
                    f"{evidence.get('last_R', 0.0):.1f} deg)")
     return c, None

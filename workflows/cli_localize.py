@@ -181,7 +181,13 @@ def main(args: argparse.Namespace) -> int:
     if problem:
         raise ValueError(problem[0].upper() + problem[1:] + ".")
     plan.pose_names = args.pose_names
+    plan.thresholds = thresholds_of(argparse.Namespace(thresholds=None, preset=args.preset, indoor=False))
     print(plan.describe())
+    both = queries_in_map(job.store, queries)
+    if both:
+        print(f"warning: {len(both)} of the {len(queries)} queries are also map images (the same name or the same "
+              f"bytes: {', '.join(both[:3])}{' ...' if len(both) > 3 else ''}); such a query retrieves itself and "
+              "its accuracy says nothing: hold it out of the map")
     if args.dry_run:
         return 0
     counts = plan.counts()
@@ -197,7 +203,8 @@ def main(args: argparse.Namespace) -> int:
     ran = (f"{counts['to_run']} run in {time.time() - t0:.1f} s, {counts['reused_queries']} reused" if counts["to_run"]
            else "all reused")
     print(f"\n{len(records)} queries ({ran}): {by['refined']} refined, {by['rejected']} rejected by verification, "
-          f"{by['failed']} failed (those keep their prior).\n  -> {output / 'poses.txt'}, "
+          f"{by['failed']} failed; poses.txt has the prior of those without a verified pose, where they have "
+          f"one.\n  -> {output / 'poses.txt'}, "
           f"{output / 'kapture'}, {output / 'failed.txt'}, {output / 'records.jsonl'}"
           + (f", {output / f'poses_{plan.pose_names}.txt'}" if plan.pose_names != "full" else ""))
     for kind, _, group in reason_groups(records)[:5]:  # reasons that differ only in their figures count as one
@@ -216,8 +223,7 @@ def main(args: argparse.Namespace) -> int:
               + ", ".join(f"{v} observations invalid at image scale index {k.rsplit('_s', 1)[1]}"
                           for k, v in dropped.items() if k.startswith("invalid_observations")))
     if any(T is not None for T in gt.values()):
-        args.thresholds, args.indoor = None, False  # localize has no such options: the preset's, or defaults
-        print("\n" + format_summary(evaluate(records, gt, thresholds_of(args)), store_units(job.store)))
+        print("\n" + format_summary(evaluate(records, gt, plan.thresholds), store_units(job.store)))
     return 0
 
 
@@ -250,13 +256,22 @@ def add_threshold_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--preset", help="take the dataset preset's thresholds")
 
 
-def thresholds_of(args: argparse.Namespace):
+def thresholds_of(args: argparse.Namespace, run: Optional[Path] = None):
+    """--thresholds, else the preset's, else --indoor's, else those the run in folder ``run``
+    recorded in its job.json (the preset it ran with), else the defaults."""
     if args.thresholds:
         return parse_thresholds(args.thresholds)
     if args.preset:
         from . import presets
         return tuple(tuple(t) for t in presets.load(args.preset)["thresholds"])
-    return INDOOR_THRESHOLDS if args.indoor else DEFAULT_THRESHOLDS
+    if args.indoor:
+        return INDOOR_THRESHOLDS
+    job = Path(run) / "job.json" if run is not None else None
+    if job is not None and job.is_file():
+        recorded = read_json(job, "job file").get("thresholds")
+        if recorded:
+            return tuple(tuple(float(x) for x in t) for t in recorded)
+    return DEFAULT_THRESHOLDS
 
 
 def ground_truth(args: argparse.Namespace, queries) -> Dict[str, Optional[np.ndarray]]:
@@ -275,11 +290,19 @@ def evaluate_main(args: argparse.Namespace) -> int:
     if all(T is None for T in gt.values()):
         raise ValueError("These queries have no ground truth to evaluate against: pass --ground-truth POSES.")
     records = read_records(args.output / "records.jsonl")
-    summary = evaluate(records, gt, thresholds_of(args))
+    summary = evaluate(records, gt, thresholds_of(args, args.output))
     write_atomic(args.output / "evaluation.json", to_json(summary))
     job = read_json(args.output / "job.json", "job file") if (args.output / "job.json").is_file() else {}
     print(format_summary(summary, store_units(job["job"]["store"]) if "job" in job else "m"))
     return 0
+
+
+def queries_in_map(store, queries) -> list:
+    """The queries that are also images of the store's map (``pipeline.queries.also_in_map``)."""
+    from pipeline.queries import also_in_map
+    from pipeline.store import image_records
+    images = image_records(open_store(store))
+    return also_in_map(queries, [im.name for im in images], [im.path for im in images])
 
 
 def store_units(store) -> str:
@@ -323,7 +346,7 @@ def report_main(args: argparse.Namespace) -> int:
     from .report import make_report
     queries = _load_queries(args)
     gt = ground_truth(args, queries)
-    path = make_report(absolute(args.output), queries, args.examples, thresholds_of(args), ground_truth=gt,
+    path = make_report(absolute(args.output), queries, args.examples, thresholds_of(args, args.output), ground_truth=gt,
                        units=args.units)
     print(f"report: {path}")
     return 0

@@ -70,6 +70,7 @@ class LocalizationPlan:
     order: str = "list"  # ``list`` (query order) or ``region`` (by the map region of the top-1 reference)
     queries: List[QueryRecord] = field(default_factory=list)  # in list order
     store: Dict = field(default_factory=dict)  # the store's fingerprint (``store_fingerprint``), into job.json
+    thresholds: Optional[List] = None  # the run's recall thresholds, into job.json (evaluate and report read them)
     damaged: set = field(default_factory=set)  # finished shards whose file cannot be read: run again
 
     def retrieval_path(self, part: int) -> Path:
@@ -235,7 +236,7 @@ def plan_localization(job: LocalizationJob, queries: List[QueryRecord], output, 
         raise ValueError(f"Query names must be unique; repeated: {dup[:5]}.")
     job.validate()
     output = Path(output)
-    if stored is not None and not overwrite and {k: v for k, v in stored.items() if k != "store"} != _job_json(
+    if stored is not None and not overwrite and {k: v for k, v in stored.items() if k not in RECORDED} != _job_json(
             job, names, shard_size, order):
         raise ValueError(f"{output} holds a run with another job, query list or order: use another --output, "
                          "or --overwrite to redo it.")
@@ -252,13 +253,18 @@ def plan_localization(job: LocalizationJob, queries: List[QueryRecord], output, 
     return plan
 
 
+RECORDED = ("store", "thresholds")  # recorded in job.json, not part of the job a rerun must match
+
+
 def _job_json(job: LocalizationJob, names: List[str], shard_size: int, order: str = "list",
-              store: Optional[Dict] = None) -> Dict:
+              store: Optional[Dict] = None, thresholds=None) -> Dict:
     out = {"job": job.to_dict(), "queries": names, "shard_size": shard_size}
     if order != "list":
         out["order"] = order
     if store:
         out["store"] = {k: v for k, v in store.items() if k != "pending"}
+    if thresholds:
+        out["thresholds"] = [list(t) for t in thresholds]
     return json.loads(json.dumps(out))
 
 
@@ -323,7 +329,7 @@ def _start(plan: LocalizationPlan, run_calls) -> None:
     plan.overwrite = False  # done once: from here on the run resumes like any other
     (plan.output / "shards").mkdir(parents=True, exist_ok=True)
     write_atomic(plan.output / "job.json", json.dumps(_job_json(plan.job, names, plan.shard_size, plan.order,
-                                                                plan.store),
+                                                                plan.store, plan.thresholds),
                                                      indent=1))
     if plan.order == "region":
         parts = plan.retrieval_parts()

@@ -68,6 +68,26 @@ def _tags_text(tags: Dict) -> str:
 TEXT_COLUMNS = ("query", "tags", "outcome", "reason", "references")
 
 
+def _count(n: int, one: str, many: str) -> str:
+    return f"{n} {one if n == 1 else many}"
+
+
+def counts_text(records: List[Dict]) -> str:
+    """'20 queries: 16 refined and verified, 3 rejected by verification, 1 failed. 3 of those
+    without a verified pose report their prior; 1 has none.' (each part only where it applies)."""
+    by = {o: sum(outcome(r) == o for r in records) for o in OUTCOME_ORDER}
+    text = (f"{_count(len(records), 'query', 'queries')}: <b>{by['refined']} refined</b> and verified, "
+            f"{by['rejected']} rejected by verification, {by['failed']} failed.")
+    unverified = [r for r in records if not r["success"]]
+    if unverified:
+        prior = sum(r.get("prior") is not None for r in unverified)
+        none = len(unverified) - prior
+        text += (f" Of the {_count(len(unverified), 'query', 'queries')} without a verified pose, {prior} "
+                 f"{'reports its' if prior == 1 else 'report their'} prior" + (f" and {none} "
+                 f"{'has' if none == 1 else 'have'} no pose." if none else "."))
+    return text
+
+
 def _references_text(references: List[str]) -> str:
     return ", ".join(references[:3]) + (" ..." if len(references) > 3 else "")
 
@@ -205,7 +225,7 @@ def choose_examples(records: List[Dict], errors: Dict[str, Dict], family: Option
             if r["name"] not in seen and kind not in kinds:
                 seen.add(r["name"])
                 kinds.add(kind)
-                out.append((r, f"failure ({o})"))
+                out.append((r, o))
     return out
 
 
@@ -247,13 +267,10 @@ def make_report(output: Path, queries: List[QueryRecord], num_examples: int = 3,
         import zarr
         units = map_units(dict(zarr.open_group(job["store"], mode="r").attrs["pixloc_map"]).get("source", {}))
     errors = {r["name"]: query_errors(r, gt.get(r["name"])) for r in records}
-    counts = {o: sum(outcome(r) == o for r in records) for o in OUTCOME_ORDER}
     families = sorted({k for r in records for k in r.get("tags", {})})
     family = "condition" if "condition" in families else (families[0] if families else None)
 
-    parts = [f"<h1>PixLoc localization report</h1><p id='counts'>{len(records)} queries: "
-             f"<b>{counts['refined']} refined</b> and verified, {counts['rejected']} rejected by verification, "
-             f"{counts['failed']} failed (those two keep their prior). Ground truth for "
+    parts = [f"<h1>PixLoc localization report</h1><p id='counts'>{counts_text(records)} Ground truth for "
              f"{sum(r['name'] in gt for r in records)} of them.</p>", _job_text(job, reader, units, records)]
     parts.append("<h2 id='accuracy'>Accuracy</h2>")
     if gt:
@@ -270,7 +287,8 @@ def make_report(output: Path, queries: List[QueryRecord], num_examples: int = 3,
     parts.append("<h2 id='map'>Top view of the map</h2>"
                  + _img(top_view(reader, records, gt, family, units), "top view"))
     parts.append("<h2 id='examples'>Examples</h2><p class='note'>Points of the query's references projected at the "
-                 "prior (red), refined (green) and ground-truth (blue) poses.</p>")
+                 "prior (red) and refined (green) poses" + (", and at the ground truth (blue)" if gt else "")
+                 + ".</p>")
     by_name = {q.name: q for q in queries}
     for rec, why in choose_examples([r for r in records if r["name"] in by_name], errors, family, num_examples,
                                     thresholds):

@@ -85,3 +85,54 @@ def test_ctrl_c_during_a_dask_localize_is_one_line_and_resumable(stairs, tmp_pat
     assert err.rstrip().splitlines()[-1] == "pixloc: interrupted; run the same command again to resume"
     out = pixloc(*args[:-4], "--iters", "400", "--shard-size", "1", "--sync")
     assert out.returncode == 0 and "6 queries" in out.stdout
+
+
+def test_report_counts_say_only_true_things():
+    """Before: '(those two keep their prior)' whatever the counts, and failed queries have no prior."""
+    from workflows.report import counts_text
+    T = [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0]]
+    records = [{"name": "a", "success": True, "prior": T, "reason": ""},
+               {"name": "b", "success": False, "prior": T, "reason": "rejected: confidence 0.20 < 0.5"},
+               {"name": "c", "success": False, "prior": None, "reason": "image file c is empty (0 bytes)"}]
+    text = counts_text(records)
+    assert text.startswith("3 queries: <b>1 refined</b> and verified, 1 rejected by verification, 1 failed.")
+    assert text.endswith("Of the 2 queries without a verified pose, 1 reports its prior and 1 has no pose.")
+    assert counts_text(records[:1]) == "1 query: <b>1 refined</b> and verified, 0 rejected by verification, 0 failed."
+
+
+def test_a_rejection_never_reads_minus_zero_percent():
+    """Before: reasons read 'the cost is -0.0% lower'."""
+    from pipeline.verify import VerificationConfig, verify
+    confidence, reason = verify({"contrast_3px": -0.0001, "valid": 0.9, "last_R": 0.0}, VerificationConfig())
+    assert confidence < 0.5 and "-0.0%" not in reason and "the cost is no lower at the pose" in reason
+
+
+def test_a_query_that_is_also_a_map_image_is_named(stairs, tmp_path):
+    """Before: localizing a Strecha scene against its own map retrieved the query itself (prior
+    error 0.000) and reported 100 % without a word."""
+    from pipeline.queries import QueryRecord
+    from workflows.cli_localize import queries_in_map
+    map_image = stairs.root / "seq-02" / "frame-000000.color.jpg"
+    copy = tmp_path / "renamed.jpg"
+    copy.write_bytes(map_image.read_bytes())
+    cam = stairs.queries[0].camera
+    queries = [QueryRecord("seq-02/frame-000000.color.jpg", map_image, cam),  # the same name
+               QueryRecord("renamed.jpg", copy, cam),  # the same bytes
+               stairs.queries[0]]  # a real query
+    assert queries_in_map(stairs.job.store, queries) == ["seq-02/frame-000000.color.jpg", "renamed.jpg"]
+
+
+def test_evaluate_and_report_take_the_thresholds_the_run_used(cli_run, tmp_path):
+    """Before: the README's 7-Scenes `report` line used outdoor thresholds while localize had
+    used the preset's."""
+    import argparse
+    import json
+
+    from workflows.cli_localize import thresholds_of
+    job = json.loads((cli_run.output / "job.json").read_text())
+    assert job["thresholds"] == [[0.25, 2.0], [0.5, 5.0], [5.0, 10.0]]  # no preset: the defaults, recorded
+    job["thresholds"] = [[0.05, 5.0]]  # as a run with the 7scenes preset records them
+    (tmp_path / "job.json").write_text(json.dumps(job))
+    none = argparse.Namespace(thresholds=None, preset=None, indoor=False)
+    assert thresholds_of(none, tmp_path) == ((0.05, 5.0),)
+    assert thresholds_of(argparse.Namespace(thresholds=["0.1,1"], preset=None, indoor=False), tmp_path) == ((0.1, 1.0),)
