@@ -116,6 +116,32 @@ def evaluate(records: List[Dict], ground_truth: Dict[str, Optional[np.ndarray]],
     return out
 
 
+def evaluation_document(summary: Dict, records: List[Dict], ground_truth: Dict, thresholds) -> Dict:
+    """What ``evaluation.json`` holds (schema in docs/evaluation.md, version 2):
+
+    ``thresholds``: [[distance, degrees], ...]; ``no_ground_truth``: how many queries were not
+    evaluated; ``queries``: per query with ground truth, ``{name, outcome, tags, result: {t, R},
+    prior: {t, R}}`` (errors in scene units and degrees; null where there is no pose);
+    ``conditions``: per ``all`` and ``key=value`` tag, ``{result: {...}, prior: {...}}`` with
+    ``count``, ``median_t``, ``median_R`` and ``recall@{t}m,{R}deg`` (fractions of all its
+    queries). ``result`` is the reported pose: refined where verification accepted it, else the prior.
+    """
+    from .results import outcome, record_pose
+
+    gt, _ = usable_ground_truth(ground_truth)
+    by_name = {r["name"]: r for r in records}
+    queries = []
+    for name, T_gt in gt.items():
+        rec = by_name.get(name)
+        t, R = pose_errors(record_pose(rec) if rec else None, T_gt)
+        pt, pR = pose_errors(np.asarray(rec["prior"]) if rec and rec.get("prior") is not None else None, T_gt)
+        queries.append({"name": name, "outcome": outcome(rec) if rec else "missing",
+                        "tags": (rec or {}).get("tags", {}), "result": {"t": t, "R": R}, "prior": {"t": pt, "R": pR}})
+    return {"version": 2, "thresholds": [list(t) for t in thresholds],
+            "no_ground_truth": summary["all"].get("no_ground_truth", 0), "queries": queries,
+            "conditions": {key: {"result": s["refined"], "prior": s["prior"]} for key, s in summary.items()}}
+
+
 def to_json(summary) -> str:
     """JSON without NaN or infinity: those become null (strict JSON readers refuse them)."""
     def clean(x):

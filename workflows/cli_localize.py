@@ -14,8 +14,8 @@ from typing import Dict, Optional
 
 import numpy as np
 
-from pipeline.evaluate import (DEFAULT_THRESHOLDS, INDOOR_THRESHOLDS, evaluate, fmt, parse_thresholds, recall_label,
-                               to_json)
+from pipeline.evaluate import (DEFAULT_THRESHOLDS, INDOOR_THRESHOLDS, evaluate, evaluation_document, fmt,
+                               parse_thresholds, recall_label, to_json)
 from pipeline.features import FeatureConfig
 from pipeline.localize import LocalizerConfig
 from pipeline.results import POSE_NAMES, REJECTED, outcome, pose_names_problem, read_records, reason_groups
@@ -290,8 +290,9 @@ def evaluate_main(args: argparse.Namespace) -> int:
     if all(T is None for T in gt.values()):
         raise ValueError("These queries have no ground truth to evaluate against: pass --ground-truth POSES.")
     records = read_records(args.output / "records.jsonl")
-    summary = evaluate(records, gt, thresholds_of(args, args.output))
-    write_atomic(args.output / "evaluation.json", to_json(summary))
+    thresholds = thresholds_of(args, args.output)
+    summary = evaluate(records, gt, thresholds)
+    write_atomic(args.output / "evaluation.json", to_json(evaluation_document(summary, records, gt, thresholds)))
     job = read_json(args.output / "job.json", "job file") if (args.output / "job.json").is_file() else {}
     print(format_summary(summary, store_units(job["job"]["store"]) if "job" in job else "m"))
     return 0

@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Dict
 
 from pipeline.depth import rgbd_scene
-from pipeline.evaluate import evaluate, fmt, to_json
+from pipeline.evaluate import evaluate, evaluation_document, fmt, to_json
 from pipeline.features import FeatureConfig
 from pipeline.localize import LocalizerConfig
 from pipeline.scene import CameraRecord
@@ -91,7 +91,9 @@ def run_demo(output: Path, model: str = "pixloc-lite0", num_references: int = 30
     _stage(4, "evaluation per condition")
     gt = {q.name: q.cam_from_world_gt for q in queries}
     summary = evaluate(records, gt, DEMO_THRESHOLDS, tag_keys=["condition"])
-    write_atomic(output / "evaluation.json", to_json(summary))
+    # where `pixloc evaluate` writes it too: in the localization folder
+    write_atomic(output / "localization" / "evaluation.json",
+                 to_json(evaluation_document(summary, records, gt, DEMO_THRESHOLDS)))
     _stage(5, "report")
     report = make_report(output / "localization", queries, num_examples=3, thresholds=DEMO_THRESHOLDS)
     print()

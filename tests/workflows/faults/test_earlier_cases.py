@@ -377,9 +377,14 @@ def test_evaluate_takes_thresholds_and_a_ground_truth_file(stairs, tmp_path):
     res = pixloc("evaluate", "list", tmp_path / "list.txt", "--query-images", root, "--output", out,
                  "--ground-truth", tmp_path / "gt.txt", "--thresholds", "0.05,1", "0.25,2")
     assert res.returncode == 0, res.stderr
-    summary = json.loads((out / "evaluation.json").read_text())
-    assert summary["all"]["refined"]["count"] == 2
-    assert {"recall@0.05m,1.0deg", "recall@0.25m,2.0deg"} <= set(summary["all"]["refined"])
+    doc = json.loads((out / "evaluation.json").read_text())
+    summary = doc["conditions"]
+    assert summary["all"]["result"]["count"] == 2
+    assert {"recall@0.05m,1.0deg", "recall@0.25m,2.0deg"} <= set(summary["all"]["result"])
+    # one record per query with its errors and outcome (before: bare arrays without names)
+    assert [q["name"] for q in doc["queries"]] == [q.name for q in queries[:2]]
+    assert all(q["outcome"] in ("refined", "rejected", "failed") and "t" in q["result"] for q in doc["queries"])
+    assert doc["thresholds"] == [[0.05, 1.0], [0.25, 2.0]]
     assert "nan" not in res.stdout
 
 
