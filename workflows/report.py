@@ -68,6 +68,20 @@ def _tags_text(tags: Dict) -> str:
 TEXT_COLUMNS = ("query", "tags", "outcome", "reason", "references")
 
 
+def _inputs_digest(output: Path, num_examples: int, thresholds, gt: Dict, units: Optional[str]) -> str:
+    """A digest of what a report is made of: the run's records and job, the settings, the ground
+    truth and this package's version."""
+    import hashlib
+
+    import pixloc
+    h = hashlib.sha256()
+    for name in ("records.jsonl", "job.json"):
+        h.update((output / name).read_bytes())
+    h.update(json.dumps([pixloc.__version__, num_examples, [list(t) for t in thresholds], units,
+                         sorted((k, np.round(v, 9).tolist()) for k, v in gt.items())]).encode())
+    return h.hexdigest()[:16]
+
+
 def _count(n: int, one: str, many: str) -> str:
     return f"{n} {one if n == 1 else many}"
 
@@ -258,6 +272,10 @@ def make_report(output: Path, queries: List[QueryRecord], num_examples: int = 3,
     records = read_records(output / "records.jsonl")
     gt = ground_truth if ground_truth is not None else {q.name: q.cam_from_world_gt for q in queries}
     gt = {k: np.asarray(v, np.float64) for k, v in gt.items() if v is not None and np.isfinite(v).all()}
+    path = output / "report.html"
+    inputs = _inputs_digest(output, num_examples, thresholds, gt, units)
+    if path.is_file() and f"<!-- pixloc-report-inputs {inputs} -->" in path.read_text(errors="replace"):
+        return path  # made from the same records, settings and code: left untouched
     job = json.loads((output / "job.json").read_text())["job"]
     fconf = dict(job["features"])
     fconf["image_scales"] = tuple(fconf["image_scales"])
@@ -295,8 +313,7 @@ def make_report(output: Path, queries: List[QueryRecord], num_examples: int = 3,
         figure = example_figure(rec, why, by_name[rec["name"]], reader, refiner.extractor, gt.get(rec["name"]), units)
         parts.append(f"<div class='example'><h3>{html.escape(rec['name'])} ({html.escape(why)})</h3>"
                      f"{_img(figure, rec['name'], 'jpeg')}</div>")
-    path = output / "report.html"
-    write_atomic(path, "<!doctype html><html><head><meta charset='utf-8'><title>PixLoc report</title>"
-                 f"<style>{STYLE}</style></head><body>" + "".join(parts)
+    write_atomic(path, f"<!doctype html><!-- pixloc-report-inputs {inputs} --><html><head><meta charset='utf-8'>"
+                 f"<title>PixLoc report</title><style>{STYLE}</style></head><body>" + "".join(parts)
                  + f"<script>{SORT_SCRIPT}</script></body></html>")
     return path

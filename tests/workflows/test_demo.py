@@ -18,8 +18,13 @@ from workflows.demo import DEMO_THRESHOLDS, run_demo
 
 
 @pytest.fixture(scope="module")
-def demo(tmp_path_factory):
-    out = tmp_path_factory.mktemp("demo")
+def demo_dir(tmp_path_factory) -> Path:
+    return tmp_path_factory.mktemp("demo")
+
+
+@pytest.fixture(scope="module")
+def demo(demo_dir):
+    out = demo_dir
     summary = run_demo(out, queries_per_condition=3, workers=2)
     records = read_records(out / "localization" / "records.jsonl")
     gt = {q.name: q.cam_from_world_gt for q in read_synthetic(out / "scene")[1]}
@@ -99,3 +104,14 @@ def test_the_demo_report_renders_in_chromium(demo, tmp_path_factory, tmp_path):
             assert min(im.size) > 100
     shot = np.asarray(Image.open(tmp_path / "report.png").convert("L"), np.float32)
     assert shot.shape[1] == 1300 and shot.std() > 10
+
+
+def test_a_rerun_of_the_finished_demo_leaves_every_output_untouched(demo, demo_dir):
+    """Before: a no-op rerun rewrote poses.txt, failed.txt, records.jsonl and report.html."""
+    out = demo_dir
+    files = [p for p in out.rglob("*") if p.is_file() and "scene" not in p.parts and ".zarr" not in str(p)]
+    before = {p: (p.stat().st_mtime_ns, p.read_bytes()) for p in files}
+    run_demo(out, queries_per_condition=3, workers=2)
+    after = {p: (p.stat().st_mtime_ns, p.read_bytes()) for p in files}
+    assert after == before
+    assert (out / "localization" / "evaluation.json").is_file() and not (out / "evaluation.json").exists()
