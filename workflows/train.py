@@ -36,6 +36,7 @@ from pipeline.training_data import PairConfig, PairDataset, synthetic_scene
 from pixloc.nets.registry import load_refiner, save_model
 from pixloc.training import Trainer, TrainConfig, reprojection_px
 
+from .presets import check_keys
 from .sources import MapSource, load_scene
 
 logger = logging.getLogger(__name__)
@@ -57,7 +58,18 @@ def load_config(spec: str) -> Dict:
         if not packaged.is_file():
             raise ValueError(f"Training config {spec!r} is neither a file nor a packaged config.")
         path = Path(str(packaged))
-    return yaml.safe_load(path.read_text())
+    config = yaml.safe_load(path.read_text()) or {}
+    check_keys(config, CONFIG_KEYS, f"training config {path}")
+    return config
+
+
+# every key a training config may hold (``train`` reads them with their defaults)
+CONFIG_KEYS = {
+    "description", "architecture", "model", "data", "held_out", "held_out_sources", "validation", "val_pairs",
+    "val_every", "checkpoint_every", "steps", "seed", "device", "workers", "batch_size", "amp",
+    "grad_checkpointing", "lr", "lr_schedule", "lr_min_factor", "decay_steps", "decay_start", "damping_lr_scale",
+    "clip_grad", "ema", "num_points", "num_iters", "max_size", "min_covisible", "init_range", "far_init_prob",
+    "far_init_range", "synthetic_camera"}
 
 
 @dataclass
@@ -295,6 +307,7 @@ def pair_config(config: Dict) -> PairConfig:
 
 def train(config: Dict, out: Path, data_root: Path, resume: bool = True, threads: int = 0) -> Dict:
     """Train (or resume) as ``config`` says; returns the final validation metrics."""
+    check_keys(config, CONFIG_KEYS, "training config")
     out.mkdir(parents=True, exist_ok=True)
     if threads:
         torch.set_num_threads(threads)

@@ -14,7 +14,34 @@ def load(name: str) -> Dict:
     path = resources.files(__package__) / f"{name}.yaml"
     if not path.is_file():
         raise ValueError(f"Unknown preset {name!r}; available: {', '.join(available())}.")
-    return yaml.safe_load(path.read_text())
+    preset = yaml.safe_load(path.read_text()) or {}
+    check_keys(_dotted(preset), PRESET_KEYS | {f"from_poses.{k}" for k in PRESET_KEYS}, f"preset {name}.yaml")
+    return preset
+
+
+def check_keys(keys, allowed, where: str) -> None:
+    """Refuse keys that are not in ``allowed`` (a misspelt key would pass unnoticed and its
+    setting be the default), with the nearest valid name."""
+    import difflib
+
+    unknown = sorted(set(keys) - set(allowed))
+    if unknown:
+        hints = []
+        for key in unknown:
+            near = difflib.get_close_matches(key, sorted(allowed), n=1, cutoff=0.6)
+            hints.append(f"{key!r}" + (f" (did you mean {near[0]!r}?)" if near else ""))
+        raise ValueError(f"{where}: unknown key{'s' if len(unknown) > 1 else ''} {', '.join(hints)}; "
+                         f"valid keys: {', '.join(sorted(allowed))}.")
+
+
+def _dotted(d: Dict, prefix: str = "") -> List[str]:
+    out = []
+    for k, v in d.items():
+        if isinstance(v, dict) and k not in ("layout",):
+            out += _dotted(v, f"{prefix}{k}.")
+        else:
+            out.append(prefix + k)
+    return out
 
 
 # command-line option -> where a preset holds its value
@@ -27,6 +54,10 @@ MAPPING = {
     "points_per_cell": ("localizer", "points_per_cell"),
     "pose_names": ("pose_names",),
 }
+
+
+# what a preset may hold: the settings of MAPPING (also under ``from_poses``), and its documentation
+PRESET_KEYS = {".".join(path) for path in MAPPING.values()} | {"description", "layout", "thresholds", "model_hint"}
 
 
 def _lookup(preset: Dict, keys) -> Any:
