@@ -9,7 +9,7 @@ from typing import List, Optional, Tuple
 import numpy as np
 
 from .scene import CameraRecord
-from .synthetic import BRICK, CONDITIONS, FOLIAGE, GROUND, PLASTER, POLE, TRUNK, SyntheticScene, _box, look_at
+from .synthetic import BRICK, CONDITIONS, FOLIAGE, GROUND, PLASTER, POLE, TRUNK, SyntheticScene, box_mesh, look_at
 
 
 @dataclass(frozen=True)
@@ -57,7 +57,8 @@ class SyntheticCity(SyntheticScene):
                                         1: ((x0 + B - d / 2, y0 + u), (d, w - 0.3)),
                                         2: ((x0 + B - u, y0 + B - d / 2), (w - 0.3, d)),
                                         3: ((x0 + d / 2, y0 + B - u), (d, w - 0.3))}[side]
-                        parts.append((*_box((*centre, h / 2), (*size, h)), PLASTER if rng.random() < 0.6 else BRICK))
+                        material = PLASTER if rng.random() < 0.6 else BRICK
+                        parts.append((*box_mesh((*centre, h / 2), (*size, h)), material))
                         s += w
         lamps = []
         for k in range(nx + 1):  # street furniture along the streets running in y, then in x
@@ -66,17 +67,17 @@ class SyntheticCity(SyntheticScene):
                 y = 6 + 12 * j + rng.uniform(-2, 2)
                 kind = rng.random()
                 if kind < 0.4:
-                    parts.append((*_box((x, y, 2.5), (0.15, 0.15, 5.0)), POLE))
+                    parts.append((*box_mesh((x, y, 2.5), (0.15, 0.15, 5.0)), POLE))
                     lamps.append([x, y, 4.5])
                 elif kind < 0.6:
-                    parts.append((*_box((x, y, 1.5), (0.4, 0.4, 3.0)), TRUNK))
-                    parts.append((*_box((x, y, 4.0), (2.5, 2.5, 2.5)), FOLIAGE))
+                    parts.append((*box_mesh((x, y, 1.5), (0.4, 0.4, 3.0)), TRUNK))
+                    parts.append((*box_mesh((x, y, 4.0), (2.5, 2.5, 2.5)), FOLIAGE))
         for k in range(ny + 1):
             for j in range(int(W // 12)):
                 y = k * pitch + conf.street * (0.15 if j % 2 else 0.85)
                 x = 6 + 12 * j + rng.uniform(-2, 2)
                 if rng.random() < 0.4:
-                    parts.append((*_box((x, y, 2.5), (0.15, 0.15, 5.0)), POLE))
+                    parts.append((*box_mesh((x, y, 2.5), (0.15, 0.15, 5.0)), POLE))
                     lamps.append([x, y, 4.5])
         self.parts = parts
         self.lamps = np.array(lamps).reshape(-1, 3)

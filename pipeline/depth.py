@@ -16,11 +16,11 @@ from .scene import ImageRecord, Scene, SceneError
 logger = logging.getLogger(__name__)
 
 
-def _depth_camera(image: ImageRecord):
+def depth_camera(image: ImageRecord):
     return (image.depth_camera or image.camera).to_pixloc(torch.float64)
 
 
-def _load_depth(image: ImageRecord) -> np.ndarray:
+def load_depth(image: ImageRecord) -> np.ndarray:
     if image.depth_path is None:
         raise SceneError(f"Image {image.name} has no depth map.")
     return read_depth(image.depth_path, image.depth_scale)
@@ -31,14 +31,14 @@ def _to_world(image: ImageRecord, p_cam: np.ndarray) -> np.ndarray:
     return (p_cam - T[:, 3]) @ T[:, :3]
 
 
-def _to_cam(image: ImageRecord, p_world: np.ndarray) -> np.ndarray:
+def to_camera_frame(image: ImageRecord, p_world: np.ndarray) -> np.ndarray:
     T = np.asarray(image.cam_from_world)
     return p_world @ T[:, :3].T + T[:, 3]
 
 
 def backproject(image: ImageRecord, depth: np.ndarray, stride: int = 1) -> np.ndarray:
     """World points (K, 3) of the valid depth pixels on a grid of ``stride`` pixels."""
-    cam = _depth_camera(image)
+    cam = depth_camera(image)
     v, u = np.mgrid[0:depth.shape[0]:stride, 0:depth.shape[1]:stride]
     d = depth[v, u]
     keep = d > 0
@@ -49,7 +49,7 @@ def backproject(image: ImageRecord, depth: np.ndarray, stride: int = 1) -> np.nd
 
 def frame_points(images: List[ImageRecord], stride: int = 16) -> np.ndarray:
     """Map points sampled from every ``stride``-th pixel of each depth frame."""
-    return np.concatenate([backproject(im, _load_depth(im), stride) for im in images])
+    return np.concatenate([backproject(im, load_depth(im), stride) for im in images])
 
 
 def tsdf_points(images: List[ImageRecord], voxel: float = 0.02, truncation: float = 0.08,
@@ -63,7 +63,7 @@ def tsdf_points(images: List[ImageRecord], voxel: float = 0.02, truncation: floa
     """
     import open3d as o3d
 
-    depths = [_load_depth(im) for im in images]
+    depths = [load_depth(im) for im in images]
     for d in depths:
         d[d > max_depth] = 0
     sample = np.concatenate([backproject(im, d, 8) for im, d in zip(images, depths)])
@@ -102,9 +102,9 @@ def observe(points: np.ndarray, images: List[ImageRecord], depths: Optional[List
     """
     obs_point, obs_image, obs_xy = [], [], []
     for i, im in enumerate(images):
-        depth = depths[i] if depths is not None else _load_depth(im)
-        p_cam = torch.from_numpy(_to_cam(im, points))
-        p2d_d, valid_d = _depth_camera(im).cam2image(p_cam)
+        depth = depths[i] if depths is not None else load_depth(im)
+        p_cam = torch.from_numpy(to_camera_frame(im, points))
+        p2d_d, valid_d = depth_camera(im).cam2image(p_cam)
         uv = np.round(p2d_d.numpy()).astype(np.int64)
         inside = valid_d.numpy() & (uv[:, 0] >= 0) & (uv[:, 1] >= 0) & \
             (uv[:, 0] < depth.shape[1]) & (uv[:, 1] < depth.shape[0])
@@ -156,11 +156,11 @@ def densify(scene: Scene, min_depth: float = 1e-3) -> Scene:
         sel = first[scene.obs_image[first] == i]
         if len(sel) == 0 or im.depth_path is None:
             continue
-        depth = _load_depth(im)
+        depth = load_depth(im)
         # The observation's ray, then where it falls in the depth map (same pose,
         # possibly other intrinsics when depth is not registered to colour).
         rays = im.camera.to_pixloc(torch.float64).image2cam(torch.from_numpy(scene.obs_xy[sel] - 0.5))
-        xy, in_front = _depth_camera(im).cam2image(rays)
+        xy, in_front = depth_camera(im).cam2image(rays)
         xy, rays = xy.numpy(), rays.numpy()
         x0, y0 = np.floor(xy[:, 0]).astype(int), np.floor(xy[:, 1]).astype(int)
         ok = in_front.numpy() & (x0 >= 0) & (y0 >= 0) & (x0 + 1 < depth.shape[1]) & (y0 + 1 < depth.shape[0])

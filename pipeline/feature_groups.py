@@ -13,7 +13,8 @@ import zarr
 from .compression import project, quantize_int8
 from .features import FeatureConfig, ImageFeatures
 from .images import file_sha256
-from .store import DONE, FAILED, PENDING, StoreError, _array, _get, _padded, _rows_array, image_rows, read
+from .store import (DONE, FAILED, PENDING, StoreError, consolidated, get_array, image_rows, new_array,  # noqa: F401
+                    new_rows_array, padded_rows, read, unconsolidate)
 
 
 def check_feature_group(group: zarr.Group, meta: Dict, path) -> None:
@@ -35,11 +36,11 @@ def check_feature_group(group: zarr.Group, meta: Dict, path) -> None:
                 expected[f"s{k}/pca_mean_{level}"] = (d,)
                 expected[f"s{k}/pca_basis_{level}"] = (d, kept)
     for name, shape in expected.items():
-        array = _get(group, name, path)
+        array = get_array(group, name, path)
         if tuple(array.shape[1:]) != shape[1:] or array.shape[0] < shape[0] or (
                 "pca_" in name and tuple(array.shape) != shape):
             raise StoreError(f"{path}: array {group.path}/{name} has shape {tuple(array.shape)}, expected {shape}.")
-    if _get(group, "global", path).shape[0] < I:
+    if get_array(group, "global", path).shape[0] < I:
         raise StoreError(f"{path}: array {group.path}/global has {group['global'].shape[0]} rows for {I} images.")
 
 
@@ -101,10 +102,10 @@ def init_features(root: zarr.Group, conf: FeatureConfig, digest: str, dims: List
         bases = pca()
     group = root.create_group(f"features/{key}")
     group.attrs.update(expected)
-    _array(group, "status", (I,), (1,), "int8", fill_value=PENDING)
-    _array(group, "reason", (I,), (1,), str)
+    new_array(group, "status", (I,), (1,), "int8", fill_value=PENDING)
+    new_array(group, "reason", (I,), (1,), str)
     D = descriptor_dim(conf.descriptor, dims[-1])
-    _array(group, "global", (I, D), (1, D), "float32", fill_value=0)
+    new_array(group, "global", (I, D), (1, D), "float32", fill_value=0)
     for k in range(len(conf.image_scales)):
         for level, (d, kept) in enumerate(zip(dims, stored)):
             if kept < d:
@@ -112,14 +113,14 @@ def init_features(root: zarr.Group, conf: FeatureConfig, digest: str, dims: List
                 if mean.shape != (d,) or basis.shape != (d, kept):
                     raise ValueError(f"PCA of image scale {k}, level {level}: shapes {mean.shape} and {basis.shape}, "
                                      f"expected {(d,)} and {(d, kept)}.")
-                _array(group, f"s{k}/pca_mean_{level}", (d,), (d,), "float32")[:] = mean
-                _array(group, f"s{k}/pca_basis_{level}", (d, kept), (d, kept), "float32")[:] = basis
-        _rows_array(group, f"s{k}/features", R, sum(stored), conf.dtype, meta, fill_value=0)
+                new_array(group, f"s{k}/pca_mean_{level}", (d,), (d,), "float32")[:] = mean
+                new_array(group, f"s{k}/pca_basis_{level}", (d, kept), (d, kept), "float32")[:] = basis
+        new_rows_array(group, f"s{k}/features", R, sum(stored), conf.dtype, meta, fill_value=0)
         if conf.dtype == "int8":
-            _rows_array(group, f"s{k}/scales", R, L, "float16", meta, fill_value=0)
-        _rows_array(group, f"s{k}/confidences", R, L, "float16" if conf.dtype == "int8" else conf.dtype, meta,
+            new_rows_array(group, f"s{k}/scales", R, L, "float16", meta, fill_value=0)
+        new_rows_array(group, f"s{k}/confidences", R, L, "float16" if conf.dtype == "int8" else conf.dtype, meta,
                     fill_value=0)
-        _rows_array(group, f"s{k}/valid", R, L, "bool", meta, fill_value=False)
+        new_rows_array(group, f"s{k}/valid", R, L, "bool", meta, fill_value=False)
     return group
 
 
@@ -144,7 +145,7 @@ def write_image_features(group: zarr.Group, root: zarr.Group, i: int, feats: Ima
     rows = image_rows(root, i)
     shard = root.attrs["pixloc_map"]["shard_rows"]
     n = rows.stop - rows.start
-    block = slice(rows.start, rows.start + int(_padded(np.array(n), shard)))
+    block = slice(rows.start, rows.start + int(padded_rows(np.array(n), shard)))
     n_pad = block.stop - block.start
     dims = [int(d) for d in group.attrs["dims"]]
     bases, stored = pca_bases(group), stored_dims(group)
@@ -183,19 +184,9 @@ def consolidate(root: zarr.Group, group: zarr.Group) -> None:
     for name, values in (("status_all", status), ("global_all", descriptors)):
         if name in group:
             del group[name]
-        _array(group, name, values.shape, values.shape if len(values) else (1,) + values.shape[1:],
+        new_array(group, name, values.shape, values.shape if len(values) else (1,) + values.shape[1:],
                values.dtype)[...] = values
     group.attrs["consolidated"] = {"num_images": I}
-
-
-def unconsolidate(group: zarr.Group) -> None:
-    """Readers go back to the per-image arrays (a build or an add is about to change them)."""
-    if group.attrs.get("consolidated"):
-        group.attrs["consolidated"] = False
-
-
-def consolidated(group: zarr.Group, meta: Dict) -> bool:
-    return group.attrs.get("consolidated") == {"num_images": meta["num_images"]} and "status_all" in group
 
 
 def mark_failed(group: zarr.Group, i: int, reason: str) -> None:

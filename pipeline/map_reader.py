@@ -227,6 +227,12 @@ def _nbytes(block) -> int:
 _OPEN: Dict[Tuple, Tuple[Tuple, MapReader]] = {}
 
 
+def forget_readers() -> None:
+    """Drop the readers ``open_reader`` keeps (and their block caches): the next call opens the
+    store again, as a new process would."""
+    _OPEN.clear()
+
+
 def _stamp(path: Path, key: str) -> Tuple:
     """Changes when the store or the feature group is rewritten."""
     files = (path / "zarr.json", path / key / "zarr.json")

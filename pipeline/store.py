@@ -54,15 +54,15 @@ def _codecs():
     return [ZstdCodec(level=3), Crc32cCodec()]
 
 
-def _array(group: zarr.Group, name: str, shape, chunks, dtype, **kwargs) -> zarr.Array:
+def new_array(group: zarr.Group, name: str, shape, chunks, dtype, **kwargs) -> zarr.Array:
     return group.create_array(name, shape=shape, chunks=chunks, dtype=dtype, compressors=_codecs(), **kwargs)
 
 
-def _rows_array(group: zarr.Group, name: str, rows: int, width: Optional[int], dtype, meta: Dict,
+def new_rows_array(group: zarr.Group, name: str, rows: int, width: Optional[int], dtype, meta: Dict,
                 **kwargs) -> zarr.Array:
     """A per-row array: inner chunks of ``chunk_rows`` rows in shards of ``shard_rows`` (one per image block)."""
     tail = () if width is None else (width,)
-    return _array(group, name, (rows,) + tail, (meta["chunk_rows"],) + tail, dtype,
+    return new_array(group, name, (rows,) + tail, (meta["chunk_rows"],) + tail, dtype,
                   shards=(meta["shard_rows"],) + tail, **kwargs)
 
 
@@ -119,7 +119,7 @@ def _image_columns(images: List[ImageRecord], row_start: np.ndarray, num_obs: np
             "images/source_id": np.array([im.source_id for im in images], np.int64)}
 
 
-def _padded(n: np.ndarray, chunk: int) -> np.ndarray:
+def padded_rows(n: np.ndarray, chunk: int) -> np.ndarray:
     return np.maximum(1, -(-n // chunk)) * chunk
 
 
@@ -156,7 +156,7 @@ def create_store(path, scene: Scene, chunk_rows: int = 256, overwrite: bool = Fa
     shard_rows = shard_rows or default_shard_rows(num_obs, chunk_rows)
     if shard_rows % chunk_rows:
         raise ValueError(f"shard_rows ({shard_rows}) must be a multiple of chunk_rows ({chunk_rows}).")
-    padded = _padded(num_obs, shard_rows)
+    padded = padded_rows(num_obs, shard_rows)
     row_start = np.concatenate([[0], np.cumsum(padded)[:-1]])
     rows = int(padded.sum())
     # row of each observation: its image's block start + its rank inside the image
@@ -170,17 +170,17 @@ def create_store(path, scene: Scene, chunk_rows: int = 256, overwrite: bool = Fa
         "source": source or {}}
     meta = root.attrs["pixloc_map"]
     for name, values in _image_columns(scene.images, row_start, num_obs).items():
-        _array(root, name, values.shape, values.shape, values.dtype if values.dtype.kind != "U" else str)[:] = values
+        new_array(root, name, values.shape, values.shape, values.dtype if values.dtype.kind != "U" else str)[:] = values
     P = len(scene.points)
-    _array(root, "points/xyz", (P, 3), (max(P, 1), 3), "float64")[:] = scene.points
-    _array(root, "points/track_length", (P,), (max(P, 1),), "int32")[:] = scene.track_length
-    _array(root, "points/source_id", (P,), (max(P, 1),), "int64")[:] = scene.point_ids
+    new_array(root, "points/xyz", (P, 3), (max(P, 1), 3), "float64")[:] = scene.points
+    new_array(root, "points/track_length", (P,), (max(P, 1),), "int32")[:] = scene.track_length
+    new_array(root, "points/source_id", (P,), (max(P, 1),), "int64")[:] = scene.point_ids
     point = np.full(rows, -1, dtype=np.int64)
     point[row] = obs_point
     xy = np.full((rows, 2), np.nan, dtype=np.float32)
     xy[row] = obs_xy
-    _rows_array(root, "observations/point", rows, None, "int64", meta, fill_value=-1)[:] = point
-    _rows_array(root, "observations/xy", rows, 2, "float32", meta, fill_value=np.nan)[:] = xy
+    new_rows_array(root, "observations/point", rows, None, "int64", meta, fill_value=-1)[:] = point
+    new_rows_array(root, "observations/xy", rows, 2, "float32", meta, fill_value=np.nan)[:] = xy
     return root
 
 
@@ -237,7 +237,7 @@ def extend_store(root: zarr.Group, scene: Scene) -> List[int]:
     order = np.lexsort((obs_point, obs_image))
     obs_image, obs_point, obs_xy = obs_image[order], obs_point[order], obs_xy[order]
     num_obs = np.bincount(obs_image - I, minlength=len(new))
-    padded = _padded(num_obs, shard)
+    padded = padded_rows(num_obs, shard)
     row_start = R + np.concatenate([[0], np.cumsum(padded)[:-1]])
     rank = np.arange(len(obs_image)) - np.concatenate([[0], np.cumsum(num_obs)[:-1]])[obs_image - I]
     row = row_start[obs_image - I] + rank
@@ -262,7 +262,6 @@ def extend_store(root: zarr.Group, scene: Scene) -> List[int]:
         root[name].resize((R2,) + root[name].shape[1:])
         root[name][R:R2] = values
     if "features" in root:
-        from .feature_groups import unconsolidate  # feature_groups builds on this module
         for _, group in root["features"].groups():
             unconsolidate(group)
             for name in ("status", "reason", "global"):
@@ -308,6 +307,18 @@ def image_row_arrays(root: zarr.Group, group: Optional[zarr.Group] = None) -> Li
     return arrays
 
 
+def unconsolidate(group: zarr.Group) -> None:
+    """Readers of feature ``group`` go back to its per-image arrays (a build or an add is about to
+    change them; ``pipeline.feature_groups.consolidate`` makes the copies again)."""
+    if group.attrs.get("consolidated"):
+        group.attrs["consolidated"] = False
+
+
+def consolidated(group: zarr.Group, meta: Dict) -> bool:
+    """Whether feature ``group``'s one-chunk copies (status_all, global_all) are current."""
+    return group.attrs.get("consolidated") == {"num_images": meta["num_images"]} and "status_all" in group
+
+
 def open_store(path, mode: str = "r") -> zarr.Group:
     """Open a map store after checking its layout (``check_layout``); a bad one is refused
     with a StoreError that says what is wrong."""
@@ -337,7 +348,7 @@ def _expected_arrays(meta: Dict) -> Dict[str, tuple]:
             "points/source_id": (P,), "observations/point": (R,), "observations/xy": (R, 2)}
 
 
-def _get(group: zarr.Group, name: str, path) -> zarr.Array:
+def get_array(group: zarr.Group, name: str, path) -> zarr.Array:
     try:
         return group[name]
     except Exception:  # missing, or metadata that does not parse  # noqa: BLE001
@@ -360,7 +371,7 @@ def check_layout(root: zarr.Group, path) -> None:
                          f"of {shard} rows (chunks of {chunk}): the attributes contradict each other "
                          "(a damaged store?).")
     for name, shape in _expected_arrays(meta).items():
-        array = _get(root, name, path)
+        array = get_array(root, name, path)
         if tuple(array.shape[1:]) != shape[1:] or array.shape[0] < shape[0]:  # longer: an add was interrupted
             raise StoreError(f"{path}: array {name} has shape {tuple(array.shape)}, the map attributes say {shape}.")
         if not name.startswith("observations/"):  # the map's structure: every chunk holds data

@@ -23,7 +23,7 @@ CONDITIONS = ("day", "dusk", "night", "occluded")
 GROUND, PLASTER, BRICK, POLE, TRUNK, FOLIAGE, OCCLUDER = range(7)
 
 
-def _box(center, size) -> Tuple[np.ndarray, np.ndarray]:
+def box_mesh(center, size) -> Tuple[np.ndarray, np.ndarray]:
     c, s = np.asarray(center, float), np.asarray(size, float) / 2
     v = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)]) * s + c
     f = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
@@ -89,16 +89,16 @@ class SyntheticScene:
                 c = np.array([along, half + d / 2, h / 2])
                 R = np.array([[np.cos(side * np.pi / 2), -np.sin(side * np.pi / 2), 0],
                               [np.sin(side * np.pi / 2), np.cos(side * np.pi / 2), 0], [0, 0, 1]])
-                v, f = _box(c, (w - 0.3, d, h))
+                v, f = box_mesh(c, (w - 0.3, d, h))
                 parts.append((v @ R.T, f, PLASTER if rng.random() < 0.6 else BRICK))
                 x += w
         for _ in range(conf.num_poles):
             p = rng.uniform(-half + 3, half - 3, 2)
-            parts.append((*_box((*p, 2.5), (0.15, 0.15, 5.0)), POLE))
+            parts.append((*box_mesh((*p, 2.5), (0.15, 0.15, 5.0)), POLE))
         for _ in range(conf.num_trees):
             p = rng.uniform(-half + 4, half - 4, 2)
-            parts.append((*_box((*p, 1.5), (0.4, 0.4, 3.0)), TRUNK))
-            parts.append((*_box((*p, 4.0), (2.5, 2.5, 2.5)), FOLIAGE))
+            parts.append((*box_mesh((*p, 1.5), (0.4, 0.4, 3.0)), TRUNK))
+            parts.append((*box_mesh((*p, 4.0), (2.5, 2.5, 2.5)), FOLIAGE))
         self.parts = parts
         self.lamps = np.array([[*rng.uniform(-half + 3, half - 3, 2), 4.5] for _ in range(6)])
         self.textures = [_load_texture(p) for p in conf.textures]
@@ -144,7 +144,7 @@ class SyntheticScene:
         if condition == "occluded":  # objects in front of the camera
             for _ in range(3):
                 p_cam = np.array([rng.uniform(-1.5, 1.5), rng.uniform(-0.5, 1.0), rng.uniform(1.5, 3.5)])
-                extra.append((*_box(R.T @ (p_cam - t), rng.uniform(0.4, 1.2, 3)), OCCLUDER))
+                extra.append((*box_mesh(R.T @ (p_cam - t), rng.uniform(0.4, 1.2, 3)), OCCLUDER))
         if extra:
             scene, material = self._raycaster(extra)
         else:  # built once: a city has thousands of parts

@@ -152,7 +152,7 @@ class LocalizationPlan:
 OURS = {"job.json", LOCK, "shards", "retrieval"}  # what a run writes before its first shard is done
 
 
-def _stored_job(output: Path, overwrite: bool = False) -> Optional[Dict]:
+def stored_job(output: Path, overwrite: bool = False) -> Optional[Dict]:
     """The job recorded in ``output`` (None if there is none). A folder that holds files but no
     job of ours is refused: its poses.txt or records.jsonl are someone else's. A damaged job.json
     is refused with its file and line, and ignored with ``overwrite`` (which redoes the run)."""
@@ -213,7 +213,7 @@ def plan_localization(job: LocalizationJob, queries: List[QueryRecord], output, 
         raise ValueError("The query list is empty: nothing to localize.")
     names = [q.name for q in queries]
     order = resolve_order(order, job, len(queries))
-    stored = _stored_job(Path(output), overwrite)
+    stored = stored_job(Path(output), overwrite)
     store = store_fingerprint(job.store, feature_key(job.features))
     if store["pending"] is None:
         raise StoreError(f"{job.store} has no features for this configuration ({feature_key(job.features)}): "

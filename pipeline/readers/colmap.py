@@ -102,7 +102,7 @@ def _pairs_fingerprint(pairs: PairsConfig, num_images: int, posed: bool) -> dict
     return out
 
 
-def _fingerprint(image_dir: Path, names: Sequence[str], **extra) -> dict:
+def images_fingerprint(image_dir: Path, names: Sequence[str], **extra) -> dict:
     """What a reconstruction depends on: its image files (name, size, digest of the bytes) and
     settings. Not the modification times: a dataset copied to another disk or machine keeps its
     reconstruction (an SfM of thousands of images takes hours)."""
@@ -111,7 +111,7 @@ def _fingerprint(image_dir: Path, names: Sequence[str], **extra) -> dict:
     return json.loads(json.dumps({"images": files, **extra}))
 
 
-def _legacy_fingerprint(image_dir: Path, fingerprint: dict) -> dict:
+def legacy_fingerprint(image_dir: Path, fingerprint: dict) -> dict:
     """The fingerprint of the same inputs as written before content digests (size, mtime)."""
     files = []
     for n, size, _ in fingerprint["images"]:
@@ -120,7 +120,7 @@ def _legacy_fingerprint(image_dir: Path, fingerprint: dict) -> dict:
     return {**fingerprint, "images": files}
 
 
-def _cached(work_dir: Path, marker: str, model: str, fingerprint: dict,
+def cached_model(work_dir: Path, marker: str, model: str, fingerprint: dict,
             image_dir: Path) -> Optional[pycolmap.Reconstruction]:
     """The reconstruction a previous run finished in ``work_dir`` from the same inputs, if any.
 
@@ -132,7 +132,7 @@ def _cached(work_dir: Path, marker: str, model: str, fingerprint: dict,
     if path.is_file() and (work_dir / model).is_dir():
         try:
             stored = json.loads(path.read_text())
-            if stored in (fingerprint, _legacy_fingerprint(image_dir, fingerprint)):
+            if stored in (fingerprint, legacy_fingerprint(image_dir, fingerprint)):
                 logger.info("Reusing the reconstruction in %s (same inputs).", work_dir / model)
                 rec = pycolmap.Reconstruction(str(work_dir / model))
                 if stored != fingerprint:
@@ -165,8 +165,8 @@ def run_sfm(image_dir, work_dir, names: Optional[Sequence[str]] = None, tags=Non
     work_dir.mkdir(parents=True, exist_ok=True)
     names = sorted(p.name for p in image_dir.iterdir() if p.suffix.lower() in {".jpg", ".jpeg", ".png"}) \
         if names is None else list(names)
-    fingerprint = _fingerprint(image_dir, names, kind="sfm", **_pairs_fingerprint(pairs, len(names), False))
-    rec = _cached(work_dir, "sfm.json", "model", fingerprint, image_dir)
+    fingerprint = images_fingerprint(image_dir, names, kind="sfm", **_pairs_fingerprint(pairs, len(names), False))
+    rec = cached_model(work_dir, "sfm.json", "model", fingerprint, image_dir)
     if rec is not None:
         return scene_from_reconstruction(rec, image_dir, tags)
     (work_dir / "sfm.json").unlink(missing_ok=True)
@@ -207,13 +207,13 @@ def triangulate_known_poses(images: List[ImageRecord], image_root, work_dir, *,
     work_dir.mkdir(parents=True, exist_ok=True)
     names = [im.name for im in images]
     by_name = {im.name: im for im in images}
-    fingerprint = _fingerprint(image_root, names, kind="triangulation", min_track_length=min_track_length,
+    fingerprint = images_fingerprint(image_root, names, kind="triangulation", min_track_length=min_track_length,
                                max_reprojection_error=max_reprojection_error,
                                cameras=[im.camera.to_json() for im in images],
                                poses=[np.round(np.asarray(im.cam_from_world, np.float64), 12).tolist()
                                       for im in images],
                                **_pairs_fingerprint(pairs, len(images), True))
-    rec = _cached(work_dir, "triangulation.json", "model", fingerprint, image_root)
+    rec = cached_model(work_dir, "triangulation.json", "model", fingerprint, image_root)
     if rec is not None:
         return _known_pose_scene(rec, image_root, by_name)
     (work_dir / "triangulation.json").unlink(missing_ok=True)

@@ -6,9 +6,9 @@ import pytest
 import torch
 
 from pipeline.build import build_map
-from pipeline.depth import _depth_camera, _load_depth, _to_cam, densify, rgbd_scene
+from pipeline.depth import depth_camera, load_depth, to_camera_frame, densify, rgbd_scene
 from pipeline.pairs import PairsConfig
-from pipeline.readers.colmap import (_cached, _fingerprint, _legacy_fingerprint, read_colmap, run_sfm,
+from pipeline.readers.colmap import (cached_model, images_fingerprint, legacy_fingerprint, read_colmap, run_sfm,
                                      triangulate_known_poses)
 from pipeline.readers.kapture import read_kapture
 from pipeline.readers.rgbd import read_7scenes, read_pose_txt
@@ -57,13 +57,13 @@ def test_strecha_known_poses_triangulate_below_one_pixel(shared, tmp_path):
     assert np.array_equal(again.points, scene.points) and np.array_equal(again.obs_xy, scene.obs_xy)
     # Changed bytes are another input.
     names = [im.name for im in read_strecha(root)]
-    before = _fingerprint(copy, names)
+    before = images_fingerprint(copy, names)
     with open(copy / names[3], "r+b") as f:
         f.seek(1000)
         byte = f.read(1)
         f.seek(1000)
         f.write(bytes([byte[0] ^ 1]))
-    after = _fingerprint(copy, names)
+    after = images_fingerprint(copy, names)
     assert [a == b for a, b in zip(before["images"], after["images"])] == [n != names[3] for n in names]
 
 
@@ -73,14 +73,14 @@ def test_a_work_folder_of_the_older_format_is_reused(shared, tmp_path):
     import pycolmap
     image_dir = shared / "data" / "strecha" / "fountain-P11" / "images"
     names = sorted(p.name for p in image_dir.iterdir())[:2]
-    fingerprint = _fingerprint(image_dir, names, kind="sfm")
+    fingerprint = images_fingerprint(image_dir, names, kind="sfm")
     marker = tmp_path / "sfm.json"
-    marker.write_text(json.dumps(_legacy_fingerprint(image_dir, fingerprint)))
+    marker.write_text(json.dumps(legacy_fingerprint(image_dir, fingerprint)))
     pycolmap.Reconstruction().write(str((tmp_path / "model").mkdir() or tmp_path / "model"))
-    assert _cached(tmp_path, "sfm.json", "model", fingerprint, image_dir) is not None
+    assert cached_model(tmp_path, "sfm.json", "model", fingerprint, image_dir) is not None
     assert json.loads(marker.read_text()) == fingerprint
     marker.write_text(json.dumps({**fingerprint, "kind": "triangulation"}))  # other settings
-    assert _cached(tmp_path, "sfm.json", "model", fingerprint, image_dir) is None
+    assert cached_model(tmp_path, "sfm.json", "model", fingerprint, image_dir) is None
 
 
 def test_kapture_rig_poses(shared, tmp_path):
@@ -116,9 +116,9 @@ def test_7scenes_rgbd_map_lies_on_the_depth_surface(shared):
     gaps = []
     for i, im in enumerate(images):  # every frame that observes a point, not only the one it came from
         sel = scene.obs_image == i
-        p_cam = _to_cam(im, scene.points[scene.obs_point[sel]])
-        uv = np.round(_depth_camera(im).cam2image(torch.from_numpy(p_cam))[0].numpy()).astype(int)
-        gaps.append(np.abs(p_cam[:, 2] - _load_depth(im)[uv[:, 1], uv[:, 0]]))
+        p_cam = to_camera_frame(im, scene.points[scene.obs_point[sel]])
+        uv = np.round(depth_camera(im).cam2image(torch.from_numpy(p_cam))[0].numpy()).astype(int)
+        gaps.append(np.abs(p_cam[:, 2] - load_depth(im)[uv[:, 1], uv[:, 0]]))
     gaps = np.concatenate(gaps)
     assert np.median(gaps) < 0.01 and np.mean(gaps < 0.02) > 0.8
 

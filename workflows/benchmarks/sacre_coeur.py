@@ -71,21 +71,21 @@ def sacre_coeur(shared: Path, work: Path, fconf: FeatureConfig, night: bool = Tr
                 ) -> List[Tuple[str, Path, List[QueryRecord]]]:
     """(name, store, queries): the night photo against all 10 day photos, and each oracle query
     image against the other 9 (its observations removed from the map)."""
-    from .verification import _complete
+    from .verification import store_complete
     root = shared / "data" / "sacre_coeur"
     s = scale_factor()
     scene = scaled(read_colmap(shared / "oracle" / "sacre_coeur_sfm", root / "mapping"), s)
     parts = []
     if night:
         store = work / "sacre_coeur_scaled.zarr"
-        if not _complete(store, fconf):
+        if not store_complete(store, fconf):
             build_sync(plan_build(scene, store, fconf))
         parts.append(("sacre_coeur/night", store, [night_query(shared, s)]))
     if day:
         names = [im.name for im in scene.images]
         for name, camera in day_queries(shared).items():
             store = work / f"sacre_coeur_scaled-{name}.zarr"
-            if not _complete(store, fconf):
+            if not store_complete(store, fconf):
                 build_sync(plan_build(scene.subset([i for i, n in enumerate(names) if n != name]), store, fconf))
             im = scene.images[names.index(name)]
             parts.append((f"sacre_coeur/{name}", store, [QueryRecord(name, im.path, camera, {"condition": "day"},

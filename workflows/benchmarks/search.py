@@ -30,7 +30,7 @@ from pixloc.nets.registry import DEFAULT_MODEL
 from ..build_map import plan_build, run_sync as build_sync
 from ..localize import plan_localization, run_sync
 from .sacre_coeur import sacre_coeur
-from .verification import _demo, _seven_scenes, _strecha, _write_priors
+from .verification import demo_map, seven_scenes_map, strecha_maps, write_priors
 
 THRESHOLDS = ((0.05, 1.0), (0.25, 2.0), (1.0, 5.0))
 SCENES = ("fountain", "herzjesus", "demo", "7scenes", "sacre_coeur", "sacre_coeur_night", "virtual_gallery")
@@ -55,11 +55,11 @@ def _sources(args, fconf):
     for key in args.scenes:
         if key in HELD_OUT:
             folder, names = HELD_OUT[key]
-            yield key, list(_strecha(args.shared, args.work, folder, names, fconf))
+            yield key, list(strecha_maps(args.shared, args.work, folder, names, fconf))
         elif key == "demo":
-            yield key, list(_demo(args.work, fconf))
+            yield key, list(demo_map(args.work, fconf))
         elif key == "7scenes":
-            yield key, list(_seven_scenes(args.shared, args.work, fconf))
+            yield key, list(seven_scenes_map(args.shared, args.work, fconf))
         elif key in ("sacre_coeur", "sacre_coeur_night"):
             yield key, sacre_coeur(args.shared, args.work, SACRE_COEUR_FEATURES, night=key == "sacre_coeur_night",
                                    day=key == "sacre_coeur")
@@ -73,10 +73,10 @@ def _virtual_gallery(shared: Path, work: Path, fconf):
     from pipeline.readers.colmap import triangulate_known_poses
     from pipeline.readers.kapture import read_kapture
     from workflows.sources import load_queries
-    from .verification import _complete
+    from .verification import store_complete
     root = shared / "data" / "virtual_gallery"
     store = work / "virtual_gallery.zarr"
-    if not _complete(store, fconf):
+    if not store_complete(store, fconf):
         scene = triangulate_known_poses(read_kapture(root / "mapping"), root / "mapping" / "sensors" / "records_data",
                                         work / "virtual_gallery.work")
         build_sync(plan_build(scene, store, fconf))
@@ -87,7 +87,7 @@ def _truth_file(queries, out: Path) -> Path:
     """The queries' ground-truth poses, as a prior poses file next to the run ``out``."""
     path = out.parent / "truth-poses.txt"
     path.parent.mkdir(parents=True, exist_ok=True)
-    _write_priors(path, {q.name: np.asarray(q.cam_from_world_gt, np.float64) for q in queries})
+    write_priors(path, {q.name: np.asarray(q.cam_from_world_gt, np.float64) for q in queries})
     return path
 
 

@@ -34,7 +34,7 @@ from pipeline.store import open_store
 from pixloc.nets.registry import DEFAULT_MODEL
 
 from ..localize import plan_localization, run_sync
-from .verification import _demo, _seven_scenes, _strecha
+from .verification import demo_map, seven_scenes_map, strecha_maps
 
 THRESHOLDS = ((0.05, 1.0), (0.25, 2.0), (1.0, 5.0))
 SCENES = ("fountain", "herzjesus", "demo", "7scenes", "sacre_coeur", "oracle")
@@ -60,17 +60,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def _parts(args, key: str, fconf: FeatureConfig, stores: Path):
     if key == "fountain":
-        return _strecha(args.shared, args.work, "fountain-P11", ["0002.jpg", "0004.jpg", "0006.jpg", "0008.jpg"],
+        return strecha_maps(args.shared, args.work, "fountain-P11", ["0002.jpg", "0004.jpg", "0006.jpg", "0008.jpg"],
                         fconf, stores)
     if key == "herzjesus":
-        return _strecha(args.shared, args.work, "Herz-Jesus-P8", ["0002.jpg", "0003.jpg", "0004.jpg", "0005.jpg"],
+        return strecha_maps(args.shared, args.work, "Herz-Jesus-P8", ["0002.jpg", "0003.jpg", "0004.jpg", "0005.jpg"],
                         fconf, stores)
     if key == "demo":
-        return _demo(args.work, fconf, stores)
+        return demo_map(args.work, fconf, stores)
     if key == "sacre_coeur":  # each oracle query photo against the other 9, and the night photo against all 10
         from .sacre_coeur import sacre_coeur
         return sacre_coeur(args.shared, stores, dataclasses.replace(fconf, resize=1024))
-    return _seven_scenes(args.shared, args.work, fconf, stores)
+    return seven_scenes_map(args.shared, args.work, fconf, stores)
 
 
 def store_bytes(store: Path, conf: FeatureConfig) -> Dict[str, float]:

@@ -51,7 +51,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="minimum confidences to tabulate precision and rejections at")
 
 
-def _strecha(shared: Path, work: Path, folder: str, held_out: List[str], fconf: FeatureConfig,
+def strecha_maps(shared: Path, work: Path, folder: str, held_out: List[str], fconf: FeatureConfig,
              stores: Optional[Path] = None):
     """Leave-one-out maps of a Strecha scene (stores in ``stores``, default ``work``; the
     triangulations in ``work`` are shared by every store of the same held-out image)."""
@@ -59,14 +59,14 @@ def _strecha(shared: Path, work: Path, folder: str, held_out: List[str], fconf: 
     images = read_strecha(root)
     for name in held_out:
         store = (stores or work) / f"{folder}-{name}.zarr"
-        if not _complete(store, fconf):  # a finished map is reused as it is
+        if not store_complete(store, fconf):  # a finished map is reused as it is
             scene = triangulate_known_poses([im for im in images if im.name != name], root / "images",
                                             work / f"{folder}-{name}.work")
             build_sync(plan_build(scene, store, fconf))
         yield f"{folder}/{name}", store, [q for q in load_queries("strecha", root) if q.name == name]
 
 
-def _complete(store: Path, fconf: FeatureConfig) -> bool:
+def store_complete(store: Path, fconf: FeatureConfig) -> bool:
     from pipeline.build import pending_images
     try:
         return store.exists() and not pending_images(store, fconf)
@@ -74,7 +74,7 @@ def _complete(store: Path, fconf: FeatureConfig) -> bool:
         return False
 
 
-def _demo(work: Path, fconf: FeatureConfig, stores: Optional[Path] = None):
+def demo_map(work: Path, fconf: FeatureConfig, stores: Optional[Path] = None):
     from pipeline.synthetic import SyntheticConfig, ensure_generated, read_synthetic
 
     from ..demo import DEMO_CAMERA, DEMO_SEED
@@ -87,7 +87,7 @@ def _demo(work: Path, fconf: FeatureConfig, stores: Optional[Path] = None):
     yield "demo", store, queries
 
 
-def _seven_scenes(shared: Path, work: Path, fconf: FeatureConfig, stores: Optional[Path] = None):
+def seven_scenes_map(shared: Path, work: Path, fconf: FeatureConfig, stores: Optional[Path] = None):
     root = shared / "data" / "7scenes_stairs"
     store = (stores or work) / "7scenes.zarr"
     build_sync(plan_build(rgbd_scene(read_7scenes(root, [2, 3]), method="frames", stride=24), store,
@@ -109,7 +109,7 @@ def perturb(T: np.ndarray, depth: float, frac: float, deg: float, rng) -> np.nda
     return np.concatenate([R, (-R @ c)[:, None]], 1)
 
 
-def _write_priors(path: Path, poses: Dict[str, np.ndarray]) -> None:
+def write_priors(path: Path, poses: Dict[str, np.ndarray]) -> None:
     lines = [" ".join([n, *(f"{v:.17g}" for v in (*rotmat_to_qvec(T[:, :3]), *T[:, 3]))]) for n, T in poses.items()]
     path.write_text("\n".join(lines) + "\n")
 
@@ -122,11 +122,11 @@ def collect(args) -> List[Dict]:
     lconf = LocalizerConfig(num_dbs=3, num_iters=50, verification=VerificationConfig(enabled=False))
     work = args.work
     work.mkdir(parents=True, exist_ok=True)
-    sources = {"fountain": lambda: _strecha(args.shared, work, "fountain-P11", ["0002.jpg", "0004.jpg",
+    sources = {"fountain": lambda: strecha_maps(args.shared, work, "fountain-P11", ["0002.jpg", "0004.jpg",
                                                                               "0006.jpg", "0008.jpg"], fconf),
-               "herzjesus": lambda: _strecha(args.shared, work, "Herz-Jesus-P8", ["0002.jpg", "0003.jpg",
+               "herzjesus": lambda: strecha_maps(args.shared, work, "Herz-Jesus-P8", ["0002.jpg", "0003.jpg",
                                                                                  "0004.jpg", "0005.jpg"], fconf),
-               "demo": lambda: _demo(work, fconf), "7scenes": lambda: _seven_scenes(args.shared, work, fconf)}
+               "demo": lambda: demo_map(work, fconf), "7scenes": lambda: seven_scenes_map(args.shared, work, fconf)}
     rows = []
     for key in args.scenes:
         for name, store, queries in sources[key]():
@@ -143,7 +143,7 @@ def collect(args) -> List[Dict]:
                 priors = {n: perturb(T, depth.get(n, 3.0), frac, deg, rng) for n, T in gt.items()}
                 path = out / f"priors-{k}.txt"
                 path.parent.mkdir(parents=True, exist_ok=True)
-                _write_priors(path, priors)
+                write_priors(path, priors)
                 pjob = dataclasses.replace(job, prior="poses", prior_poses=str(path.resolve()))
                 runs[f"perturbed {frac:g}d {deg:g}deg"] = run_sync(
                     plan_localization(pjob, queries, out / f"perturbed-{k}", shard_size=8))

@@ -34,7 +34,7 @@ class Stairs:
         """The job against a copy of the store (to damage)."""
         shutil.copytree(self.job.store, tmp_path / name)
         from pipeline import map_reader
-        map_reader._OPEN.clear()  # as a new process: no reader kept from another case
+        map_reader.forget_readers()  # as a new process: no reader kept from another case
         return dataclasses.replace(self.job, store=str(tmp_path / name))
 
     def unverified(self, job=None) -> LocalizationJob:

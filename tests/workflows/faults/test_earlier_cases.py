@@ -144,7 +144,7 @@ def test_damaged_chunk_fails_the_queries_that_need_it(stairs, tmp_path, damage):
         data = data[: len(data) // 2]
     chunk.write_bytes(bytes(data))
     from pipeline import map_reader
-    map_reader._OPEN.clear()  # the damage happens between runs: a new process would not have read the block
+    map_reader.forget_readers()  # the damage happens between runs: a new process would not have read the block
     records = run_sync(plan_localization(dataclasses.replace(job, store=str(store)), queries[:1], tmp_path / "b"))
     assert not records[0]["success"]
     assert "s0/features" in records[0]["reason"] and ref in records[0]["reason"]

@@ -19,7 +19,7 @@ from pipeline.scene import CameraRecord, name_problem
 from pipeline.store import StoreError
 from pipeline.store_check import check_store
 from pipeline.textfiles import InputError, read_pairs, read_poses
-from workflows.localize import _stored_job
+from workflows.localize import stored_job
 
 ODD = ["nan", "inf", "-inf", "-1", "0", "1e999", "x", "", "../a.jpg", "/abs.jpg", "a b", "\u00e9", "0x10", "-0"]
 SETTINGS = dict(deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
@@ -114,7 +114,7 @@ JOB = json.dumps({"job": {"store": "/x/map.zarr", "prior": "top1"}, "queries": [
 @settings(max_examples=100, **SETTINGS)
 @given(damaged(JOB))
 def test_job_file(data):
-    job = _read(lambda p: _stored_job(p.parent), data, "job.json", ValueError)  # or a folder not ours
+    job = _read(lambda p: stored_job(p.parent), data, "job.json", ValueError)  # or a folder not ours
     assert job is None or (isinstance(job["job"], dict) and isinstance(job["queries"], list)
                            and isinstance(job["shard_size"], int))
 

@@ -57,7 +57,7 @@ def test_one_image_observation_shard_deleted_fails_the_queries_that_use_it(stair
     report = check_store(job.store)
     assert not report.ok and ref in {n for b in report.bad for n in b.images}
     from pipeline import map_reader
-    map_reader._OPEN.clear()
+    map_reader.forget_readers()
     records = run_sync(plan_localization(stairs.unverified(job), stairs.queries[:2], tmp_path / "out"))
     using = [r for r in records if ref in r["references"]]
     assert using and all(not r["success"] and ref in r["reason"] and "observations/point" in r["reason"]
