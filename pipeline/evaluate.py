@@ -116,6 +116,21 @@ def evaluate(records: List[Dict], ground_truth: Dict[str, Optional[np.ndarray]],
     return out
 
 
+def shown_families(summary: Dict, group_by: Optional[Sequence[str]] = None) -> Dict[str, List[str]]:
+    """{family: its ``family=value`` keys} worth a table: with ``group_by``, those families;
+    otherwise every family but those with one value for every query (the same as ``all``) and
+    those whose every value is a single query (a camera id or a timestamp per query: a table of
+    one-query rows and plots of one point say nothing)."""
+    families: Dict[str, List[str]] = {}
+    for key in summary:
+        if key != "all" and "=" in key:
+            families.setdefault(key.split("=", 1)[0], []).append(key)
+    if group_by is not None:
+        return {f: keys for f, keys in families.items() if f in group_by}
+    return {f: keys for f, keys in families.items()
+            if len(keys) > 1 and not all(summary[k]["refined"]["count"] <= 1 for k in keys)}
+
+
 def evaluation_document(summary: Dict, records: List[Dict], ground_truth: Dict, thresholds) -> Dict:
     """What ``evaluation.json`` holds (schema in docs/evaluation.md, version 2):
 

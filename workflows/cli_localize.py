@@ -15,7 +15,7 @@ from typing import Dict, Optional
 import numpy as np
 
 from pipeline.evaluate import (DEFAULT_THRESHOLDS, INDOOR_THRESHOLDS, evaluate, evaluation_document, fmt,
-                               parse_thresholds, recall_label, to_json)
+                               parse_thresholds, recall_label, shown_families, to_json)
 from pipeline.features import FeatureConfig
 from pipeline.localize import LocalizerConfig
 from pipeline.results import POSE_NAMES, REJECTED, outcome, pose_names_problem, read_records, reason_groups
@@ -315,10 +315,15 @@ def store_units(store) -> str:
         return "scene units"
 
 
-def format_summary(summary, units: str = "m") -> str:
+def format_summary(summary, units: str = "m", group_by=None) -> str:
+    """The accuracy table for the terminal: ``all``, then the tag families worth a row each
+    (``pipeline.evaluate.shown_families``; ``group_by`` chooses them)."""
     lines = []
     missing = summary["all"].get("no_ground_truth", 0)
+    shown = {"all"} | {k for keys in shown_families(summary, group_by).values() for k in keys}
     for key, s in summary.items():
+        if key not in shown:
+            continue
         for which, label in (("prior", "prior"), ("refined", "result")):
             r = s[which]
             recalls = "  ".join(f"{recall_label(k, units)}: {fmt(100 * v if v is not None else None, '5.1f')}%"
@@ -340,6 +345,8 @@ def add_report_arguments(p: argparse.ArgumentParser) -> None:
                    "models)")
     add_threshold_arguments(p)
     p.add_argument("--ground-truth", type=Path, help="ground-truth poses file, for query lists that carry none")
+    p.add_argument("--group-by", nargs="+", metavar="TAG", help="tabulate accuracy by these tag families (default: "
+                   "every family but those with one value for all queries or one query per value)")
     p.set_defaults(func=report_main)
 
 
@@ -348,6 +355,6 @@ def report_main(args: argparse.Namespace) -> int:
     queries = _load_queries(args)
     gt = ground_truth(args, queries)
     path = make_report(absolute(args.output), queries, args.examples, thresholds_of(args, args.output), ground_truth=gt,
-                       units=args.units)
+                       units=args.units, group_by=args.group_by)
     print(f"report: {path}")
     return 0

@@ -19,7 +19,7 @@ from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
-from pipeline.evaluate import DEFAULT_THRESHOLDS, evaluate, fmt
+from pipeline.evaluate import DEFAULT_THRESHOLDS, evaluate, fmt, shown_families
 from pipeline.features import FeatureConfig
 from pipeline.map_reader import MapReader
 from pipeline.queries import QueryRecord
@@ -40,12 +40,10 @@ def map_units(source: Dict) -> str:
     return "m" if kind in METRIC_SOURCES else "SfM units" if kind in ("colmap", "sfm") else "scene units"
 
 
-def tag_families(summary: Dict) -> List[Tuple[str, List[str]]]:
-    """[('all', ['all']), (family, its keys sorted)...] from the ``family=value`` keys of a summary."""
-    families: Dict[str, List[str]] = {}
-    for key in summary:
-        if key != "all":
-            families.setdefault(key.split("=", 1)[0], []).append(key)
+def tag_families(summary: Dict, group_by=None) -> List[Tuple[str, List[str]]]:
+    """[('all', ['all']), (family, its keys sorted)...] of the families worth a table
+    (``pipeline.evaluate.shown_families``)."""
+    families = shown_families(summary, group_by)
     return [("all", ["all"])] + [(f, sorted(keys, key=natural_key)) for f, keys in sorted(families.items())]
 
 
@@ -110,8 +108,9 @@ def query_table(records: List[Dict], errors: Dict[str, Dict], thresholds, units:
     """Every query, failures first, then by error (largest first); sortable by clicking a header."""
     rows = sorted(records, key=lambda r: (OUTCOME_ORDER[outcome(r)], -_score(errors[r["name"]], thresholds)
                                           if errors[r["name"]]["t"] is not None else float("-inf"), r["name"]))
-    cols = ["query", "tags", "outcome", f"error t ({units})", "error R (deg)", f"prior t ({units})",
-            "prior R (deg)", "confidence", "reason", "references", "points", "iterations", "time (s)"]
+    cols = ["query", "tags", "outcome", f"error t ({units})", "error R (deg)", f"refined t ({units})",
+            "refined R (deg)", f"prior t ({units})", "prior R (deg)", "confidence", "reason", "references", "points",
+            "iterations", "time (s)"]
     out = ["<table id='queries' class='sortable'><thead><tr>"
            + "".join(f"<th data-type='{'text' if c in TEXT_COLUMNS else 'num'}'>{html.escape(c)}</th>" for c in cols)
            + "</tr></thead><tbody>"]
@@ -123,7 +122,8 @@ def query_table(records: List[Dict], errors: Dict[str, Dict], thresholds, units:
             f"<tr class='{o}'><td>{html.escape(r['name'])}</td>"
             f"<td class='text'>{html.escape(_tags_text(r.get('tags', {})))}</td>"
             f"<td data-v='{OUTCOME_ORDER[o]}'>{o}</td>" + num(e["t"], ".3f") + num(e["R"], ".2f")
-            + num(e["prior_t"], ".3f") + num(e["prior_R"], ".2f") + num(refinement_confidence(r), ".2f")
+            + num(e["refined_t"], ".3f") + num(e["refined_R"], ".2f") + num(e["prior_t"], ".3f")
+            + num(e["prior_R"], ".2f") + num(refinement_confidence(r), ".2f")
             + f"<td class='text'>{html.escape(r['reason'])}</td>"
             f"<td class='text'>{html.escape(_references_text(r['references']))}</td>"
             + num(r.get("num_points"), "d") + num(r.get("iterations"), "d")
@@ -170,19 +170,19 @@ th[data-order=asc]::after{content:' \\25B2'} th[data-order=desc]::after{content:
 """
 
 
-def accuracy_tables(summary: Dict, thresholds, units: str) -> str:
+def accuracy_tables(summary: Dict, thresholds, units: str, group_by=None) -> str:
     keys = [k for k in summary["all"]["refined"] if k.startswith("recall@")]
-    head = ("<tr><th>condition</th><th>n</th><th>median t prior</th><th>median t result</th>"
-            "<th>median R prior</th><th>median R result</th>"
-            + "".join(f"<th>within {t:g} {units}, {r:g}&deg;<br>prior &rarr; result</th>" for t, r in thresholds)
-            + "</tr>")
     parts = []
-    for family, fkeys in tag_families(summary):
+    for family, fkeys in tag_families(summary, group_by):
+        head = (f"<tr><th>{html.escape(family if family != 'all' else 'queries')}</th><th>n</th>"
+                "<th>median t prior</th><th>median t result</th><th>median R prior</th><th>median R result</th>"
+                + "".join(f"<th>within {t:g} {units}, {r:g}&deg;<br>prior &rarr; result</th>" for t, r in thresholds)
+                + "</tr>")
         rows = []
         for key in fkeys:
             p, r = summary[key]["prior"], summary[key]["refined"]
             pct = (lambda v: fmt(100 * v if v is not None else None, ".0f"))
-            rows.append(f"<tr><td>{html.escape(key)}</td><td>{r['count']}</td>"
+            rows.append(f"<tr><td>{html.escape(key.split('=', 1)[-1])}</td><td>{r['count']}</td>"
                         f"<td>{fmt(p['median_t'], '.3f')}</td><td>{fmt(r['median_t'], '.3f')}</td>"
                         f"<td>{fmt(p['median_R'], '.2f')}</td><td>{fmt(r['median_R'], '.2f')}</td>"
                         + "".join(f"<td>{pct(p[k])} &rarr; <b>{pct(r[k])}</b> %</td>" for k in keys) + "</tr>")
@@ -260,11 +260,13 @@ def _job_text(job: Dict, reader: MapReader, units: str, records: List[Dict]) -> 
 
 
 def make_report(output: Path, queries: List[QueryRecord], num_examples: int = 3,
-                thresholds=None, ground_truth: Optional[Dict] = None, units: Optional[str] = None) -> Path:
+                thresholds=None, ground_truth: Optional[Dict] = None, units: Optional[str] = None,
+                group_by: Optional[List[str]] = None) -> Path:
     """Write ``output/report.html`` from ``records.jsonl`` (and the run's ``job.json``).
 
     ``ground_truth`` (name -> cam_from_world or None) defaults to the queries' own; ``units``
-    to those of the map's source; ``num_examples`` queries per condition (best, median, worst)."""
+    to those of the map's source; ``num_examples`` queries per condition (best, median, worst);
+    ``group_by``: the tag families to tabulate (default: ``pipeline.evaluate.shown_families``)."""
     from pipeline.shard import localization_model
 
     output = Path(output)
@@ -273,7 +275,7 @@ def make_report(output: Path, queries: List[QueryRecord], num_examples: int = 3,
     gt = ground_truth if ground_truth is not None else {q.name: q.cam_from_world_gt for q in queries}
     gt = {k: np.asarray(v, np.float64) for k, v in gt.items() if v is not None and np.isfinite(v).all()}
     path = output / "report.html"
-    inputs = _inputs_digest(output, num_examples, thresholds, gt, units)
+    inputs = _inputs_digest(output, num_examples, thresholds, gt, [units, group_by])
     if path.is_file() and f"<!-- pixloc-report-inputs {inputs} -->" in path.read_text(errors="replace"):
         return path  # made from the same records, settings and code: left untouched
     job = json.loads((output / "job.json").read_text())["job"]
@@ -295,7 +297,7 @@ def make_report(output: Path, queries: List[QueryRecord], num_examples: int = 3,
         summary = evaluate(records, gt, thresholds)
         parts.append("<p class='note'>result: the refined pose where verification accepted it, else the prior. "
                      "Medians over the queries with a pose; recall over all queries. Curves: result solid, prior "
-                     "dashed.</p>" + accuracy_tables(summary, thresholds, units))
+                     "dashed.</p>" + accuracy_tables(summary, thresholds, units, group_by))
     else:
         parts.append("<p>No ground truth: accuracy is not evaluated (pass --ground-truth POSES).</p>")
     parts.append(f"<h2 id='failures-section'>Failures and rejections</h2>{failure_summary(records)}")

@@ -94,11 +94,14 @@ def _centre(T) -> np.ndarray:
 def query_errors(rec: Optional[Dict], T_gt) -> Dict[str, Optional[float]]:
     """Errors of the result and of the prior against ground truth (None without one)."""
     if rec is None or T_gt is None:
-        return {"t": None, "R": None, "prior_t": None, "prior_R": None}
+        return {"t": None, "R": None, "refined_t": None, "refined_R": None, "prior_t": None, "prior_R": None}
     t, R = pose_errors(record_pose(rec), T_gt)
+    rt, rR = pose_errors(np.asarray(rec["refined"]) if rec.get("refined") is not None else None, T_gt)
     pt, pR = pose_errors(np.asarray(rec["prior"]) if rec["prior"] is not None else None, T_gt)
     clean = (lambda x: x if np.isfinite(x) else None)
-    return {"t": clean(t), "R": clean(R), "prior_t": clean(pt), "prior_R": clean(pR)}
+    # result: the reported pose; refined: the refinement whether or not verification accepted it
+    return {"t": clean(t), "R": clean(R), "refined_t": clean(rt), "refined_R": clean(rR), "prior_t": clean(pt),
+            "prior_R": clean(pR)}
 
 
 def refinement_confidence(rec: Dict) -> Optional[float]:

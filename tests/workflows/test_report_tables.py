@@ -1,0 +1,56 @@
+"""What the report's and the terminal's tables show (issue: the user's path, round two)."""
+
+import re
+
+import numpy as np
+
+from pipeline.evaluate import evaluate, shown_families
+from workflows.cli_localize import format_summary
+from workflows.report import accuracy_tables, query_errors, query_table
+
+T = np.concatenate([np.eye(3), np.zeros((3, 1))], 1)
+
+
+def _moved(dx):
+    out = T.copy()
+    out[0, 3] = dx
+    return out.tolist()
+
+
+def _records():
+    """Four kapture-like queries: each its own camera and timestamp, one split, two sequences; the
+    last one rejected although its refinement was right."""
+    records = []
+    for k in range(4):
+        rejected = k == 3
+        records.append({"name": f"q{k}.jpg", "success": not rejected, "prior": _moved(1.0), "refined": _moved(0.01),
+                        "reason": "rejected: confidence 0.45 < 0.5" if rejected else "", "confidence": 0.45,
+                        "references": ["db0.jpg"], "tags": {"camera": f"cam{k}", "timestamp": str(k),
+                                                            "split": "query", "sequence": f"seq-{k % 2}"}})
+    return records
+
+
+def test_families_of_one_query_per_value_or_one_value_get_no_table():
+    """Before: a kapture run tabulated camera=... and timestamp=... (one query each) and split=query:
+    16 rows for 4 queries, and empty plots."""
+    records = _records()
+    summary = evaluate(records, {r["name"]: T for r in records}, ((0.05, 1.0),))
+    assert sorted(shown_families(summary)) == ["sequence"]
+    assert sorted(shown_families(summary, group_by=["camera"])) == ["camera"]
+    html = accuracy_tables(summary, ((0.05, 1.0),), "m")
+    assert "family-camera" not in html and "family-split" not in html and "family-sequence" in html
+    assert "<th>sequence</th>" in html and "<th>condition</th>" not in html  # headed by its family
+    text = format_summary(summary)
+    assert "camera=" not in text and "timestamp=" not in text and "sequence=seq-0" in text
+
+
+def test_a_rejected_query_shows_its_refined_error():
+    """Before: q3 was rejected though its refined pose was 1 cm off; the table showed only the
+    prior's error, 1 m, and sorted by a hidden value."""
+    records = _records()
+    errors = {r["name"]: query_errors(r, T) for r in records}
+    table = query_table(records, errors, ((0.05, 1.0),), "m")
+    assert "refined t (m)" in table
+    row = table[table.index("<td>q3.jpg</td>"):].split("</tr>")[0]
+    values = [float(v) for v in re.findall(r"data-v='([0-9.]+)'>", row)]
+    assert values[1:4] == [1.0, 0.0, 0.01]  # outcome rank, then error t (the prior's), R, then refined t
