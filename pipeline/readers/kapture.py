@@ -14,16 +14,35 @@ import numpy as np
 from ..scene import CameraRecord, ImageRecord, SceneError, qvec_to_rotmat
 
 
-def _rows(path: Path) -> List[List[str]]:
+def _rows(path: Path, min_fields: int, what: str) -> List[Tuple[str, List[str]]]:
+    """(``file:line``, fields) of the data rows of a kapture CSV file (none if it is absent); a row
+    with fewer than ``min_fields`` fields, or a file that is not text, is a SceneError there."""
     if not path.is_file():
         return []
-    with open(path) as f:
-        return [[c.strip() for c in row] for row in csv.reader(f)
-                if row and not row[0].lstrip().startswith("#")]
+    try:
+        with open(path, newline="") as f:
+            rows = [(f"{path}:{k}", [c.strip() for c in row]) for k, row in enumerate(csv.reader(f), 1)
+                    if row and row[0].strip() and not row[0].lstrip().startswith("#")]
+    except (UnicodeDecodeError, csv.Error) as e:
+        raise SceneError(f"{path}: not a kapture CSV file ({e})") from None
+    for where, row in rows:
+        if len(row) < min_fields:
+            raise SceneError(f"{where}: expected {what}, got {len(row)} fields")
+    return rows
+
+
+def _parse(where: str, convert, what: str):
+    """``convert()``, or a SceneError at ``where`` saying which value did not parse."""
+    try:
+        return convert()
+    except (ValueError, TypeError, IndexError) as e:
+        raise SceneError(f"{where}: bad {what}: {e}") from None
 
 
 def _pose(values) -> np.ndarray:
-    qw, qx, qy, qz, tx, ty, tz = (float(v) for v in values)
+    """device_from_world (3, 4); NaN where the quaternion is zero or not finite (the image is then
+    refused, with its reason, where it is checked)."""
+    qw, qx, qy, qz, tx, ty, tz = (float(v) for v in values[:7])
     q = np.array([qw, qx, qy, qz])
     if not np.isfinite(q).all() or np.linalg.norm(q) == 0:
         return np.full((3, 4), np.nan)
@@ -45,20 +64,22 @@ def read_kapture(root, tags=None) -> List[ImageRecord]:
     if not (sensors_dir / "sensors.txt").is_file():
         raise SceneError(f"{sensors_dir / 'sensors.txt'} not found: not a kapture dataset.")
     cameras: Dict[str, CameraRecord] = {}
-    for row in _rows(sensors_dir / "sensors.txt"):
-        sensor_id, _, kind, *params = row
+    for where, (sensor_id, _, kind, *params) in _rows(sensors_dir / "sensors.txt", 3, "sensor_id, name, type, ..."):
         if kind == "camera":
-            model, w, h, *p = params
-            cameras[sensor_id] = CameraRecord(model, int(w), int(h), tuple(float(v) for v in p))
+            cameras[sensor_id] = _parse(where, lambda: CameraRecord(
+                params[0], int(params[1]), int(params[2]), tuple(float(v) for v in params[3:])), "camera")
     rigs: Dict[str, Dict[str, np.ndarray]] = {}
-    for rig_id, sensor_id, *pose in _rows(sensors_dir / "rigs.txt"):
-        rigs.setdefault(rig_id, {})[sensor_id] = _pose(pose)
-    trajectories: Dict[Tuple[str, str], np.ndarray] = {
-        (ts, dev): _pose(pose) for ts, dev, *pose in _rows(sensors_dir / "trajectories.txt")}
+    for where, (rig_id, sensor_id, *pose) in _rows(sensors_dir / "rigs.txt", 9, "rig_id, sensor_id, qw..tz"):
+        rigs.setdefault(rig_id, {})[sensor_id] = _parse(where, lambda: _pose(pose), "pose")
+    trajectories: Dict[Tuple[str, str], np.ndarray] = {}
+    for where, (ts, dev, *pose) in _rows(sensors_dir / "trajectories.txt", 9, "timestamp, device_id, qw..tz"):
+        trajectories[(ts, dev)] = _parse(where, lambda: _pose(pose), "pose")
     images = []
-    for ts, sensor_id, rel_path in _rows(sensors_dir / "records_camera.txt"):
+    for where, row in _rows(sensors_dir / "records_camera.txt", 3, "timestamp, device_id, image_path"):
+        ts, sensor_id, rel_path = row[:3]
         if sensor_id not in cameras:
-            raise SceneError(f"Record {rel_path} uses unknown camera {sensor_id!r}.")
+            raise SceneError(f"{where}: record {rel_path} uses camera {sensor_id!r}, which "
+                             f"{sensors_dir / 'sensors.txt'} does not define.")
         pose = trajectories.get((ts, sensor_id))
         rig_id = None
         if pose is None:
@@ -67,7 +88,8 @@ def read_kapture(root, tags=None) -> List[ImageRecord]:
                     pose = _compose(members[sensor_id], trajectories[(ts, rig_id)])
                     break
         if pose is None:
-            raise SceneError(f"Image {rel_path} (timestamp {ts}, camera {sensor_id}) has no pose.")
+            raise SceneError(f"{where}: image {rel_path} (timestamp {ts}, camera {sensor_id}) has no pose in "
+                             f"{sensors_dir / 'trajectories.txt'} (nor through {sensors_dir / 'rigs.txt'}).")
         image_tags = {"camera": sensor_id, "timestamp": ts, **({"rig": rig_id} if rig_id else {}),
                       **dict(tags or {})}
         images.append(ImageRecord(rel_path, sensors_dir / "records_data" / rel_path, cameras[sensor_id],

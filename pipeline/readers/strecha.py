@@ -13,12 +13,17 @@ def read_strecha_camera(path) -> tuple:
 
     Returns (CameraRecord PINHOLE, cam_from_world (3, 4)).
     """
-    values = np.array(Path(path).read_text().split(), dtype=np.float64)
+    try:
+        values = np.array(Path(path).read_text().split(), dtype=np.float64)
+    except (ValueError, UnicodeDecodeError) as e:
+        raise SceneError(f"{path}: not a Strecha camera file ({e})") from None
     if values.size != 9 + 3 + 9 + 3 + 2:
         raise SceneError(f"{path}: expected 26 numbers in a Strecha camera file, got {values.size}.")
     K, R_c2w, centre, (w, h) = values[:9].reshape(3, 3), values[12:21].reshape(3, 3), values[21:24], values[24:]
     R = R_c2w.T
     # K is in pixel-corner coordinates like COLMAP's (an assumption we test via reprojection).
+    if not np.isfinite(values).all() or w != int(w) or h != int(h):
+        raise SceneError(f"{path}: a Strecha camera file needs finite numbers and a whole image size")
     camera = CameraRecord("PINHOLE", int(w), int(h), (K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
     return camera, np.concatenate([R, (-R @ centre)[:, None]], 1)
 
