@@ -15,9 +15,8 @@ from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
-from pixloc.geometry import pose_error
+from pixloc.geometry import Pose, pose_error
 
-from .scene import pose_from_matrix
 
 logger = logging.getLogger(__name__)
 DEFAULT_THRESHOLDS = ((0.25, 2.0), (0.5, 5.0), (5.0, 10.0))  # (metres, degrees), visuallocalization.net
@@ -45,7 +44,7 @@ def pose_errors(T: Optional[np.ndarray], T_gt: np.ndarray) -> Tuple[float, float
     A missing pose counts as an infinite error."""
     if T is None:
         return float("inf"), float("inf")
-    dR, dt = pose_error(pose_from_matrix(T), pose_from_matrix(T_gt))
+    dR, dt = pose_error(Pose.from_matrix(T), Pose.from_matrix(T_gt))
     return float(dt), float(dR)
 
 

@@ -26,7 +26,6 @@ from pixloc.nets.unet import UNet
 from .images import ImageReadError, read_image_for, resize_max, to_tensor
 from .map_reader import MapReader, Observations, StoreReadError
 from .queries import QueryRecord
-from .scene import pose_from_matrix
 from .verify import VerificationConfig, verify
 
 logger = logging.getLogger(__name__)
@@ -82,14 +81,6 @@ class QueryResult:
     def pose(self) -> Optional[np.ndarray]:
         """The pose to report: refined if successful (verified), else the prior."""
         return self.refined if self.success else self.prior
-
-
-def _matrix(T: Pose) -> np.ndarray:
-    """(3, 4) float64, the rotation projected back onto SO(3): hundreds of float32 LM updates
-    leave it slightly non-orthonormal."""
-    U, _, Vt = np.linalg.svd(T.R.double().numpy())
-    R = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
-    return np.concatenate([R, T.t.double().numpy()[:, None]], 1)
 
 
 class Localizer:
@@ -193,7 +184,7 @@ class Localizer:
                     if note:
                         st["query"] = dataclasses.replace(query, camera=camera)
                         result.notes.append(note)
-                st["T"] = st["prior_T"] = pose_from_matrix(prior).float()
+                st["T"] = st["prior_T"] = Pose.from_matrix(prior).float()
                 st["active"] = True
             except (ImageReadError, StoreReadError, ValueError) as e:
                 result.reason = str(e)
@@ -245,7 +236,7 @@ class Localizer:
         for st in states:
             result = st["result"]
             if st["active"]:
-                result.refined = _matrix(st["T"])
+                result.refined = st["T"].to_matrix(orthonormal=True)
                 result.confidence, reason = verify(result.evidence, self.conf.verification)
                 result.success = reason is None
                 result.reason = reason or ""
@@ -317,7 +308,7 @@ class Localizer:
             evidence = {f"{key}_{which}": float(ev[key][b]) for which, ev in (("start", start), ("end", end))
                         for key in ("inliers", "weighted_inliers", "valid", "cost")}
             result.per_level.append({"scale": int(image_scale), "level": level, "failed": failed,
-                                     "pose": _matrix(lm.pose[b].cpu()).tolist(),
+                                     "pose": lm.pose[b].to_matrix(orthonormal=True).tolist(),
                                      "iterations": int(lm.iterations[b]), "residuals": int(mask[b].sum()),
                                      **evidence})
             result.iterations += int(lm.iterations[b])
@@ -332,7 +323,8 @@ class Localizer:
                 result.evidence = evidence_summary(result.per_level, {
                     key: float(at_prior[key][b]) for key in at_prior if key != "points"},
                     {key: float(v[b]) for key, v in contrast.items()},
-                    np.asarray(result.prior), _matrix(st["T"]), problem.p3d_world[b][problem.mask[b]].cpu().numpy())
+                    np.asarray(result.prior), st["T"].to_matrix(orthonormal=True),
+                    problem.p3d_world[b][problem.mask[b]].cpu().numpy())
 
 
 def evidence_summary(per_level: List[Dict], at_prior: Dict[str, float], contrast: Dict[str, float],

@@ -24,12 +24,6 @@ def rotmat_to_qvec(R) -> np.ndarray:
     return lie.rotmat_to_qvec(torch.as_tensor(np.asarray(R, np.float64))).numpy()
 
 
-def pose_from_matrix(T, dtype=torch.float64) -> Pose:
-    """A pixloc Pose from a (3, 4) [R | t] matrix."""
-    T = torch.as_tensor(np.asarray(T, np.float64)).to(dtype)
-    return Pose.from_Rt(T[:, :3], T[:, 3])
-
-
 MAX_SIDE = 100_000  # pixels
 MIN_FOCAL_FACTOR, MAX_FOCAL_FACTOR = 0.004, 100.0  # x the longer side: about 179 to 0.6 deg across it
 
@@ -160,7 +154,7 @@ class ImageRecord:
         return None
 
     def pose(self, dtype=torch.float32) -> Pose:
-        return pose_from_matrix(self.cam_from_world, dtype)
+        return Pose.from_matrix(self.cam_from_world, dtype)
 
 
 @dataclass

@@ -22,7 +22,7 @@ from pixloc.refiner import PairBatch
 
 from .depth import rgbd_scene
 from .images import read_image, resize_max, to_tensor
-from .scene import CameraRecord, ImageRecord, Scene, pose_from_matrix
+from .scene import CameraRecord, ImageRecord, Scene
 from .synthetic import SyntheticConfig, ensure_generated, read_views
 
 logger = logging.getLogger(__name__)
@@ -106,8 +106,8 @@ class PairDataset:
         if len(common) == 0:
             raise ValueError(f"Pair ({i}, {j}) of {self.names[k]!r} has no common points.")
         pick = rng.choice(len(common), size=min(len(common), self.conf.num_points), replace=False)
-        T_ref = pose_from_matrix(scene.images[i].cam_from_world)
-        T_q = pose_from_matrix(scene.images[j].cam_from_world)
+        T_ref = Pose.from_matrix(scene.images[i].cam_from_world)
+        T_q = Pose.from_matrix(scene.images[j].cam_from_world)
         p3d = T_ref.transform(torch.from_numpy(scene.points[common[pick]]))
         n = self.conf.num_points
         p3d_pad = torch.zeros(n, 3, dtype=torch.float64)

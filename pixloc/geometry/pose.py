@@ -139,6 +139,21 @@ class Pose(TensorWrapper):
     def numpy(self) -> Tuple[np.ndarray, np.ndarray]:
         return self.R.detach().cpu().numpy(), self.t.detach().cpu().numpy()
 
+    @classmethod
+    def from_matrix(cls, T, dtype=torch.float64) -> "Pose":
+        """A pose from a (..., 3, 4) [R | t] (or (..., 4, 4)) array: the one numpy entry point."""
+        T = torch.as_tensor(np.asarray(T, np.float64)).to(dtype)
+        return cls.from_Rt(T[..., :3, :3], T[..., :3, 3])
+
+    def to_matrix(self, orthonormal: bool = False) -> np.ndarray:
+        """(..., 3, 4) float64 [R | t], the numpy exit point. ``orthonormal`` projects R back onto
+        SO(3) (hundreds of float32 LM updates leave it slightly off; one pose, (3, 4), only)."""
+        R, t = self.R.detach().cpu().double().numpy(), self.t.detach().cpu().double().numpy()
+        if orthonormal:
+            U, _, Vt = np.linalg.svd(R)
+            R = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+        return np.concatenate([R, t[..., None]], -1)
+
 
 def pose_error(T_a: Pose, T_b: Pose) -> Tuple[Tensor, Tensor]:
     """Rotation error (degrees) and camera-centre distance between cam_from_world poses.

@@ -122,3 +122,18 @@ def test_bad_input_is_named():
     with pytest.raises(ValueError, match=r"\(\.\.\., N, 3\)"):
         Pose.identity(2).transform(torch.zeros(2, 5, 2))
     assert not bool(Pose(torch.full((12,), float("nan"))).isfinite())
+
+
+def test_from_matrix_and_to_matrix_are_the_numpy_seam():
+    import numpy as np
+    rng = np.random.default_rng(0)
+    T = Pose.from_aa(torch.tensor(rng.normal(size=(5, 3))), torch.tensor(rng.normal(size=(5, 3)))).double()
+    M = T.to_matrix()
+    assert M.shape == (5, 3, 4) and M.dtype == np.float64
+    back = Pose.from_matrix(M)
+    torch.testing.assert_close(back._data, T._data)
+    noisy = M[0].copy()
+    noisy[:, :3] += 1e-4 * rng.normal(size=(3, 3))  # float32 LM updates leave R slightly off SO(3)
+    R = Pose.from_matrix(noisy).to_matrix(orthonormal=True)[:, :3]
+    np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
+    assert np.linalg.det(R) > 0
