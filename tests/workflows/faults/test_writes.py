@@ -27,7 +27,7 @@ def test_a_write_that_fails_leaves_the_previous_files_whole_and_no_temporaries(c
     size (RLIMIT_FSIZE), as a full disk refuses them, while the run is redone (--overwrite)."""
     import os
     before = _snapshot(cli_run.output)
-    limit = len(before[next(p for p in before if p.name == "records.jsonl")]) - 1
+    limit = len(before[next(p for p in before if p.name == "records.jsonl")]) // 2  # any shard or record file is larger
 
     def small_files():
         signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
