@@ -9,6 +9,7 @@ import dataclasses
 import functools
 import json
 import logging
+import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Dict, List, Optional, Tuple
@@ -319,18 +320,24 @@ def localize_queries(job: LocalizationJob, reader: MapReader, localizer: Localiz
     and features, so this compares like with like, which the final costs (means over different
     sets of valid points) do not. ``search`` screens its hypotheses at the coarsest level first
     (``pipeline.search.screen``)."""
-    prepared = []
+    prepared, own = [], {}  # own: each query's seconds before the LM (image, retrieval, prior)
     for q in queries:
+        t0 = time.perf_counter()
         try:
             prepared.append(prepare_query(job, reader, localizer, q))
         except (OSError, ValueError, RuntimeError) as e:  # recorded, never dropped
             logger.warning("Query %s failed: %s", q.name, e)
             prepared.append(_failure(q, f"{type(e).__name__}: {e}"))
+        own[q.name] = time.perf_counter() - t0
     if job.prior == "search":
+        t0 = time.perf_counter()
         prepared = screen(localizer, reader, top1_first(localizer, prepared, job.search), job.search)
+        share = (time.perf_counter() - t0) / max(len(queries), 1)  # the screening runs as batches
+        own = {name: t + share for name, t in own.items()}
     results = []
     for p, candidates in solve(localizer, prepared):
         if candidates is None:
+            _add_time(p, [p], own)
             results.append(p)
             continue
         labels = getattr(p, "labels", None)
@@ -339,6 +346,7 @@ def localize_queries(job: LocalizationJob, reader: MapReader, localizer: Localiz
         ranked = rank_results(candidates)
         j = ranked[0] if ranked else 0
         best = candidates[j]
+        _add_time(best, candidates, own)
         if isinstance(p, Hypotheses):  # a search: report the top-1 reference's pose when rejected
             best.prior = np.asarray(p.top1, np.float64)
             merged = f" ({p.merged} more in the same basin as one of them)" if p.merged else ""
@@ -347,6 +355,13 @@ def localize_queries(job: LocalizationJob, reader: MapReader, localizer: Localiz
                               f"{len(candidates)} refined{merged}; the winner started from {labels[j]}")
         results.append(best)
     return results
+
+
+def _add_time(result: QueryResult, candidates: List[QueryResult], own: Dict[str, float]) -> None:
+    """The query's time: before the LM (``own``), plus every refined start's (``timings['total']``
+    of each candidate: its reference features, network pass and share of the batched LM)."""
+    refined = sum(c.timings.get("total", 0.0) for c in candidates)
+    result.timings["total"] = own.get(result.name, 0.0) + refined
 
 
 def retrieve_queries(job: LocalizationJob, queries: List[QueryRecord], out_path) -> Dict[str, Dict]:

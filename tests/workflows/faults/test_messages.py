@@ -136,3 +136,19 @@ def test_evaluate_and_report_take_the_thresholds_the_run_used(cli_run, tmp_path)
     none = argparse.Namespace(thresholds=None, preset=None, indoor=False)
     assert thresholds_of(none, tmp_path) == ((0.05, 5.0),)
     assert thresholds_of(argparse.Namespace(thresholds=["0.1,1"], preset=None, indoor=False), tmp_path) == ((0.1, 1.0),)
+
+
+def test_each_query_is_timed_on_its_own(stairs, tmp_path):
+    """Before: the report's 'time (s)' column showed the shard's average (4 queries at 7.00)."""
+    import time
+
+    from workflows.localize import plan_localization, run_sync
+    t0 = time.perf_counter()
+    records = run_sync(plan_localization(stairs.job, stairs.queries[:3], tmp_path / "out", shard_size=3))
+    wall = time.perf_counter() - t0
+    totals = [r["timings"]["total"] for r in records]
+    assert all(t > 0 for t in totals) and len(set(totals)) == 3
+    assert sum(totals) <= wall  # shares of one run, not three copies of its average
+    for r in records:  # its own work at each scale and its share of the batched LM add up to it
+        parts = sum(v for k, v in r["timings"].items() if k != "total")
+        assert parts <= r["timings"]["total"] + 1e-9
