@@ -79,6 +79,7 @@ def run_demo(output: Path, model: str = "pixloc-lite0", num_references: int = 30
     t = _stage(3, f"retrieval and localization of {len(queries)} queries "
                   f"({'in-process' if sync else f'{workers} Dask workers'})")
     plan = localize.plan_localization(job, queries, output / "localization", workers=1 if sync else workers)
+    plan.thresholds = DEMO_THRESHOLDS  # recorded in job.json: `pixloc evaluate` and `report` use them too
     if not plan.todo:
         records = localize.run_sync(plan)  # merges the finished shards, runs nothing
         print(f"      {len(records)} of {len(records)} queries already done in {plan.output}: nothing to do; "

@@ -79,7 +79,7 @@ def load_scene(source: MapSource, work_dir: Path, pairs: PairsConfig = PairsConf
     return densify(scene) if source.densify else scene
 
 
-QUERY_KINDS = ("list", "7scenes", "kapture", "strecha", "colmap")
+QUERY_KINDS = ("list", "7scenes", "kapture", "strecha", "colmap", "synthetic")
 
 
 def _as_query(image, tags=None) -> QueryRecord:
@@ -93,7 +93,8 @@ def load_queries(kind: str, path: Path, images: Optional[Path] = None, sequences
 
     ``list``: a queries_with_intrinsics file, images in ``images``; ``7scenes``: frames
     of ``sequences``; ``kapture`` / ``strecha``: posed images; ``colmap``: a model's
-    images (their SfM poses as ground truth). ``names`` keeps only those queries.
+    images (their SfM poses as ground truth); ``synthetic``: the queries of a generated scene
+    (the demo's ``outputs/demo/scene``). ``names`` keeps only those queries.
     """
     path = Path(path)
     if kind == "list":
@@ -110,6 +111,9 @@ def load_queries(kind: str, path: Path, images: Optional[Path] = None, sequences
         queries = [_as_query(im) for im in read_strecha(path)]
     elif kind == "colmap":
         queries = [_as_query(im) for im in read_colmap(path, images or path.parent / "images").images]
+    elif kind == "synthetic":  # a generated scene (the demo's outputs/demo/scene), with ground truth
+        from pipeline.synthetic import read_synthetic
+        queries = read_synthetic(path)[1]
     else:
         raise ValueError(f"Unknown query source {kind!r}; known: {', '.join(QUERY_KINDS)}.")
     if names is not None:

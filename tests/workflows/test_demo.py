@@ -115,3 +115,16 @@ def test_a_rerun_of_the_finished_demo_leaves_every_output_untouched(demo, demo_d
     after = {p: (p.stat().st_mtime_ns, p.read_bytes()) for p in files}
     assert after == before
     assert (out / "localization" / "evaluation.json").is_file() and not (out / "evaluation.json").exists()
+
+
+def test_the_demo_output_can_be_evaluated_and_reported_again(demo, demo_dir, tmp_path):
+    """Before: report and evaluate had no source for the synthetic scene, so --examples N could not
+    be tried on the demo."""
+    from workflows.cli import main
+    out = tmp_path / "localization"  # a copy: the demo's own folder stays as the demo left it
+    shutil.copytree(demo_dir / "localization", out)
+    assert main(["evaluate", "synthetic", str(demo_dir / "scene"), "--output", str(out)]) == 0
+    import json
+    doc = json.loads((out / "evaluation.json").read_text())
+    assert doc["thresholds"] == [[0.1, 1.0], [0.25, 2.0], [1.0, 5.0]]  # the demo's, from its job.json
+    assert len(doc["queries"]) == len(demo[1])
