@@ -19,6 +19,7 @@ from pipeline.features import FeatureConfig
 from pipeline.scene import Scene
 
 from . import executor
+from .sources import describe_source
 
 logger = logging.getLogger(__name__)
 
@@ -55,7 +56,7 @@ class BuildPlan:
         todo = sum(len(b) for b in self.batches)
         lines = [
             f"map store      {self.store}" + (" (overwritten)" if self.overwrite else ""),
-            f"source         {self.source}",
+            f"source         {describe_source(self.source) if self.source else '(a scene given by the caller)'}",
             f"features       {self.conf.to_dict()} on {self.device}",
             "stages:",
             f"  1 structure  {len(self.scene.images)} images, {len(self.scene.points)} points, {n_obs} observations",

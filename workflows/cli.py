@@ -111,8 +111,8 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Optional[List[str]] = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
-                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    from .logs import configure
+    configure(args.verbose)
     if not args.verbose:
         # read by dask when distributed is first imported (it resets its loggers' levels then)
         os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", "warning")

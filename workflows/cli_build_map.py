@@ -13,7 +13,7 @@ from pixloc.nets.registry import DEFAULT_MODEL
 from . import executor
 from .build_map import pending_batches, plan_build, prepare_structure, run_dask, run_sync
 from .localize import store_lock
-from .sources import KINDS, MapSource, load_scene
+from .sources import KINDS, MapSource, describe_source, load_scene
 
 _F = FeatureConfig()
 BUILD_DEFAULTS = {"resize": _F.resize, "image_scales": list(_F.image_scales), "pad": _F.pad}
@@ -92,13 +92,17 @@ def main(args: argparse.Namespace) -> int:
     t0 = time.time()
     if args.dry_run and source.kind in RECONSTRUCTED:  # a dry run computes and writes nothing
         print(f"map store      {store}" + (" (overwritten)" if args.overwrite else "") + f"\nsource         "
-              f"{source.to_dict()}\nfeatures       {conf.to_dict()} on {args.device}\nstages:\n"
+              f"{describe_source(source.to_dict())}\nfeatures       {conf.to_dict()} on {args.device}\nstages:\n"
               f"  0 reconstruction  {RECONSTRUCTED[source.kind]} of the images in {source.path}, in {work_dir} "
               "(reused there when it finished with the same images and settings)\n"
               "  1 structure, 2 features: counted once the reconstruction exists\n(dry run: nothing computed or "
               "written)")
         return 0
     with store_lock(store):
+        from .logs import colmap_to_file, to_file
+        log = to_file(work_dir / "build-map.log")
+        colmap_to_file(work_dir)
+        print(f"log            {log} (COLMAP's in {work_dir}/colmap.INFO.*)")
         scene = load_scene(source, work_dir, pairs)
         plan = plan_build(scene, store, conf, batch_size=args.batch_size, device=args.device,
                           chunk_rows=args.chunk_rows, shard_rows=args.shard_rows, source=source.to_dict(),

@@ -183,6 +183,10 @@ def main(args: argparse.Namespace) -> int:
     plan.pose_names = args.pose_names
     plan.thresholds = thresholds_of(argparse.Namespace(thresholds=None, preset=args.preset, indoor=False))
     print(plan.describe())
+    if not args.dry_run:
+        from .logs import to_file
+        print(f"  log     {to_file(output / 'pixloc.log')}")
+        logger.info("job %s", job.to_dict())
     both = queries_in_map(job.store, queries)
     if both:
         print(f"warning: {len(both)} of the {len(queries)} queries are also map images (the same name or the same "

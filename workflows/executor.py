@@ -61,7 +61,7 @@ def run_plan(plan, run_sync: Callable, run_dask: Callable, *, sync: bool, schedu
     if sync:
         return run_sync(plan, progress=True)
     with dask_client(scheduler, workers, device) as client:
-        print(f"Dask dashboard: {client.dashboard_link}")
+        logger.info("Dask dashboard: %s", client.dashboard_link)
         return run_dask(plan, client, progress=True)
 
 

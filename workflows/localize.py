@@ -146,10 +146,10 @@ class LocalizationPlan:
         return (f"localize {c['queries']} queries in {c['shards']} shards ({order}) against {self.job.store}\n"
                 f"  to run  {c['to_run']} queries ({c['retried']} failures retried); reused {c['reused_queries']} "
                 f"queries, {c['reused_shards']} finished shards\n"
-                f"  output  {self.output}\n  model   {self.job.model}\n  job     {self.job.to_dict()}")
+                f"  output  {self.output}\n  model   {self.job.model}")
 
 
-OURS = {"job.json", LOCK, "shards", "retrieval"}  # what a run writes before its first shard is done
+OURS = {"job.json", LOCK, "shards", "retrieval", "pixloc.log"}  # what a run writes before its first shard is done
 
 
 def stored_job(output: Path, overwrite: bool = False) -> Optional[Dict]:

@@ -49,6 +49,25 @@ class MapSource:
                 "intrinsics": list(self.intrinsics), "depth_scale": self.depth_scale, "depth_ext": self.depth_ext}
 
 
+# the MapSource fields each kind reads (the plan shows those, not depth settings for Strecha)
+SOURCE_FIELDS = {"colmap": ("path", "images", "densify"), "sfm": ("path", "densify"),
+                 "strecha": ("path", "densify"), "kapture": ("path", "densify"),
+                 "7scenes": ("path", "sequences", "rgbd_points"),
+                 "posetxt": ("path", "intrinsics", "depth_scale", "depth_ext", "rgbd_points")}
+
+
+def describe_source(source: dict) -> str:
+    """'strecha /data/Herz-Jesus-P8' and the fields that kind reads, e.g. 'sequences [2, 3]'."""
+    kind = source.get("kind", "?")
+    fields = SOURCE_FIELDS.get(kind, tuple(k for k in source if k != "kind"))
+    parts = [kind, str(source.get("path"))]
+    for key in fields:
+        value = source.get(key)
+        if key != "path" and value not in (None, [], (), False):
+            parts.append(f"{key.replace('_', ' ')} {value}")
+    return " ".join(parts[:2]) if len(parts) == 2 else f"{parts[0]} {parts[1]} ({', '.join(parts[2:])})"
+
+
 def load_scene(source: MapSource, work_dir: Path, pairs: PairsConfig = PairsConfig()) -> Scene:
     """The Scene of ``source``; SfM and triangulation write their COLMAP files under ``work_dir``
     and match the image pairs of ``pairs``."""

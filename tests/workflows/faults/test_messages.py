@@ -152,3 +152,34 @@ def test_each_query_is_timed_on_its_own(stairs, tmp_path):
     for r in records:  # its own work at each scale and its share of the batched LM add up to it
         parts = sum(v for k, v in r["timings"].items() if k != "total")
         assert parts <= r["timings"]["total"] + 1e-9
+
+
+def test_the_terminal_gets_the_plan_and_the_summary_and_the_log_file_the_rest(cli_run):
+    """Before: every run printed a Dask dashboard URL, a one-line `job {...}` dump and INFO lines of
+    the libraries; SfM printed 120-130 COLMAP log lines."""
+    assert "job {" not in cli_run.stdout and "Dask dashboard" not in cli_run.stdout
+    log = (cli_run.output / "pixloc.log").read_text()
+    assert "INFO workflows.cli_localize: job {" in log
+    assert f"log     {cli_run.output / 'pixloc.log'}" in cli_run.stdout
+
+
+def test_the_plan_shows_the_source_fields_its_kind_reads():
+    """Before: 'depth_scale' and 'rgbd_points: tsdf' were printed for a Strecha map."""
+    from pathlib import Path
+
+    from workflows.sources import MapSource, describe_source
+    assert describe_source(MapSource("strecha", Path("/d/H")).to_dict()) == "strecha /d/H"
+    assert describe_source(MapSource("7scenes", Path("/d/s"), sequences=(2, 3)).to_dict()) == \
+        "7scenes /d/s (sequences [2, 3], rgbd points tsdf)"
+
+
+def test_colmap_log_goes_to_the_work_folder(shared, tmp_path):
+    """Before: triangulation printed about 100 COLMAP log lines (glog) on the terminal."""
+    out = pixloc("build-map", "strecha", shared / "data" / "strecha" / "Herz-Jesus-P8", "--store",
+                 tmp_path / "h.zarr", "--sync", "--resize", "256", "--image-scales", "1", timeout=600)
+    assert out.returncode == 0, out.stderr
+    assert "feature_extraction.cc" not in out.stderr and len(out.stderr.splitlines()) <= 5, out.stderr
+    assert len((out.stdout + out.stderr).splitlines()) <= 20
+    logs = list((tmp_path / "h.work").glob("colmap.INFO.*"))
+    assert logs and "feature_extraction.cc" in logs[0].read_text()
+    assert (tmp_path / "h.work" / "build-map.log").is_file()

@@ -1,0 +1,45 @@
+"""Where a command's messages go: the terminal gets warnings and errors (the commands print their
+plan, progress and summary themselves); the log file in the run's folder gets everything from
+INFO on, with times, including COLMAP's own log during SfM and triangulation."""
+
+import logging
+from pathlib import Path
+
+FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
+
+
+def configure(verbose: bool) -> None:
+    """The terminal's handler (warnings, or everything with --verbose); the root passes INFO on
+    to the log files. Only the command line calls this (libraries just log)."""
+    root = logging.getLogger()
+    if not root.handlers:  # a caller (a test, an application) that configured logging keeps its own
+        terminal = logging.StreamHandler()
+        terminal.setLevel(logging.DEBUG if verbose else logging.WARNING)
+        terminal.setFormatter(logging.Formatter("%(levelname)s %(name)s: %(message)s"))
+        root.addHandler(terminal)
+    root.setLevel(logging.DEBUG if verbose else logging.INFO)
+    if not verbose:
+        logging.getLogger("matplotlib").setLevel(logging.ERROR)  # its font-cache notice on a first run
+
+
+def to_file(path: Path) -> Path:
+    """Also write every message from INFO on to ``path`` (appended: a resumed run adds to it)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    handler = logging.FileHandler(path)
+    handler.setLevel(logging.INFO)
+    handler.setFormatter(logging.Formatter(FORMAT))
+    logging.getLogger().addHandler(handler)
+    return path
+
+
+def colmap_to_file(folder: Path) -> None:
+    """COLMAP's glog lines (about 120 for a small SfM) into ``folder/colmap.INFO*`` instead of the
+    terminal; its errors still reach the terminal."""
+    import pycolmap
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    pycolmap.logging.logtostderr = False
+    pycolmap.logging.alsologtostderr = False
+    pycolmap.logging.stderrthreshold = 2  # ERROR
+    pycolmap.logging.set_log_destination(pycolmap.logging.INFO, str(folder / "colmap.INFO."))
