@@ -96,7 +96,7 @@ def run_demo(output: Path, model: str = "pixloc-lite0", num_references: int = 30
     write_atomic(output / "localization" / "evaluation.json",
                  to_json(evaluation_document(summary, records, gt, DEMO_THRESHOLDS)))
     _stage(5, "report")
-    report = make_report(output / "localization", queries, num_examples=3, thresholds=DEMO_THRESHOLDS)
+    report = make_report(output / "localization", queries, num_examples=3, thresholds=DEMO_THRESHOLDS, reuse=True)
     print()
     print(format_table(summary))
     print(f"\nreport: {report}\ntotal: {time.perf_counter() - t_start:.0f} s")

@@ -26,7 +26,8 @@ from pipeline.queries import QueryRecord
 from pipeline.results import outcome, read_records, reason_groups
 from pipeline.textfiles import write_atomic
 
-from .report_figures import error_curves, example_figure, natural_key, query_errors, refinement_confidence, top_view
+from .report_figures import (error_curves, example_figure, natural_key, query_errors, refinement_confidence,
+                             threshold_tradeoff, top_view, tradeoff_figure)
 
 METRIC_SOURCES = ("synthetic", "strecha", "7scenes", "posetxt", "kapture")  # map sources in metres
 OUTCOME_ORDER = {"failed": 0, "rejected": 1, "refined": 2}
@@ -75,6 +76,8 @@ def _inputs_digest(output: Path, num_examples: int, thresholds, gt: Dict, units:
     h = hashlib.sha256()
     for name in ("records.jsonl", "job.json"):
         h.update((output / name).read_bytes())
+    for module in ("report.py", "report_figures.py"):  # the code that draws it
+        h.update((Path(__file__).parent / module).read_bytes())
     h.update(json.dumps([pixloc.__version__, num_examples, [list(t) for t in thresholds], units,
                          sorted((k, np.round(v, 9).tolist()) for k, v in gt.items())]).encode())
     return h.hexdigest()[:16]
@@ -166,7 +169,9 @@ td,th{border:1px solid #ccc;padding:3px 6px;text-align:right} th{background:#f2f
 td:first-child,th:first-child,td.text,th[data-type=text]{text-align:left}
 tr.failed td{background:#fde2e2} tr.rejected td{background:#fff3d6}
 th[data-order=asc]::after{content:' \\25B2'} th[data-order=desc]::after{content:' \\25BC'}
-.scroll{max-height:600px;overflow:auto} .note{color:#666;font-size:13px}
+.wide{overflow-x:auto} .note{color:#666;font-size:13px}
+#queries td:first-child{word-break:break-all;min-width:10em;max-width:22em}
+#queries td.text{min-width:14em;text-align:left}
 """
 
 
@@ -261,12 +266,13 @@ def _job_text(job: Dict, reader: MapReader, units: str, records: List[Dict]) -> 
 
 def make_report(output: Path, queries: List[QueryRecord], num_examples: int = 3,
                 thresholds=None, ground_truth: Optional[Dict] = None, units: Optional[str] = None,
-                group_by: Optional[List[str]] = None) -> Path:
+                group_by: Optional[List[str]] = None, reuse: bool = False) -> Path:
     """Write ``output/report.html`` from ``records.jsonl`` (and the run's ``job.json``).
 
     ``ground_truth`` (name -> cam_from_world or None) defaults to the queries' own; ``units``
     to those of the map's source; ``num_examples`` queries per condition (best, median, worst);
-    ``group_by``: the tag families to tabulate (default: ``pipeline.evaluate.shown_families``)."""
+    ``group_by``: the tag families to tabulate (default: ``pipeline.evaluate.shown_families``).
+    ``reuse``: keep a report made from the same inputs and code (a no-op rerun rewrites nothing)."""
     from pipeline.shard import localization_model
 
     output = Path(output)
@@ -276,7 +282,7 @@ def make_report(output: Path, queries: List[QueryRecord], num_examples: int = 3,
     gt = {k: np.asarray(v, np.float64) for k, v in gt.items() if v is not None and np.isfinite(v).all()}
     path = output / "report.html"
     inputs = _inputs_digest(output, num_examples, thresholds, gt, [units, group_by])
-    if path.is_file() and f"<!-- pixloc-report-inputs {inputs} -->" in path.read_text(errors="replace"):
+    if reuse and path.is_file() and f"<!-- pixloc-report-inputs {inputs} -->" in path.read_text(errors="replace"):
         return path  # made from the same records, settings and code: left untouched
     job = json.loads((output / "job.json").read_text())["job"]
     fconf = dict(job["features"])
@@ -300,10 +306,19 @@ def make_report(output: Path, queries: List[QueryRecord], num_examples: int = 3,
                      "dashed.</p>" + accuracy_tables(summary, thresholds, units, group_by))
     else:
         parts.append("<p>No ground truth: accuracy is not evaluated (pass --ground-truth POSES).</p>")
+    curves = threshold_tradeoff(records, gt, thresholds[0]) if gt else None
+    if curves is not None:
+        verification = job["localizer"].get("verification", {})
+        parts.append("<h2 id='threshold'>Verification threshold</h2><p class='note'>What each minimum confidence "
+                     "(<code>--min-confidence</code>) would keep, over the refined queries with ground truth: the "
+                     "fraction of accepted refinements that are right, and of right refinements that are accepted. "
+                     "Rejections of right poses are what the threshold is tuned on.</p>"
+                     + _img(tradeoff_figure(curves, thresholds[0], float(verification.get("min_confidence", 0.5)),
+                                            units), "precision and recall against the minimum confidence"))
     parts.append(f"<h2 id='failures-section'>Failures and rejections</h2>{failure_summary(records)}")
     parts.append(f"<h2 id='queries-section'>Queries</h2><p class='note'>{len(records)} rows: failed (red) and "
                  "rejected (yellow) first, then by error, largest first. Click a header to sort.</p>"
-                 f"<div class='scroll'>{query_table(records, errors, thresholds, units)}</div>")
+                 f"<div class='wide'>{query_table(records, errors, thresholds, units)}</div>")
     parts.append("<h2 id='map'>Top view of the map</h2>"
                  + _img(top_view(reader, records, gt, family, units), "top view"))
     parts.append("<h2 id='examples'>Examples</h2><p class='note'>Points of the query's references projected at the "

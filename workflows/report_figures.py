@@ -299,3 +299,44 @@ def example_figure(record: Dict, why: str, query: QueryRecord, reader: MapReader
     ax.text(0, 1, "evidence\n" + "\n".join(lines), va="top", fontsize=8, family="monospace")
     fig.subplots_adjust(left=0.05, right=0.95, top=0.9, bottom=0.08, wspace=0.3, hspace=0.25)  # tight_layout: 4x slower
     return _png(fig, "jpeg", tight=False)
+
+
+def threshold_tradeoff(records: List[Dict], gt: Dict, threshold: Tuple[float, float]
+                       ) -> Optional[Tuple[np.ndarray, np.ndarray, np.ndarray, int]]:
+    """What a minimum confidence c keeps, over the refined queries with ground truth: (c, precision,
+    recall, right) with precision the fraction of the accepted refinements within ``threshold``
+    (distance, degrees) and recall the fraction of the right refinements accepted; ``right`` is
+    how many are right. None without a refined query that has ground truth."""
+    rows = []
+    for r in records:
+        if r.get("refined") is None or gt.get(r["name"]) is None or r.get("confidence") is None:
+            continue
+        t, R = pose_errors(np.asarray(r["refined"]), gt[r["name"]])
+        rows.append((float(r["confidence"]), t <= threshold[0] and R <= threshold[1]))
+    if not rows:
+        return None
+    conf, right = np.array([c for c, _ in rows]), np.array([g for _, g in rows])
+    cs = np.linspace(0, 1, 101)
+    kept = conf[None, :] >= cs[:, None]
+    n_kept = kept.sum(1)
+    good = (kept & right[None, :]).sum(1)
+    precision = np.where(n_kept > 0, good / np.maximum(n_kept, 1), np.nan)
+    recall = good / right.sum() if right.any() else np.full(len(cs), np.nan)
+    return cs, precision, recall, int(right.sum())
+
+
+def tradeoff_figure(curves, threshold: Tuple[float, float], min_confidence: float, units: str) -> str:
+    """Precision and recall of verification against the minimum confidence, the run's marked."""
+    plt = _plt()
+    cs, precision, recall, right = curves
+    fig, ax = plt.subplots(figsize=(5.5, 3.2))
+    ax.plot(cs, precision, label="precision (accepted that are right)", color="tab:blue")
+    ax.plot(cs, recall, label=f"recall (right that are accepted, of {right})", color="tab:orange")
+    ax.axvline(min_confidence, color="k", ls="--", lw=1, label=f"this run: {min_confidence:g}")
+    ax.set_xlabel("minimum confidence")
+    ax.set_ylim(0, 1.02)
+    ax.set_title(f"right: refined within {threshold[0]:g} {units}, {threshold[1]:g} deg", fontsize=9)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8, loc="lower left")
+    fig.tight_layout()
+    return _png(fig)

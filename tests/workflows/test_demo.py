@@ -92,13 +92,14 @@ def test_the_demo_report_renders_in_chromium(demo, tmp_path_factory, tmp_path):
     console = [line for line in log.splitlines() if "CONSOLE" in line]
     assert not [c for c in console if "Uncaught" in c or "rror" in c], console
     assert "data-ready=\"true\"" in dom  # the table-sorting script ran
-    for section in ("accuracy", "failures-section", "queries", "map", "examples", "family-condition"):
+    for section in ("accuracy", "threshold", "failures-section", "queries", "map", "examples", "family-condition"):
         assert f'id="{section}"' in dom, section
     body = dom[dom.index('<table id="queries"'):]
     body = body[:body.index("</table>")]
     assert len(re.findall(r'<tr class="(?:refined|rejected|failed)">', body)) == len(records)
     images = re.findall(r'src="data:image/(?:png|jpeg);base64,([A-Za-z0-9+/=]+)"', dom)
-    assert len(images) >= 2 + 4 * 2  # curves of all and condition, the top view, and 2 or 3 examples per condition
+    # curves of all and condition, the threshold trade-off, the top view, and 2 or 3 examples per condition
+    assert len(images) >= 3 + 4 * 2
     for data in images:
         with Image.open(io.BytesIO(base64.b64decode(data))) as im:
             assert min(im.size) > 100

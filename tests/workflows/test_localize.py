@@ -201,8 +201,9 @@ def test_html_report(seven_scenes, tmp_path):
     images = re.findall(r'src="data:image/(png|jpeg);base64,([A-Za-z0-9+/=]+)"', page)
     magic = {"png": b"\x89PNG\r\n\x1a\n", "jpeg": b"\xff\xd8\xff"}
     assert all(base64.b64decode(b)[:len(magic[f])] == magic[f] for f, b in images)
-    # curves of 'all' and of the 'sequence' family (two values), and the top view; no curves for 'split' (one value)
-    assert sum(f == "png" for f, _ in images) == 3
+    # curves of 'all' and of the 'sequence' family (two values), the verification threshold's trade-off and the
+    # top view; no curves for 'split' (one value)
+    assert sum(f == "png" for f, _ in images) == 4 and "id='threshold'" in page
     # per sequence the best and the worst query, then failures of other kinds
     assert 4 <= sum(f == "jpeg" for f, _ in images) <= 7
     assert page.count("(sequence=seq-01: best by error)") == 1 and "(sequence=seq-04: worst by error)" in page

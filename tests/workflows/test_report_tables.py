@@ -54,3 +54,19 @@ def test_a_rejected_query_shows_its_refined_error():
     row = table[table.index("<td>q3.jpg</td>"):].split("</tr>")[0]
     values = [float(v) for v in re.findall(r"data-v='([0-9.]+)'>", row)]
     assert values[1:4] == [1.0, 0.0, 0.01]  # outcome rank, then error t (the prior's), R, then refined t
+
+
+def test_the_threshold_tradeoff_counts_right_refinements_kept():
+    """Rejections of right poses are what a user tunes the threshold on (before: no such view)."""
+    from workflows.report_figures import threshold_tradeoff
+    records = []
+    for k, (conf, off) in enumerate([(0.9, 0.01), (0.7, 0.01), (0.6, 3.0), (0.3, 0.01), (0.2, 3.0)]):
+        records.append({"name": f"q{k}", "refined": _moved(off), "confidence": conf, "success": conf >= 0.5,
+                        "prior": _moved(1.0), "reason": ""})
+    cs, precision, recall, right = threshold_tradeoff(records, {r["name"]: T for r in records}, (0.25, 2.0))
+    assert right == 3
+    at = {round(c, 2): (p, r) for c, p, r in zip(cs, precision, recall)}
+    assert at[0.0] == (3 / 5, 1.0)  # everything accepted
+    assert at[0.5] == (2 / 3, 2 / 3)  # the run's default: one wrong kept, one right rejected
+    assert at[0.8] == (1.0, 1 / 3)
+    assert np.isnan(at[1.0][0]) and at[1.0][1] == 0.0  # nothing accepted: precision undefined
