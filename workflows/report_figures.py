@@ -128,9 +128,10 @@ def _up_and_plane(reader: MapReader) -> Tuple[np.ndarray, np.ndarray]:
 
 
 def top_view(reader: MapReader, records: List[Dict], gt: Dict, family: Optional[str], units: str) -> str:
-    """Map points (subsampled), reference cameras, and per query its prior (x), result (o) and
-    ground truth (*), joined by lines; queries coloured by their tag of ``family``. Left: the
-    whole map; right: the region of the cameras."""
+    """Map points (subsampled), reference cameras, and per query its prior (x), result (a filled dot
+    where verified, an open square where the prior is kept) and ground truth (*): prior to result
+    dashed, result to ground truth solid black; queries coloured by their tag of ``family``. Left:
+    the whole map; right: the region of the cameras."""
     plt = _plt()
     from matplotlib.lines import Line2D
     basis, _ = _up_and_plane(reader)
@@ -158,8 +159,10 @@ def top_view(reader: MapReader, records: List[Dict], gt: Dict, family: Optional[
                 ax.plot(*np.stack([res, g]).T, "-", color="k", lw=0.7)
             if prior is not None:
                 ax.scatter(*prior, marker="x", s=22, color=c, lw=1)
-            if res is not None:
-                ax.scatter(*res, marker="o", s=22, color=c, edgecolors="k" if r["success"] else "none", lw=0.6)
+            if res is not None and r["success"]:  # a verified refinement: a filled dot
+                ax.scatter(*res, marker="o", s=24, color=c, edgecolors="k", lw=0.6)
+            elif res is not None:  # no verified refinement: the prior is reported, an open square
+                ax.scatter(*res, marker="s", s=30, facecolors="none", edgecolors=c, lw=1.0)
             if g is not None:
                 ax.scatter(*g, marker="*", s=40, facecolors="none", edgecolors=c, lw=0.8)
     a = np.concatenate(anchor)
@@ -176,9 +179,12 @@ def top_view(reader: MapReader, records: List[Dict], gt: Dict, family: Optional[
         ax.grid(alpha=0.2)
     handles = [Line2D([], [], ls="", marker="^", color="k", label="reference cameras"),
                Line2D([], [], ls="", marker="x", color="0.3", label="prior"),
-               Line2D([], [], ls="", marker="o", color="0.3", markeredgecolor="k", label="result (verified)"),
-               Line2D([], [], ls="", marker="o", color="0.3", label="result (prior kept)"),
-               Line2D([], [], ls="", marker="*", markerfacecolor="none", color="0.3", label="ground truth")]
+               Line2D([], [], ls="", marker="o", color="0.3", markeredgecolor="k", label="result: verified refinement"),
+               Line2D([], [], ls="", marker="s", markerfacecolor="none", color="0.3",
+                      label="result: prior kept (rejected or failed)"),
+               Line2D([], [], ls="", marker="*", markerfacecolor="none", color="0.3", label="ground truth"),
+               Line2D([], [], ls="--", color="0.3", lw=0.8, label="prior to result (the refinement's move)"),
+               Line2D([], [], ls="-", color="k", lw=0.8, label="result to ground truth (the error)")]
     if family:
         handles += [Line2D([], [], ls="", marker="o", color=color[v], label=f"{family}={v}") for v in values]
     fig.legend(handles=handles, loc="center left", bbox_to_anchor=(1.0, 0.5), fontsize=8, frameon=False)
@@ -291,14 +297,41 @@ def example_figure(record: Dict, why: str, query: QueryRecord, reader: MapReader
     ax.grid(alpha=0.3)
     ax = fig.add_subplot(grid[1, 2])
     ax.axis("off")
-    ev = record.get("evidence") or {}
-    lines = [f"{k}: {v:.3g}" for k, v in ev.items() if isinstance(v, (int, float)) and k in (
-        "contrast_3px", "valid", "inliers", "weighted_inliers", "move_t", "move_R", "last_t", "last_R")]
-    lines += [f"points: {record.get('num_points')}", f"references: {', '.join(record['references'][:3])}",
-              f"time: {fmt(record.get('timings', {}).get('total'), '.2f')} s"]
-    ax.text(0, 1, "evidence\n" + "\n".join(lines), va="top", fontsize=8, family="monospace")
+    ax.text(0, 1, evidence_text(record), va="top", fontsize=7.5, family="monospace")
     fig.subplots_adjust(left=0.05, right=0.95, top=0.9, bottom=0.08, wspace=0.3, hspace=0.25)  # tight_layout: 4x slower
     return _png(fig, "jpeg", tight=False)
+
+
+# the verification evidence (pipeline.verify), as a reader would name it: (key, label, value format)
+EVIDENCE_LABELS = (
+    ("confidence", "confidence", "{:.2f}"),
+    ("contrast_3px", "cost lower than 3 px away", "{:.1%}"),
+    ("valid", "points in view", "{:.0%}"),
+    ("inliers", "inliers of the robust cost", "{:.0%}"),
+    ("weighted_inliers", "  weighted by confidence", "{:.0%}"),
+    ("move_t", "moved from the prior", "{:.2f} depths"),
+    ("move_R", "turned from the prior", "{:.1f} deg"),
+    ("last_t", "moved at the finest level", "{:.3f} depths"),
+    ("last_R", "turned at the finest level", "{:.2f} deg"))
+
+
+def evidence_text(record: Dict, width: int = 44) -> str:
+    """The evidence panel of an example: readable names with units, then points, references (one a
+    line, shortened to ``width``) and time; never wider than the panel."""
+    import textwrap
+
+    ev = {**(record.get("evidence") or {}), "confidence": record.get("confidence")}
+    lines = ["evidence"]
+    for key, label, spec in EVIDENCE_LABELS:
+        v = ev.get(key)
+        if isinstance(v, (int, float)) and np.isfinite(v):
+            lines.append(f"{label:<27}{spec.format(v)}")
+    lines.append(f"{'map points':<27}{record.get('num_points')}")
+    lines.append(f"{'time':<27}{fmt(record.get('timings', {}).get('total'), '.2f')} s")
+    lines.append("references")
+    lines += [textwrap.shorten(name, width, placeholder="...") if len(name) <= width else "..." + name[-(width - 3):]
+              for name in record["references"][:3]]
+    return "\n".join(line[:width + 4] for line in lines)
 
 
 def threshold_tradeoff(records: List[Dict], gt: Dict, threshold: Tuple[float, float]

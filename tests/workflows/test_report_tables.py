@@ -70,3 +70,14 @@ def test_the_threshold_tradeoff_counts_right_refinements_kept():
     assert at[0.5] == (2 / 3, 2 / 3)  # the run's default: one wrong kept, one right rejected
     assert at[0.8] == (1.0, 1 / 3)
     assert np.isnan(at[1.0][0]) and at[1.0][1] == 0.0  # nothing accepted: precision undefined
+
+
+def test_the_evidence_panel_names_things_and_fits():
+    """Before: raw keys (contrast_3px, last_R) and references clipped at the panel's edge."""
+    from workflows.report_figures import evidence_text
+    text = evidence_text({"confidence": 0.45, "num_points": 1234, "timings": {"total": 1.2},
+                          "evidence": {"contrast_3px": 0.012, "valid": 0.84, "last_R": 0.05},
+                          "references": ["training/gallery_light1_loop1/frames/rgb/camera_0/rgb_00223.jpg"]})
+    assert "contrast_3px" not in text and "last_R" not in text
+    assert "cost lower than 3 px away  1.2%" in text and "turned at the finest level 0.05 deg" in text
+    assert max(len(line) for line in text.splitlines()) <= 48 and "rgb_00223.jpg" in text
