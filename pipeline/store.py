@@ -403,7 +403,8 @@ def store_fingerprint(path, key: str) -> Dict:
         attrs = root[group].attrs
         h.update(json.dumps([attrs.get("config"), attrs.get("model_digest"), attrs.get("dims")], sort_keys=True,
                             default=str).encode())
-        status = read(root[group], "status", meta)
+        # a finished build's one-chunk copy: the per-image array is one read per image
+        status = read(root[group], "status_all" if consolidated(root[group], meta) else "status", meta)
         pending = int((status == PENDING).sum())
     return {"digest": h.hexdigest()[:16], "features": key, "pending": pending}
 
