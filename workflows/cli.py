@@ -73,8 +73,10 @@ def build_parser() -> argparse.ArgumentParser:
                                               "conditions, evaluate, report."))
 
     from .train import add_arguments as train_arguments
-    train_arguments(sub.add_parser("train", help="train the network end to end (resumable)",
-                                   description="End-to-end training from a YAML config; see workflows/train.py."))
+    train_arguments(sub.add_parser(
+        "train", help="train the network end to end (resumable)",
+        description="End-to-end training from a YAML config (--config: a file, or a packaged config's name), "
+                    "resumable; the model card (docs/model_card.md) says how the shipped model was trained."))
 
     from .evaluate_model import add_arguments as evaluate_model_arguments
     evaluate_model_arguments(sub.add_parser(

@@ -118,8 +118,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--ground-truth", type=Path, help="ground-truth poses file (name qw qx qy qz tx ty tz, "
                    "cam_from_world): the accuracy table is printed after the run")
     p.add_argument("--dry-run", action="store_true", help="print the plan and exit; writes nothing")
-    p.add_argument("--preset", help="dataset preset with the paper's settings (see workflows/presets)")
+    p.add_argument("--preset", help="dataset preset with the paper's settings: " + ", ".join(presets_available()))
     p.set_defaults(func=main)
+
+
+def presets_available():
+    from . import presets
+    return presets.available()
 
 
 def resolve(args: argparse.Namespace, defaults: Dict) -> None:
