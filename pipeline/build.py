@@ -21,9 +21,9 @@ from .features import FeatureConfig, extract_image_features
 from .images import read_image, resize_max, to_tensor
 from .runtime import restore_malloc_thresholds, torch_threads
 from .scene import Scene
-from .feature_groups import (consolidate, consolidated, feature_key, init_features, mark_failed, unconsolidate,
-                             write_image_features)
-from .store import DONE, FAILED, PENDING, create_store, image_records, open_store, read, store_index
+from .feature_groups import consolidate, feature_key, init_features, mark_failed, write_image_features
+from .store import (DONE, FAILED, PENDING, consolidated, create_store, image_records, open_store, read, store_index,
+                    unconsolidate)
 
 logger = logging.getLogger(__name__)
 REFUSED = "refused: "  # reason prefix of images that cannot be used at all (not retried)

@@ -48,6 +48,19 @@ def pose_errors(T: Optional[np.ndarray], T_gt: np.ndarray) -> Tuple[float, float
     return float(dt), float(dR)
 
 
+def record_errors(rec: Optional[Dict], T_gt: np.ndarray) -> Dict[str, Tuple[float, float]]:
+    """(t, R) errors of a record against ground truth: ``result`` (the reported pose: refined where
+    verified, else the prior), ``refined`` (the refinement, verified or not) and ``prior``; inf
+    where there is no such pose (no record, a failure)."""
+    from .results import record_pose
+
+    def err(T):
+        return pose_errors(None if T is None else np.asarray(T, np.float64), T_gt)
+    if rec is None:
+        return {"result": err(None), "refined": err(None), "prior": err(None)}
+    return {"result": err(record_pose(rec)), "refined": err(rec.get("refined")), "prior": err(rec.get("prior"))}
+
+
 def _median(x: np.ndarray) -> Optional[float]:
     return float(np.median(x)) if len(x) else None
 
@@ -91,8 +104,6 @@ def evaluate(records: List[Dict], ground_truth: Dict[str, Optional[np.ndarray]],
     counted in ``no_ground_truth`` of ``all`` and logged. Queries in ``ground_truth`` without a
     record count as queries without a pose.
     """
-    from .results import record_pose
-
     gt, missing = usable_ground_truth(ground_truth)
     if missing:
         logger.warning("%d queries have no ground truth and are not evaluated: %s%s", len(missing),
@@ -102,8 +113,8 @@ def evaluate(records: List[Dict], ground_truth: Dict[str, Optional[np.ndarray]],
     groups["all"]  # always present, first
     for name, T_gt in gt.items():
         rec = by_name.get(name)
-        refined = pose_errors(record_pose(rec) if rec else None, T_gt)
-        prior = pose_errors(np.asarray(rec["prior"]) if rec and rec["prior"] is not None else None, T_gt)
+        e = record_errors(rec, T_gt)
+        refined, prior = e["result"], e["prior"]
         tags = rec.get("tags", {}) if rec else {}
         keys = ["all"] + [f"{k}={v}" for k, v in sorted(tags.items()) if tag_keys is None or k in tag_keys]
         for key in keys:
@@ -140,17 +151,16 @@ def evaluation_document(summary: Dict, records: List[Dict], ground_truth: Dict, 
     ``count``, ``median_t``, ``median_R`` and ``recall@{t}m,{R}deg`` (fractions of all its
     queries). ``result`` is the reported pose: refined where verification accepted it, else the prior.
     """
-    from .results import outcome, record_pose
+    from .results import outcome
 
     gt, _ = usable_ground_truth(ground_truth)
     by_name = {r["name"]: r for r in records}
     queries = []
     for name, T_gt in gt.items():
         rec = by_name.get(name)
-        t, R = pose_errors(record_pose(rec) if rec else None, T_gt)
-        pt, pR = pose_errors(np.asarray(rec["prior"]) if rec and rec.get("prior") is not None else None, T_gt)
+        e = record_errors(rec, T_gt)  # inf where there is no pose: null in the JSON (to_json)
         queries.append({"name": name, "outcome": outcome(rec) if rec else "missing",
-                        "tags": (rec or {}).get("tags", {}), "result": {"t": t, "R": R}, "prior": {"t": pt, "R": pR}})
+                        "tags": (rec or {}).get("tags", {}), **{k: dict(zip("tR", e[k])) for k in ("result", "prior")}})
     return {"version": 2, "thresholds": [list(t) for t in thresholds],
             "no_ground_truth": summary["all"].get("no_ground_truth", 0), "queries": queries,
             "conditions": {key: {"result": s["refined"], "prior": s["prior"]} for key, s in summary.items()}}

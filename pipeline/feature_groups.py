@@ -13,8 +13,8 @@ import zarr
 from .compression import project, quantize_int8
 from .features import FeatureConfig, ImageFeatures
 from .images import file_sha256
-from .store import (DONE, FAILED, PENDING, StoreError, consolidated, get_array, image_rows, new_array,  # noqa: F401
-                    new_rows_array, padded_rows, read, unconsolidate)
+from .store import (DONE, FAILED, PENDING, StoreError, get_array, image_rows, new_array,
+                    new_rows_array, padded_rows, read)
 
 
 def check_feature_group(group: zarr.Group, meta: Dict, path) -> None:

@@ -130,8 +130,11 @@ def read_image(path, *, orientation: bool = True) -> np.ndarray:
     """(H, W, 3) uint8 RGB, fully decoded, with the EXIF orientation applied (``orientation``;
     False keeps the pixels as stored). A missing, empty, oversized, truncated or corrupt file
     raises ImageReadError with the file and the decoder's words."""
-    path = Path(path)
-    header = read_header(path)
+    return _decode(Path(path), read_header(path), orientation)
+
+
+def _decode(path: Path, header: Optional[ImageHeader], orientation: bool) -> np.ndarray:
+    """The full decode of ``read_image``, once the header (None: unknown to PIL) is checked."""
     flags = cv2.IMREAD_COLOR if orientation else cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION
     try:
         data = path.read_bytes()
@@ -196,9 +199,9 @@ def read_image_for(path, camera):
         camera, oriented, note, reason = fit_image(camera, size, stored)
         if reason:
             raise ImageReadError(f"image file {path}: {reason}")
-        rgb = read_image(path, orientation=oriented)
+        rgb = _decode(Path(path), header, oriented)
     else:
-        rgb = read_image(path)
+        rgb = _decode(Path(path), None, True)
         camera, _, note, reason = fit_image(camera, (rgb.shape[1], rgb.shape[0]))
         if reason:
             raise ImageReadError(f"image file {path}: {reason}")

@@ -13,8 +13,8 @@ import numpy as np
 from .compression import dequantize_int8, reconstruct
 from .features import FeatureConfig
 from .scene import CameraRecord
-from .feature_groups import check_feature_group, consolidated, feature_key, pca_bases, stored_dims
-from .store import DONE, FAILED, StoreError, StoreReadError, missing_objects, open_store
+from .feature_groups import check_feature_group, feature_key, pca_bases, stored_dims
+from .store import DONE, FAILED, StoreError, StoreReadError, consolidated, missing_objects, open_store
 from .store import read as store_read
 
 logger = logging.getLogger(__name__)

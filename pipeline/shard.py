@@ -29,7 +29,7 @@ from .results import read_records, result_to_record, write_records
 from .search import Hypotheses, SearchConfig, hypotheses, median_depth, rank_results, screen, solve, top1_first
 from .runtime import restore_malloc_thresholds, torch_threads
 from .store import StoreError
-from .textfiles import InputError, PoseTable, find_by_name, read_pairs, read_poses, write_atomic
+from .textfiles import InputError, NameIndex, PoseTable, find_by_name, read_pairs, read_poses, write_atomic
 
 logger = logging.getLogger(__name__)
 
@@ -179,8 +179,10 @@ def read_poses_file(path: str) -> PoseTable:
 
 
 @functools.lru_cache(maxsize=2)
-def _hloc_logs(path: str) -> Dict[str, PnPLog]:
-    return read_hloc_logs(path)
+def _hloc_logs(path: str) -> Tuple[Dict[str, PnPLog], NameIndex]:
+    """The logs of an hloc ``_logs.pkl`` and their name index, built once per process."""
+    logs = read_hloc_logs(path)
+    return logs, NameIndex(logs, path)
 
 
 def fit_query(query: QueryRecord) -> Tuple[QueryRecord, np.ndarray]:
@@ -280,7 +282,8 @@ def prepare_query(job: LocalizationJob, reader: MapReader, localizer: Localizer,
 def _prepare_hloc(job: LocalizationJob, reader: MapReader, query: QueryRecord, rgb, cache):
     """Refinement mode from hloc's logs (official PoseRefiner): start from the PnP pose, use the
     references that gave the most inliers, optionally only the inlier points."""
-    log = find_by_name(_hloc_logs(job.hloc_logs), query.name)
+    logs, index = _hloc_logs(job.hloc_logs)
+    log = find_by_name(logs, query.name, index)
     if log is None:
         return _failure(query, f"no hloc log for this query in {job.hloc_logs}")
     if not log.success:

@@ -14,8 +14,9 @@ from typing import Callable, Dict, List, Optional
 import numpy as np
 import zarr
 
-from .feature_groups import check_feature_group, consolidated, unconsolidate
-from .store import DONE, FAILED, PENDING, StoreError, image_row_arrays, missing_objects, open_store, read
+from .feature_groups import check_feature_group
+from .store import (DONE, FAILED, PENDING, StoreError, consolidated, image_row_arrays, missing_objects, open_store,
+                    read, unconsolidate)
 
 
 @dataclass

@@ -128,10 +128,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         os.environ[MAX_PIXELS_ENV] = str(args.max_image_pixels)  # inherited by local Dask workers
     try:
         return args.func(args)
-    except KeyboardInterrupt:
-        # finished shards and images are on disk; the workers' teardown is not the user's concern
-        for noisy in ("distributed", "tornado", "asyncio"):
-            logging.getLogger(noisy).setLevel(logging.CRITICAL)
+    except KeyboardInterrupt:  # finished shards and images are on disk (executor.dask_client quiets Dask's teardown)
         print("pixloc: interrupted; run the same command again to resume", file=sys.stderr)
         return 130
     except (ValueError, OSError) as e:  # bad input: SceneError, StoreError, CheckpointError, missing files

@@ -186,7 +186,7 @@ def main(args: argparse.Namespace) -> int:
     if problem:
         raise ValueError(problem[0].upper() + problem[1:] + ".")
     plan.pose_names = args.pose_names
-    plan.thresholds = thresholds_of(argparse.Namespace(thresholds=None, preset=args.preset, indoor=False))
+    plan.thresholds = preset_thresholds(args.preset)
     print(plan.describe())
     if not args.dry_run:
         from .logs import to_file
@@ -265,22 +265,30 @@ def add_threshold_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--preset", help="take the dataset preset's thresholds")
 
 
-def thresholds_of(args: argparse.Namespace, run: Optional[Path] = None):
-    """--thresholds, else the preset's, else --indoor's, else those the run in folder ``run``
-    recorded in its job.json (the preset it ran with), else the defaults."""
+def thresholds_of(args: argparse.Namespace, recorded=None):
+    """--thresholds, else the preset's, else --indoor's, else ``recorded`` (those the run recorded
+    in its job.json: ``recorded_job``), else the defaults."""
     if args.thresholds:
         return parse_thresholds(args.thresholds)
     if args.preset:
-        from . import presets
-        return tuple(tuple(t) for t in presets.load(args.preset)["thresholds"])
+        return preset_thresholds(args.preset)
     if args.indoor:
         return INDOOR_THRESHOLDS
-    job = Path(run) / "job.json" if run is not None else None
-    if job is not None and job.is_file():
-        recorded = read_json(job, "job file").get("thresholds")
-        if recorded:
-            return tuple(tuple(float(x) for x in t) for t in recorded)
-    return DEFAULT_THRESHOLDS
+    return tuple(tuple(float(x) for x in t) for t in recorded) if recorded else DEFAULT_THRESHOLDS
+
+
+def preset_thresholds(preset: Optional[str]):
+    """A dataset preset's recall thresholds (the defaults without one)."""
+    if not preset:
+        return DEFAULT_THRESHOLDS
+    from . import presets
+    return tuple(tuple(t) for t in presets.load(preset)["thresholds"])
+
+
+def recorded_job(output: Path) -> Dict:
+    """The job.json of a localize output folder ({} where there is none)."""
+    path = Path(output) / "job.json"
+    return read_json(path, "job file") if path.is_file() else {}
 
 
 def ground_truth(args: argparse.Namespace, queries) -> Dict[str, Optional[np.ndarray]]:
@@ -299,11 +307,11 @@ def evaluate_main(args: argparse.Namespace) -> int:
     if all(T is None for T in gt.values()):
         raise ValueError("These queries have no ground truth to evaluate against: pass --ground-truth POSES.")
     records = read_records(args.output / "records.jsonl")
-    thresholds = thresholds_of(args, args.output)
+    run = recorded_job(args.output)
+    thresholds = thresholds_of(args, run.get("thresholds"))
     summary = evaluate(records, gt, thresholds)
     write_atomic(args.output / "evaluation.json", to_json(evaluation_document(summary, records, gt, thresholds)))
-    job = read_json(args.output / "job.json", "job file") if (args.output / "job.json").is_file() else {}
-    print(format_summary(summary, store_units(job["job"]["store"]) if "job" in job else "m"))
+    print(format_summary(summary, store_units(run["job"]["store"]) if "job" in run else "m"))
     return 0
 
 
@@ -363,7 +371,9 @@ def report_main(args: argparse.Namespace) -> int:
     from .report import make_report
     queries = _load_queries(args)
     gt = ground_truth(args, queries)
-    path = make_report(absolute(args.output), queries, args.examples, thresholds_of(args, args.output), ground_truth=gt,
-                       units=args.units, group_by=args.group_by)
+    output = absolute(args.output)
+    thresholds = thresholds_of(args, recorded_job(output).get("thresholds"))
+    path = make_report(output, queries, args.examples, thresholds, ground_truth=gt, units=args.units,
+                       group_by=args.group_by)
     print(f"report: {path}")
     return 0

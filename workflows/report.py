@@ -69,7 +69,7 @@ TEXT_COLUMNS = ("query", "tags", "outcome", "reason", "references")
 
 def _inputs_digest(output: Path, num_examples: int, thresholds, gt: Dict, units: Optional[str]) -> str:
     """A digest of what a report is made of: the run's records and job, the settings, the ground
-    truth and this package's version."""
+    truth, and the code that draws it."""
     import hashlib
 
     import pixloc
@@ -88,8 +88,9 @@ def _count(n: int, one: str, many: str) -> str:
 
 
 def counts_text(records: List[Dict]) -> str:
-    """'20 queries: 16 refined and verified, 3 rejected by verification, 1 failed. 3 of those
-    without a verified pose report their prior; 1 has none.' (each part only where it applies)."""
+    """'20 queries: 16 refined and verified, 3 rejected by verification, 1 failed. Of the 4 queries
+    without a verified pose, 3 report their prior and 1 has no pose.' (the last sentence where it
+    applies)."""
     by = {o: sum(outcome(r) == o for r in records) for o in OUTCOME_ORDER}
     text = (f"{_count(len(records), 'query', 'queries')}: <b>{by['refined']} refined</b> and verified, "
             f"{by['rejected']} rejected by verification, {by['failed']} failed.")

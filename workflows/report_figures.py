@@ -10,7 +10,7 @@ from typing import Dict, List, Optional, Sequence, Tuple
 import numpy as np
 import torch
 
-from pipeline.evaluate import fmt, pose_errors
+from pipeline.evaluate import fmt, pose_errors, record_errors
 from pipeline.map_reader import MapReader
 from pipeline.queries import QueryRecord
 from pipeline.results import REJECTED, outcome, record_pose
@@ -92,16 +92,15 @@ def _centre(T) -> np.ndarray:
 
 
 def query_errors(rec: Optional[Dict], T_gt) -> Dict[str, Optional[float]]:
-    """Errors of the result and of the prior against ground truth (None without one)."""
-    if rec is None or T_gt is None:
-        return {"t": None, "R": None, "refined_t": None, "refined_R": None, "prior_t": None, "prior_R": None}
-    t, R = pose_errors(record_pose(rec), T_gt)
-    rt, rR = pose_errors(np.asarray(rec["refined"]) if rec.get("refined") is not None else None, T_gt)
-    pt, pR = pose_errors(np.asarray(rec["prior"]) if rec["prior"] is not None else None, T_gt)
+    """The errors of ``pipeline.evaluate.record_errors`` as table cells: ``t``, ``R`` (the result),
+    ``refined_t``, ``refined_R``, ``prior_t``, ``prior_R``; None where undefined."""
+    if T_gt is None:
+        return {k: None for k in ("t", "R", "refined_t", "refined_R", "prior_t", "prior_R")}
     clean = (lambda x: x if np.isfinite(x) else None)
-    # result: the reported pose; refined: the refinement whether or not verification accepted it
-    return {"t": clean(t), "R": clean(R), "refined_t": clean(rt), "refined_R": clean(rR), "prior_t": clean(pt),
-            "prior_R": clean(pR)}
+    e = record_errors(rec, T_gt)
+    return {f"{prefix}{axis}": clean(value) for which, prefix in (("result", ""), ("refined", "refined_"),
+                                                                  ("prior", "prior_"))
+            for axis, value in zip("tR", e[which])}
 
 
 def refinement_confidence(rec: Dict) -> Optional[float]:
@@ -344,7 +343,7 @@ def threshold_tradeoff(records: List[Dict], gt: Dict, threshold: Tuple[float, fl
     for r in records:
         if r.get("refined") is None or gt.get(r["name"]) is None or r.get("confidence") is None:
             continue
-        t, R = pose_errors(np.asarray(r["refined"]), gt[r["name"]])
+        t, R = record_errors(r, gt[r["name"]])["refined"]
         rows.append((float(r["confidence"]), t <= threshold[0] and R <= threshold[1]))
     if not rows:
         return None

@@ -277,7 +277,7 @@ def test_a_finished_build_is_consolidated_for_fast_opening(built, maupertuis, tm
     """Per-image status and global arrays are copied into one chunk each when a build finishes
     (6,697 one-image chunks took 3.4 s each to read at open); a new build or an add undoes it."""
     from pipeline.map_reader import MapReader
-    from pipeline.feature_groups import consolidated
+    from pipeline.store import consolidated
     path, _ = built
     root = open_store(path)
     group = root[f"features/{feature_key(CONF)}"]

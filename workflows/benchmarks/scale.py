@@ -351,7 +351,8 @@ def store_at_scale(args: argparse.Namespace) -> int:
         root = open_store(store)
         assert root.attrs["pixloc_map"]["num_images"] == counts["images"], "--reuse: another size"
         num_obs, gen_s, built = root["images/num_obs"][:], float("nan"), None
-        from pipeline.feature_groups import consolidate, consolidated
+        from pipeline.feature_groups import consolidate
+        from pipeline.store import consolidated
         group = root[f"features/{next(iter(root['features'].group_keys()))}"]
         if not consolidated(group, root.attrs["pixloc_map"]):
             consolidate(open_store(store, mode="r+"), open_store(store, mode="r+")[group.path])

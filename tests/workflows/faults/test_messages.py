@@ -128,14 +128,15 @@ def test_evaluate_and_report_take_the_thresholds_the_run_used(cli_run, tmp_path)
     import argparse
     import json
 
-    from workflows.cli_localize import thresholds_of
+    from workflows.cli_localize import recorded_job, thresholds_of
     job = json.loads((cli_run.output / "job.json").read_text())
     assert job["thresholds"] == [[0.25, 2.0], [0.5, 5.0], [5.0, 10.0]]  # no preset: the defaults, recorded
     job["thresholds"] = [[0.05, 5.0]]  # as a run with the 7scenes preset records them
     (tmp_path / "job.json").write_text(json.dumps(job))
     none = argparse.Namespace(thresholds=None, preset=None, indoor=False)
-    assert thresholds_of(none, tmp_path) == ((0.05, 5.0),)
-    assert thresholds_of(argparse.Namespace(thresholds=["0.1,1"], preset=None, indoor=False), tmp_path) == ((0.1, 1.0),)
+    recorded = recorded_job(tmp_path).get("thresholds")
+    assert thresholds_of(none, recorded) == ((0.05, 5.0),)
+    assert thresholds_of(argparse.Namespace(thresholds=["0.1,1"], preset=None, indoor=False), recorded) == ((0.1, 1.0),)
 
 
 def test_each_query_is_timed_on_its_own(stairs, tmp_path):
