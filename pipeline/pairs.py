@@ -12,16 +12,18 @@ Above ``exhaustive_below`` images the ``auto`` method picks a scalable one:
   similarity of global descriptors (GeM of the network's coarsest features).
 - ``file``: an hloc pairs file (``name0 name1`` per line), as given.
 
-Pairs are written to ``pairs.txt`` in the work folder, so a user can see what was matched.
+Pairs are written to ``pairs.txt`` in the work folder, so a user can see what was matched
+(all of them but ``sequential``'s, which COLMAP chooses).
 """
 
 import logging
 from dataclasses import dataclass
 from pathlib import Path
-from typing import List, Optional, Sequence, Tuple
+from typing import Callable, List, Optional, Sequence, Tuple
 
 import numpy as np
 
+from .progress import Silent, database_rows, watching
 from .regions import camera_centres
 
 logger = logging.getLogger(__name__)
@@ -68,6 +70,11 @@ def _unique(pairs) -> List[Pair]:
             seen.add(key)
             out.append(key)
     return out
+
+
+def exhaustive_pairs(names: Sequence[str]) -> List[Pair]:
+    """Every pair of images, once."""
+    return [(a, b) for i, a in enumerate(names) for b in names[i + 1:]]
 
 
 def spatial_pairs(names: Sequence[str], cam_from_world: Sequence[np.ndarray], num_neighbors: int = 10,
@@ -147,22 +154,25 @@ def image_descriptors(paths: Sequence[Path], model: str, resize: int = 320) -> n
 
 def match(database: Path, names: Sequence[str], conf: PairsConfig, work_dir: Path, *,
           cam_from_world: Optional[Sequence[np.ndarray]] = None, image_dir: Optional[Path] = None,
-          model: Optional[str] = None) -> str:
-    """Match the features in ``database`` over the pairs of ``conf``; returns the method used."""
+          model: Optional[str] = None, progress: Callable = Silent) -> str:
+    """Match the features in ``database`` over the pairs of ``conf``; returns the method used.
+    ``progress(total, desc, unit)`` counts the pairs matched (``pipeline.progress.Progress`` on
+    a terminal)."""
     import pycolmap
     method = conf.resolve(len(names), cam_from_world is not None)
     cpu = pycolmap.Device.cpu
-    if method == "exhaustive":
-        pycolmap.match_exhaustive(database, device=cpu)
-        logger.info("Matched %d images exhaustively (%d pairs).", len(names), len(names) * (len(names) - 1) // 2)
-        return method
-    if method == "sequential":
-        options = pycolmap.SequentialPairingOptions()
-        options.overlap = conf.overlap
-        pycolmap.match_sequential(database, pairing_options=options, device=cpu)
+    if method == "sequential":  # COLMAP's choice: the next ``overlap`` and those 2**k ahead
+        total = sum(min(conf.overlap, len(names) - 1 - i) for i in range(len(names)))
+        with progress(total, "SIFT matching", "pair") as counter, \
+                watching(database_rows(database, "two_view_geometries"), counter):
+            options = pycolmap.SequentialPairingOptions()
+            options.overlap = conf.overlap
+            pycolmap.match_sequential(database, pairing_options=options, device=cpu)
         logger.info("Matched %d images sequentially (overlap %d).", len(names), conf.overlap)
         return method
-    if method == "spatial":
+    if method == "exhaustive":
+        pairs = exhaustive_pairs(names)
+    elif method == "spatial":
         if cam_from_world is None:
             raise ValueError("Pairs method 'spatial' needs known poses; use 'retrieval' or 'sequential'.")
         pairs = spatial_pairs(names, cam_from_world, conf.num_neighbors, conf.max_angle)
@@ -176,6 +186,8 @@ def match(database: Path, names: Sequence[str], conf: PairsConfig, work_dir: Pat
     path = write_pairs(pairs, Path(work_dir) / "pairs.txt")
     options = pycolmap.ImportedPairingOptions()
     options.match_list_path = str(path)
-    pycolmap.match_image_pairs(database, pairing_options=options, device=cpu)
+    with progress(len(pairs), "SIFT matching", "pair") as counter, \
+            watching(database_rows(database, "two_view_geometries"), counter):
+        pycolmap.match_image_pairs(database, pairing_options=options, device=cpu)
     logger.info("Matched %d pairs of %d images (%s, listed in %s).", len(pairs), len(names), method, path)
     return method

@@ -105,7 +105,7 @@ def run_sync(plan: BuildPlan, progress: bool = False) -> List[ImageResult]:
 def _progress(batches: List[List[int]], progress: bool):
     if not progress or not batches:
         return contextlib.nullcontext(None)
-    from .progress import Progress
+    from pipeline.progress import Progress
     return Progress(sum(len(b) for b in batches), "features", "image")
 
 

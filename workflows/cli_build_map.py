@@ -30,6 +30,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--rgbd-points", choices=["tsdf", "frames"], default="tsdf",
                    help="RGB-D sources: map points from a TSDF fusion of the depth maps, or from each frame's depth")
     p.add_argument("--densify", action="store_true", help="move SfM points onto the depth maps")
+    p.add_argument("--hold-out", nargs="+", default=[], metavar="NAME",
+                   help="images to leave out of the map, e.g. the queries of a held-out split (SfM and "
+                        "triangulation never see them)")
     p.add_argument("--intrinsics", type=float, nargs=4, default=[], metavar=("FX", "FY", "CX", "CY"),
                    help="posetxt: pinhole intrinsics of colour and depth (COLMAP convention)")
     p.add_argument("--depth-scale", type=float, default=1e-3, help="posetxt: depth units to scene units")
@@ -84,7 +87,8 @@ def main(args: argparse.Namespace) -> int:
     model = str(absolute(args.model)) if Path(args.model).suffix else args.model
     store = absolute(args.store)
     source = MapSource(args.kind, absolute(args.path), absolute(args.images), tuple(args.sequences),
-                       args.rgbd_points, args.densify, tuple(args.intrinsics), args.depth_scale, args.depth_ext)
+                       args.rgbd_points, args.densify, tuple(args.intrinsics), args.depth_scale, args.depth_ext,
+                       tuple(args.hold_out))
     conf = FeatureConfig(model, args.resize, tuple(args.image_scales), args.pad, args.dtype, args.descriptor,
                          args.pca)
     pairs = PairsConfig("file" if args.pairs_file and args.pairs == "auto" else args.pairs,
@@ -104,7 +108,8 @@ def main(args: argparse.Namespace) -> int:
         log = to_file(work_dir / "build-map.log")
         colmap_to_file(work_dir)
         print(f"log            {log} (COLMAP's in {work_dir}/colmap.INFO.*)")
-        scene = load_scene(source, work_dir, pairs)
+        from pipeline.progress import Progress
+        scene = load_scene(source, work_dir, pairs, progress=Progress)
         plan = plan_build(scene, store, conf, batch_size=args.batch_size, device=args.device,
                           chunk_rows=args.chunk_rows, shard_rows=args.shard_rows, source=source.to_dict(),
                           overwrite=args.overwrite)

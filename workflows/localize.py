@@ -352,7 +352,7 @@ def _calls(plan: LocalizationPlan):
 def _progress(plan: LocalizationPlan, progress: bool):
     if not progress or not plan.todo:
         return contextlib.nullcontext(None)
-    from .progress import Progress
+    from pipeline.progress import Progress
     return Progress(plan.counts()["to_run"], "localize", "query", "queries")
 
 

@@ -3,15 +3,16 @@
 import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import List, Optional, Tuple
+from typing import Callable, List, Optional, Sequence, Tuple
 
 import numpy as np
 
 from pipeline.depth import densify, rgbd_scene
 from pipeline.pairs import PairsConfig
+from pipeline.progress import Silent
 from pipeline.queries import QueryRecord, read_queries_with_intrinsics
 from pipeline.scene import name_problem
-from pipeline.readers.colmap import read_colmap, run_sfm, triangulate_known_poses
+from pipeline.readers.colmap import image_names, read_colmap, run_sfm, triangulate_known_poses
 from pipeline.readers.kapture import read_kapture
 from pipeline.images import read_image
 from pipeline.readers.rgbd import read_7scenes, read_pose_txt
@@ -31,6 +32,8 @@ class MapSource:
     ``posetxt`` (``color/``, ``depth/``, ``pose.txt``; needs ``intrinsics`` =
     (fx, fy, cx, cy) in COLMAP convention, ``depth_scale`` and ``depth_ext``).
     rgbd_points: ``tsdf`` or ``frames``. densify: move SfM points onto depth.
+    hold_out: image names left out of the map (queries of a held-out split): SfM and
+    triangulation never see them; a COLMAP model or RGB-D map drops their observations.
     """
 
     kind: str
@@ -42,18 +45,20 @@ class MapSource:
     intrinsics: Tuple[float, ...] = field(default_factory=tuple)
     depth_scale: float = 1e-3
     depth_ext: str = ".png"
+    hold_out: Tuple[str, ...] = field(default_factory=tuple)
 
     def to_dict(self):
-        return {"kind": self.kind, "path": str(self.path), "images": str(self.images) if self.images else None,
-                "sequences": list(self.sequences), "rgbd_points": self.rgbd_points, "densify": self.densify,
-                "intrinsics": list(self.intrinsics), "depth_scale": self.depth_scale, "depth_ext": self.depth_ext}
+        out = {"kind": self.kind, "path": str(self.path), "images": str(self.images) if self.images else None,
+               "sequences": list(self.sequences), "rgbd_points": self.rgbd_points, "densify": self.densify,
+               "intrinsics": list(self.intrinsics), "depth_scale": self.depth_scale, "depth_ext": self.depth_ext}
+        return {**out, "hold_out": list(self.hold_out)} if self.hold_out else out  # as stores without it recorded
 
 
 # the MapSource fields each kind reads (the plan shows those, not depth settings for Strecha)
-SOURCE_FIELDS = {"colmap": ("path", "images", "densify"), "sfm": ("path", "densify"),
-                 "strecha": ("path", "densify"), "kapture": ("path", "densify"),
-                 "7scenes": ("path", "sequences", "rgbd_points"),
-                 "posetxt": ("path", "intrinsics", "depth_scale", "depth_ext", "rgbd_points")}
+SOURCE_FIELDS = {"colmap": ("path", "images", "densify", "hold_out"), "sfm": ("path", "densify", "hold_out"),
+                 "strecha": ("path", "densify", "hold_out"), "kapture": ("path", "densify", "hold_out"),
+                 "7scenes": ("path", "sequences", "rgbd_points", "hold_out"),
+                 "posetxt": ("path", "intrinsics", "depth_scale", "depth_ext", "rgbd_points", "hold_out")}
 
 
 def describe_source(source: dict) -> str:
@@ -68,33 +73,54 @@ def describe_source(source: dict) -> str:
     return " ".join(parts[:2]) if len(parts) == 2 else f"{parts[0]} {parts[1]} ({', '.join(parts[2:])})"
 
 
-def load_scene(source: MapSource, work_dir: Path, pairs: PairsConfig = PairsConfig()) -> Scene:
-    """The Scene of ``source``; SfM and triangulation write their COLMAP files under ``work_dir``
-    and match the image pairs of ``pairs``."""
+def kept(names: Sequence[str], hold_out: Sequence[str]) -> List[bool]:
+    """Which of ``names`` stay in the map; a held-out name that is none of them is an error (a
+    typo would otherwise put the query in the map it is evaluated against)."""
+    unknown = sorted(set(hold_out) - set(names))
+    if unknown:
+        raise ValueError(f"--hold-out: {', '.join(unknown[:5])} {'is' if len(unknown) == 1 else 'are'} not among "
+                         f"the source's {len(names)} images (e.g. {', '.join(sorted(names)[:3])}).")
+    held = set(hold_out)
+    return [n not in held for n in names]
+
+
+def load_scene(source: MapSource, work_dir: Path, pairs: PairsConfig = PairsConfig(),
+               progress: Callable = Silent) -> Scene:
+    """The Scene of ``source`` without its held-out images; SfM and triangulation write their
+    COLMAP files under ``work_dir``, match the image pairs of ``pairs`` and count images and
+    pairs with ``progress``."""
     path = Path(source.path)
+
+    def posed(images):  # reconstructed without the held-out images
+        return [im for im, keep in zip(images, kept([im.name for im in images], source.hold_out)) if keep]
     if source.kind == "colmap":
         scene = read_colmap(path, source.images or path.parent / "images")
     elif source.kind == "sfm":
-        scene = run_sfm(path, work_dir / "sfm", pairs=pairs)
+        names = image_names(path)
+        scene = run_sfm(path, work_dir / "sfm", [n for n, k in zip(names, kept(names, source.hold_out)) if k],
+                        pairs=pairs, progress=progress)
     elif source.kind == "strecha":
-        scene = triangulate_known_poses(read_strecha(path), path / "images", work_dir / "triangulation",
-                                        pairs=pairs)
+        scene = triangulate_known_poses(posed(read_strecha(path)), path / "images", work_dir / "triangulation",
+                                        pairs=pairs, progress=progress)
     elif source.kind == "kapture":
-        scene = triangulate_known_poses(read_kapture(path), path / "sensors" / "records_data",
-                                        work_dir / "triangulation", pairs=pairs)
+        scene = triangulate_known_poses(posed(read_kapture(path)), path / "sensors" / "records_data",
+                                        work_dir / "triangulation", pairs=pairs, progress=progress)
     elif source.kind == "7scenes":
         if not source.sequences:
             raise ValueError("A 7scenes source needs --sequences (e.g. 2 3, the official training split).")
-        scene = rgbd_scene(read_7scenes(path, source.sequences), method=source.rgbd_points)
+        scene = rgbd_scene(posed(read_7scenes(path, source.sequences)), method=source.rgbd_points)
     elif source.kind == "posetxt":
         if len(source.intrinsics) != 4:
             raise ValueError("A posetxt source needs --intrinsics FX FY CX CY (COLMAP convention).")
         width, height = read_image(next((path / "color").iterdir())).shape[1::-1]
         camera = CameraRecord("PINHOLE", width, height, tuple(source.intrinsics))
         images = read_pose_txt(path, camera, source.depth_scale, source.depth_ext)
-        scene = rgbd_scene(images, method=source.rgbd_points)
+        scene = rgbd_scene(posed(images), method=source.rgbd_points)
     else:
         raise ValueError(f"Unknown map source {source.kind!r}; known: {', '.join(KINDS)}.")
+    if source.kind == "colmap" and source.hold_out:
+        keep = kept([im.name for im in scene.images], source.hold_out)
+        scene = scene.subset([i for i, k in enumerate(keep) if k])
     return densify(scene) if source.densify else scene
 
 

@@ -5,7 +5,7 @@ import logging
 import time
 from dataclasses import asdict
 from pathlib import Path
-from typing import Dict, List, Optional, Sequence
+from typing import Callable, Dict, List, Optional, Sequence
 
 import numpy as np
 import pycolmap
@@ -14,6 +14,7 @@ from pixloc.nets.registry import DEFAULT_MODEL
 
 from ..images import file_sha256
 from ..pairs import PairsConfig, match
+from ..progress import Silent, database_rows, watching
 from ..scene import CameraRecord, ImageRecord, Scene, SceneError
 
 logger = logging.getLogger(__name__)
@@ -61,17 +62,20 @@ def read_colmap(model_dir, image_dir, tags=None) -> Scene:
 def _extract_and_match(database: Path, image_dir: Path, names: Sequence[str], pairs: PairsConfig,
                        cameras: Optional[Sequence[CameraRecord]] = None,
                        cam_from_world: Optional[Sequence[np.ndarray]] = None,
-                       timings: Optional[Dict[str, float]] = None) -> None:
+                       timings: Optional[Dict[str, float]] = None, progress: Callable = Silent) -> None:
     """SIFT features, and matches over the pairs of ``pairs``, into ``database``; known
-    intrinsics if given; the seconds of each (``sift``, ``matching``) into ``timings``."""
+    intrinsics if given; the seconds of each (``sift``, ``matching``) into ``timings``; images
+    and pairs counted by ``progress(total, desc, unit)``."""
     timings = {} if timings is None else timings
     t0 = time.perf_counter()
     options = pycolmap.ImageReaderOptions()
     if cameras is not None:
         options.camera_model = "PINHOLE"
-    pycolmap.extract_features(database, image_dir, image_names=list(names),
-                              camera_mode=pycolmap.CameraMode.PER_IMAGE, reader_options=options,
-                              device=pycolmap.Device.cpu)
+    with progress(len(names), "SIFT features", "image") as counter, \
+            watching(database_rows(database, "keypoints"), counter):
+        pycolmap.extract_features(database, image_dir, image_names=list(names),
+                                  camera_mode=pycolmap.CameraMode.PER_IMAGE, reader_options=options,
+                                  device=pycolmap.Device.cpu)
     if cameras is not None:
         by_name = dict(zip(names, cameras))
         with pycolmap.Database.open(database) as db:
@@ -86,7 +90,7 @@ def _extract_and_match(database: Path, image_dir: Path, names: Sequence[str], pa
     timings["sift"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     match(database, names, pairs, database.parent, cam_from_world=cam_from_world, image_dir=image_dir,
-          model=DEFAULT_MODEL)
+          model=DEFAULT_MODEL, progress=progress)
     timings["matching"] = time.perf_counter() - t0
 
 
@@ -154,17 +158,22 @@ def _finish(rec: pycolmap.Reconstruction, work_dir: Path, marker: str, model: st
     return pycolmap.Reconstruction(str(work_dir / model))
 
 
+def image_names(image_dir: Path) -> List[str]:
+    """The JPEG and PNG files directly in ``image_dir``, sorted: the images SfM reconstructs."""
+    return sorted(p.name for p in Path(image_dir).iterdir() if p.suffix.lower() in {".jpg", ".jpeg", ".png"})
+
+
 def run_sfm(image_dir, work_dir, names: Optional[Sequence[str]] = None, tags=None,
-            pairs: PairsConfig = PairsConfig()) -> Scene:
-    """Structure-from-motion with pycolmap (SIFT, matching of ``pairs``, incremental mapping).
+            pairs: PairsConfig = PairsConfig(), progress: Callable = Silent) -> Scene:
+    """Structure-from-motion with pycolmap (SIFT, matching of ``pairs``, incremental mapping);
+    images, pairs and the mapping counted by ``progress(total, desc, unit)``.
 
     Keeps the largest model; images it could not register are left out and logged. A model
     finished in ``work_dir`` from the same images is reused.
     """
     image_dir, work_dir = Path(image_dir), Path(work_dir)
     work_dir.mkdir(parents=True, exist_ok=True)
-    names = sorted(p.name for p in image_dir.iterdir() if p.suffix.lower() in {".jpg", ".jpeg", ".png"}) \
-        if names is None else list(names)
+    names = image_names(image_dir) if names is None else list(names)
     fingerprint = images_fingerprint(image_dir, names, kind="sfm", **_pairs_fingerprint(pairs, len(names), False))
     rec = cached_model(work_dir, "sfm.json", "model", fingerprint, image_dir)
     if rec is not None:
@@ -173,11 +182,16 @@ def run_sfm(image_dir, work_dir, names: Optional[Sequence[str]] = None, tags=Non
     database = work_dir / "database.db"
     if database.exists():
         database.unlink()
-    _extract_and_match(database, image_dir, names, pairs)
+    _extract_and_match(database, image_dir, names, pairs, progress=progress)
     options = pycolmap.IncrementalPipelineOptions()
     options.random_seed = 0
     options.num_threads = 2
-    models = pycolmap.incremental_mapping(database, image_dir, work_dir / "sparse", options=options)
+    with progress(len(names), "SfM registration", "image") as counter:
+        def registered(n: int) -> None:  # the initial pair, then one image at a time (any model)
+            counter.update(max(0, min(n, counter.total - counter.done)))
+        models = pycolmap.incremental_mapping(database, image_dir, work_dir / "sparse", options=options,
+                                              initial_image_pair_callback=lambda: registered(2),
+                                              next_image_callback=lambda: registered(1))
     if not models:
         raise SceneError(
             f"SfM could not reconstruct any model from {len(names)} images in {image_dir}: no initial image pair "
@@ -194,7 +208,8 @@ def run_sfm(image_dir, work_dir, names: Optional[Sequence[str]] = None, tags=Non
 
 def triangulate_known_poses(images: List[ImageRecord], image_root, work_dir, *,
                             min_track_length: int = 2, max_reprojection_error: float = 2.0,
-                            pairs: PairsConfig = PairsConfig(), timings: Optional[Dict[str, float]] = None) -> Scene:
+                            pairs: PairsConfig = PairsConfig(), timings: Optional[Dict[str, float]] = None,
+                            progress: Callable = Silent) -> Scene:
     """Extract and match SIFT (over ``pairs``: exhaustive for small maps, nearby cameras with
     overlapping views above that), then triangulate with the given poses and intrinsics held fixed.
 
@@ -222,7 +237,7 @@ def triangulate_known_poses(images: List[ImageRecord], image_root, work_dir, *,
         database.unlink()
     stages = {} if timings is None else timings
     _extract_and_match(database, image_root, names, pairs, [im.camera for im in images],
-                       [im.cam_from_world for im in images], stages)
+                       [im.cam_from_world for im in images], stages, progress)
     t0 = time.perf_counter()
     rec = pycolmap.Reconstruction()
     with pycolmap.Database.open(database) as db:
@@ -230,7 +245,9 @@ def triangulate_known_poses(images: List[ImageRecord], image_root, work_dir, *,
             rec.add_camera_with_trivial_rig(db.read_camera(image.camera_id))
             new = pycolmap.Image(name=image.name, camera_id=image.camera_id, image_id=image.image_id)
             rec.add_image_with_trivial_frame(new, pycolmap.Rigid3d(by_name[image.name].cam_from_world))
-    rec = pycolmap.triangulate_points(rec, database, image_root, work_dir / "triangulated")
+    with progress(1, "triangulation", "model") as counter:
+        rec = pycolmap.triangulate_points(rec, database, image_root, work_dir / "triangulated")
+        counter.update()
     for pid, point in list(rec.points3D.items()):
         if point.track.length() < min_track_length or point.error > max_reprojection_error:
             rec.delete_point3D(pid)

@@ -8,6 +8,7 @@ import torch
 from pipeline.build import build_map
 from pipeline.depth import depth_camera, load_depth, to_camera_frame, densify, rgbd_scene
 from pipeline.pairs import PairsConfig
+from pipeline.progress import Silent
 from pipeline.readers.colmap import (cached_model, images_fingerprint, legacy_fingerprint, read_colmap, run_sfm,
                                      triangulate_known_poses)
 from pipeline.readers.kapture import read_kapture
@@ -97,9 +98,33 @@ def test_kapture_rig_poses(shared, tmp_path):
     assert len(scene.points) > 3000 and np.median(reprojection_errors(scene)) < 1.0
 
 
+class Recorded(Silent):
+    """A progress counter that keeps each stage's updates."""
+    stages = {}
+
+    def __init__(self, total, desc, unit, plural=None):
+        super().__init__(total, desc, unit)
+        self.stages[desc] = (total, self.steps)
+
+    @property
+    def steps(self):
+        self.__dict__.setdefault("_steps", [])
+        return self._steps
+
+    def update(self, n=1):
+        super().update(n)
+        self.steps.append(n)
+
+
 def test_sfm_of_sacre_coeur_then_a_store(shared, tmp_path):
-    scene = run_sfm(shared / "data" / "sacre_coeur" / "mapping", tmp_path)
+    scene = run_sfm(shared / "data" / "sacre_coeur" / "mapping", tmp_path, progress=Recorded)
     assert len(scene.images) >= 8 and len(scene.points) > 1000
+    # each stage counted while it ran, in images and pairs, up to what it did
+    stages = Recorded.stages
+    assert stages["SIFT features"][0] == 10 and sum(stages["SIFT features"][1]) == 10
+    assert len(stages["SIFT features"][1]) >= 3  # counted during the call, not once at its end
+    assert stages["SIFT matching"][0] == 45 and sum(stages["SIFT matching"][1]) == 45
+    assert sum(stages["SfM registration"][1]) == len(scene.images)
     assert np.mean(reprojection_errors(scene)) < 1.5
     conf = FeatureConfig(resize=512, image_scales=(1,))
     results = build_map(scene, tmp_path / "map.zarr", conf)

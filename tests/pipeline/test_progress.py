@@ -4,7 +4,7 @@ import io
 import re
 
 from workflows.localize import auto_shard_size
-from workflows.progress import Progress
+from pipeline.progress import Progress
 
 
 def test_progress_off_a_terminal_is_a_few_status_lines_with_rate_and_eta():

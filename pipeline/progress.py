@@ -6,8 +6,10 @@ line when it ends, instead of a flood of carriage-return bars.
 """
 
 import sys
+import threading
 import time
-from typing import Optional, TextIO
+from contextlib import closing, contextmanager
+from typing import Callable, Iterator, Optional, TextIO
 
 
 def _duration(seconds: float) -> str:
@@ -65,3 +67,62 @@ class Progress:
 
     def _line(self, text: str) -> None:
         print(text, file=self.stream, flush=True)
+
+
+class Silent:
+    """What a stage counts into when nobody watches (the default of the library functions that
+    take a ``progress`` factory, e.g. ``run_sfm``): ``Silent(total, desc, unit)`` like ``Progress``."""
+
+    def __init__(self, total: int, desc: str, unit: str, plural: Optional[str] = None):
+        self.total, self.done = total, 0
+
+    def __enter__(self) -> "Silent":
+        return self
+
+    def update(self, n: int = 1) -> None:
+        self.done += n
+
+    def __exit__(self, *exc) -> None:
+        pass
+
+
+@contextmanager
+def watching(count: Callable[[], int], counter, every: float = 0.5) -> Iterator[None]:
+    """Advance ``counter`` to ``count()`` every ``every`` seconds while the block runs, and to its
+    total when it ends: the progress of a call that reports none (pycolmap's feature extraction
+    and matching release the GIL, so a thread can read their database). A ``count`` that fails
+    (the database busy) is read again next time."""
+    stop = threading.Event()
+
+    def advance(n: int) -> None:
+        n = min(n, counter.total)
+        if n > counter.done:
+            counter.update(n - counter.done)
+
+    def poll() -> None:
+        while not stop.wait(every):
+            try:
+                advance(count())
+            except Exception:  # noqa: BLE001 - a busy or half-written database: try again
+                pass
+
+    thread = threading.Thread(target=poll, daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        stop.set()
+        thread.join()
+    advance(counter.total)
+
+
+def database_rows(database, table: str) -> Callable[[], int]:
+    """A count of the rows of ``table`` in the SQLite file ``database``, read without taking a lock
+    (``immutable``): a reader's shared lock would make COLMAP's next commit fail, and COLMAP aborts
+    the process on a failed SQLite call. A torn read raises and is retried by ``watching``."""
+    import sqlite3
+
+    def count() -> int:
+        with closing(sqlite3.connect(f"file:{database}?mode=ro&immutable=1", uri=True)) as db:
+            return int(db.execute(f"SELECT COUNT(*) FROM {table}").fetchone()[0])
+    return count
