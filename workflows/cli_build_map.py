@@ -1,6 +1,7 @@
 """``pixloc build-map``: build a map store from a COLMAP model, images, known poses or RGB-D frames."""
 
 import argparse
+import dataclasses
 import logging
 import time
 from collections import Counter
@@ -8,17 +9,29 @@ from pathlib import Path
 
 from pipeline.features import DTYPES, FeatureConfig
 from pipeline.pairs import METHODS as PAIR_METHODS, PairsConfig
-from pixloc.nets.registry import DEFAULT_MODEL
-
 from . import executor, presets
 from .build_map import pending_batches, plan_build, prepare_structure, run_dask, run_sync
 from .localize import store_lock
+from .options import Flag, add_flags, build, given
 from .sources import KINDS, MapSource, describe_source, load_scene
 
-_F = FeatureConfig()
-BUILD_DEFAULTS = {"resize": _F.resize, "image_scales": list(_F.image_scales), "pad": _F.pad}
-
 logger = logging.getLogger(__name__)
+
+# the feature options: the FeatureConfig field each sets (type, choices and default from there:
+# ``workflows.options``), overriding a preset's ``features``
+FLAGS = {
+    "--model": Flag("model", "feature network name or model file"),
+    "--resize": Flag("resize", "longer image side at image scale 1"),
+    "--image-scales": Flag("image_scales", "image scales, coarse first"),
+    "--pad": Flag("pad", "interpolation margin in feature pixels"),
+    "--descriptor": Flag("descriptor", "global descriptor for retrieval (gem pooling, or a 2x3 grid of mean-centred "
+                         "features)", ("gem", "grid")),
+    "--dtype": Flag("dtype", "feature storage: float16, int8 (codes and a scale per row and level: smaller, for large "
+                    "maps) or float32", tuple(DTYPES)),
+    "--pca": Flag("pca", "store the levels with more than D channels as their D principal components (a PCA of the "
+                  "map's features, fitted on 8 of its images; e.g. 48 with --dtype int8 and two image scales: 257 to "
+                  "283 bytes per observation on the shared scenes); 0: every channel", metavar="D"),
+}
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -37,21 +50,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="posetxt: pinhole intrinsics of colour and depth (COLMAP convention)")
     p.add_argument("--depth-scale", type=float, default=1e-3, help="posetxt: depth units to scene units")
     p.add_argument("--depth-ext", default=".png", help="posetxt: depth file extension")
-    p.add_argument("--model", default=DEFAULT_MODEL,
-                   help=f"feature network name or model file (default: the shipped {DEFAULT_MODEL})")
-    p.add_argument("--resize", type=int, help=f"longer image side at image scale 1 (default {_F.resize})")
-    p.add_argument("--image-scales", type=int, nargs="+", help=f"default {list(_F.image_scales)}")
-    p.add_argument("--pad", type=int, help=f"interpolation margin in feature pixels (default {_F.pad})")
-    p.add_argument("--descriptor", choices=["gem", "grid"], default="gem",
-                   help="global descriptor for retrieval (gem pooling, or a 2x3 grid of mean-centred features)")
-    p.add_argument("--dtype", choices=list(DTYPES), default=_F.dtype,
-                   help="feature storage: float16 (default), int8 (codes and a scale per row and level: "
-                        "smaller, for large maps) or float32")
-    p.add_argument("--pca", type=int, default=0, metavar="D",
-                   help="store the levels with more than D channels as their D principal components (a PCA "
-                        "of the map's features, fitted on 8 of its images; e.g. 48 with --dtype int8 and two "
-                        "image scales: 257 to 283 bytes per observation on the shared scenes); default 0: every "
-                        "channel")
+    add_flags(p, FeatureConfig, FLAGS)
     p.add_argument("--chunk-rows", type=int, default=256, help="rows per chunk (the unit of a partial read)")
     p.add_argument("--shard-rows", type=int,
                    help="rows per shard file (a multiple of --chunk-rows; default: fits 90%% of the images)")
@@ -82,15 +81,15 @@ RECONSTRUCTED = {"sfm": "SIFT, matching and SfM", "strecha": "SIFT, matching and
 
 
 def main(args: argparse.Namespace) -> int:
-    from .cli_localize import absolute, resolve
-    resolve(args, BUILD_DEFAULTS)
-    model = str(absolute(args.model)) if Path(args.model).suffix else args.model
+    from .cli_localize import absolute
+    conf = build(FeatureConfig, presets.feature_settings(presets.load(args.preset) if args.preset else None),
+                 given(args, FLAGS), where="build-map options")
+    if Path(conf.model).suffix:  # a model file, recorded absolute
+        conf = dataclasses.replace(conf, model=str(absolute(conf.model)))
     store = absolute(args.store)
     source = MapSource(args.kind, absolute(args.path), absolute(args.images), tuple(args.sequences),
                        args.rgbd_points, args.densify, tuple(args.intrinsics), args.depth_scale, args.depth_ext,
                        tuple(args.hold_out))
-    conf = FeatureConfig(model, args.resize, tuple(args.image_scales), args.pad, args.dtype, args.descriptor,
-                         args.pca)
     pairs = PairsConfig("file" if args.pairs_file and args.pairs == "auto" else args.pairs,
                         args.pairs_neighbors, path=str(absolute(args.pairs_file)) if args.pairs_file else None)
     work_dir = absolute(args.work_dir) or store.with_suffix(".work")

@@ -1,8 +1,8 @@
 """``pixloc localize``, ``pixloc evaluate`` and ``pixloc report``.
 
-Options that a dataset preset can set default to ``None`` on the parser and are resolved in
-one place (``resolve``): the command line, then the preset, then the built-in default of the
-configs (``LOCALIZE_DEFAULTS``). Every path is resolved once, here, and recorded absolute.
+The job's options (``FLAGS``) are fields of ``LocalizationJob``: its dataclasses hold the defaults,
+a preset and then the command line override them (``workflows.options``). Every path is
+resolved once, here, and recorded absolute.
 """
 
 import argparse
@@ -17,24 +17,51 @@ import numpy as np
 from pipeline.evaluate import (DEFAULT_THRESHOLDS, INDOOR_THRESHOLDS, evaluate, evaluation_document, fmt,
                                parse_thresholds, recall_label, shown_families, to_json)
 from pipeline.features import FeatureConfig
-from pipeline.localize import LocalizerConfig
 from pipeline.results import POSE_NAMES, REJECTED, outcome, pose_names_problem, read_records, reason_groups
-from pipeline.shard import POINT_SELECTIONS, PRIORS, LocalizationJob, RetrievalConfig
+from pipeline.shard import POINT_SELECTIONS, PRIORS, LocalizationJob
 from pipeline.store import StoreError, open_store
-from pipeline.verify import VerificationConfig
 from pipeline.textfiles import read_json, write_atomic
 
 from . import executor
+from .options import Flag, add_flags, build, given
 from .localize import ORDERS, REGION_MIN_QUERIES, plan_localization, run_dask, run_sync
 from .sources import QUERY_KINDS, load_queries
 
 logger = logging.getLogger(__name__)
-_L, _R = LocalizerConfig(), RetrievalConfig()
-LOCALIZE_DEFAULTS = {"prior": "top1", "point_selection": "all", "min_points": _L.min_points, "num_dbs": _L.num_dbs,
-                     "average_observations": _L.average_observations, "iters": _L.num_iters,
-                     "retrieval_k": _R.k, "same_tag": None, "levels": None, "scales": None,
-                     "min_track_length": _L.min_track_length, "points_per_cell": _L.points_per_cell,
-                     "min_confidence": _L.verification.min_confidence, "pose_names": "full"}
+
+# the job's command-line options: the field each sets and what it means; the type, choices and
+# default come from the dataclass (``workflows.options``), so a new option is its field and one line
+FLAGS = {
+    "--pairs": Flag("retrieval.pairs", "retrieval pairs file (default: global descriptors)", file=True),
+    "--retrieval-k": Flag("retrieval.k", "references retrieved"),
+    "--same-tag": Flag("retrieval.same_tag", "restrict references to those sharing this tag with the query"),
+    "--descriptors": Flag("retrieval.descriptors", "hloc HDF5 global descriptors for retrieval (e.g. NetVLAD)",
+                          file=True),
+    "--prior": Flag("prior", "pose prior; search: many starts around the top references, screened at the coarsest "
+                    "level; hloc: refinement mode from an hloc _logs.pkl (its PnP poses and inliers)", PRIORS),
+    "--prior-poses": Flag("prior_poses", "refinement mode: poses file of another pipeline", file=True),
+    "--hloc-logs": Flag("hloc_logs", "refinement mode: hloc localization logs (_logs.pkl); the store must be built "
+                        "from the SfM model hloc localized against", file=True),
+    "--point-selection": Flag("point_selection", "with --prior hloc: all points of the references, or hloc's PnP "
+                              "inliers (paper) or matches", POINT_SELECTIONS),
+    "--min-points": Flag("localizer.min_points", "fewer 3D points fails a query (official; 100 in refinement mode)"),
+    "--min-track-length": Flag("localizer.min_track_length", "leave out points seen by fewer map images (official; "
+                               "2 keeps the points of two-view maps)"),
+    "--points-per-cell": Flag("localizer.points_per_cell", "at levels with more points than this many per query "
+                              "feature-map cell, LM runs on a seeded subset (at least 1024 points; 0: all, official; "
+                              "the 7scenes preset: 1)"),
+    "--levels": Flag("levels", "optimise only these levels (refinement mode: 0 1; default all)"),
+    "--scales": Flag("scales", "run only these of the store's image scales (refinement mode: 1; default all)"),
+    "--num-dbs": Flag("localizer.num_dbs", "reference images per query"),
+    "--average-observations": Flag("localizer.average_observations", "one residual per point, confidence-weighted "
+                                   "over references"),
+    "--iters": Flag("localizer.num_iters", "LM iterations per level"),
+    "--min-confidence": Flag("localizer.verification.min_confidence", "verification: refinements with a lower "
+                             "confidence are rejected and keep their prior (docs/verification.md)"),
+    "--no-verify": Flag("localizer.verification.enabled", "report every converged refinement as a success (official "
+                        "PixLoc behaviour)", value=False),
+    "--device": Flag("device", "torch device of the network and the LM (cpu, cuda)"),
+}
 
 
 def absolute(path) -> Optional[Path]:
@@ -57,43 +84,11 @@ def add_query_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    d = LOCALIZE_DEFAULTS
     add_query_arguments(p)
     p.add_argument("--store", type=Path, required=True, help="map store built by pixloc build-map")
     p.add_argument("--features", help="feature group of the store (default: its only one)")
     p.add_argument("--output", type=Path, required=True, help="output folder (records, poses, shards)")
-    p.add_argument("--pairs", type=Path, help="retrieval pairs file (default: global descriptors)")
-    p.add_argument("--retrieval-k", type=int, help=f"references retrieved (default {d['retrieval_k']})")
-    p.add_argument("--same-tag", help="restrict references to those sharing this tag with the query")
-    p.add_argument("--descriptors", type=Path, help="hloc HDF5 global descriptors for retrieval (e.g. NetVLAD)")
-    p.add_argument("--prior", choices=PRIORS, help=f"pose prior (default {d['prior']}); search: many starts around "
-                   "the top "
-                   "references, screened at the coarsest level; hloc: refinement mode from an hloc _logs.pkl "
-                   "(its PnP poses and inliers)")
-    p.add_argument("--prior-poses", type=Path, help="refinement mode: poses file of another pipeline")
-    p.add_argument("--hloc-logs", type=Path, help="refinement mode: hloc localization logs (_logs.pkl); "
-                   "the store must be built from the SfM model hloc localized against")
-    p.add_argument("--point-selection", choices=POINT_SELECTIONS,
-                   help="with --prior hloc: all points of the references (default), or hloc's PnP inliers (paper) "
-                        "or matches")
-    p.add_argument("--min-points", type=int, help=f"fewer 3D points fails a query (default {d['min_points']}, "
-                   "official; 100 in refinement mode)")
-    p.add_argument("--min-track-length", type=int, help="leave out points seen by fewer map images "
-                   f"(default {d['min_track_length']}, official; 2 keeps the points of two-view maps)")
-    p.add_argument("--points-per-cell", type=float,
-                   help="at levels with more points than this many per query feature-map cell, LM runs on a "
-                        "seeded subset (at least 1024 points; default 0: all, official; the 7scenes preset: 1)")
-    p.add_argument("--levels", type=int, nargs="+", help="optimise only these levels (refinement mode: 0 1)")
-    p.add_argument("--scales", type=int, nargs="+", help="run only these of the store's image scales "
-                   "(refinement mode: 1)")
-    p.add_argument("--num-dbs", type=int, help=f"reference images per query (default {d['num_dbs']})")
-    p.add_argument("--average-observations", action="store_true", default=None,
-                   help="one residual per point, confidence-weighted over references")
-    p.add_argument("--iters", type=int, help=f"LM iterations per level (default {d['iters']})")
-    p.add_argument("--min-confidence", type=float, help="verification: refinements with a lower confidence are "
-                   f"rejected and keep their prior (default {d['min_confidence']}, docs/verification.md)")
-    p.add_argument("--no-verify", action="store_true", help="report every converged refinement as a success "
-                   "(official PixLoc behaviour)")
+    add_flags(p, LocalizationJob, FLAGS)
     p.add_argument("--pose-names", choices=POSE_NAMES, help="also write poses_NAMES.txt with these names for a "
                    "benchmark submission: basename (Aachen, CMU) or camera (parentdir/basename: RobotCar, 7-Scenes, "
                    "Cambridge); poses.txt always has the full names (default: the preset's, else none)")
@@ -105,7 +100,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "descriptors that stage runs the network once more per query), list (query order), or "
                         f"auto (default: region from {REGION_MIN_QUERIES} queries with --pairs or --descriptors, "
                         "else list)")
-    p.add_argument("--device", default="cpu", help="torch device of the network and the LM (cpu, cuda)")
     p.add_argument("--scheduler", help="address of an existing Dask scheduler")
     p.add_argument("--workers", type=int, default=2, help="worker processes of the local cluster (default 2)")
     p.add_argument("--sync", action="store_true", help="run in this process, without Dask")
@@ -127,10 +121,23 @@ def presets_available():
     return presets.available()
 
 
-def resolve(args: argparse.Namespace, defaults: Dict) -> None:
-    """Explicit options, then the preset, then built-in defaults."""
+def job_settings(args: argparse.Namespace) -> Dict:
+    """The job's fields set by the preset and then the command line (by dotted path)."""
     from . import presets
-    presets.apply(args, presets.load(args.preset) if args.preset else None, defaults)
+    cli = given(args, FLAGS)
+    preset = presets.load(args.preset) if args.preset else None
+    settings = {**presets.job_settings(preset, cli.get("prior")), **cli}
+    if "retrieval.pairs" in settings or "retrieval.descriptors" in settings:
+        settings["retrieval.method"] = "pairs" if "retrieval.pairs" in settings else "hloc"
+    return settings
+
+
+def pose_names_of(args: argparse.Namespace) -> str:
+    """--pose-names, else the preset's, else only the full names."""
+    from . import presets
+    if args.pose_names:
+        return args.pose_names
+    return (presets.load(args.preset).get("pose_names") if args.preset else None) or POSE_NAMES[0]
 
 
 def store_feature_config(store: Path, key=None) -> FeatureConfig:
@@ -149,21 +156,15 @@ def store_feature_config(store: Path, key=None) -> FeatureConfig:
 
 
 def build_job(args: argparse.Namespace) -> LocalizationJob:
+    """The job: the store and its features, the dataclass defaults, the preset, the command line."""
     store = Path(_absolute(args.store))
     fconf = store_feature_config(store, args.features)
-    if args.scales and not set(args.scales) <= set(fconf.image_scales):
-        raise ValueError(f"--scales {args.scales}: the store's features have image scales {list(fconf.image_scales)}.")
-    verification = VerificationConfig(enabled=not args.no_verify, min_confidence=args.min_confidence)
-    job = LocalizationJob(
-        str(store), fconf, fconf.model,
-        LocalizerConfig(num_dbs=args.num_dbs, average_observations=bool(args.average_observations),
-                        num_iters=args.iters, min_track_length=args.min_track_length, min_points=args.min_points,
-                        points_per_cell=args.points_per_cell, verification=verification),
-        RetrievalConfig("pairs" if args.pairs else "hloc" if args.descriptors else "global",
-                        _absolute(args.pairs), args.retrieval_k, args.same_tag, _absolute(args.descriptors)),
-        prior=args.prior, device=args.device, prior_poses=_absolute(args.prior_poses),
-        levels=tuple(args.levels) if args.levels else None, hloc_logs=_absolute(args.hloc_logs),
-        point_selection=args.point_selection, scales=tuple(args.scales) if args.scales else None)
+    settings = job_settings(args)
+    if settings.get("scales") and not set(settings["scales"]) <= set(fconf.image_scales):
+        raise ValueError(f"--scales {settings['scales']}: the store's features have image scales "
+                         f"{list(fconf.image_scales)}.")
+    job = build(LocalizationJob, {"store": str(store), "features": fconf, "model": fconf.model}, settings,
+                where="localize options")
     job.validate()
     return job
 
@@ -174,7 +175,6 @@ def _load_queries(args):
 
 
 def main(args: argparse.Namespace) -> int:
-    resolve(args, LOCALIZE_DEFAULTS)
     job = build_job(args)
     queries = _load_queries(args)
     gt = ground_truth(args, queries)  # read before the run: a bad file fails now, not after it
@@ -182,10 +182,11 @@ def main(args: argparse.Namespace) -> int:
     plan = plan_localization(job, queries, output, args.shard_size, workers=1 if args.sync else args.workers,
                              keep_failures=args.keep_failures, overwrite=args.overwrite, order=args.order,
                              allow_partial_map=args.allow_partial_map)
-    problem = pose_names_problem([q.name for q in queries], args.pose_names)
+    pose_names = pose_names_of(args)
+    problem = pose_names_problem([q.name for q in queries], pose_names)
     if problem:
         raise ValueError(problem[0].upper() + problem[1:] + ".")
-    plan.pose_names = args.pose_names
+    plan.pose_names = pose_names
     plan.thresholds = preset_thresholds(args.preset)
     print(plan.describe())
     if not args.dry_run:
@@ -207,7 +208,7 @@ def main(args: argparse.Namespace) -> int:
         records = run_sync(plan)  # merges the finished shards (poses.txt, failed.txt) and nothing else
     else:
         records = executor.run_plan(plan, run_sync, run_dask, sync=args.sync, scheduler=args.scheduler,
-                                    workers=args.workers, device=args.device)
+                                    workers=args.workers, device=job.device)
     by = Counter(outcome(r) for r in records)
     ran = (f"{counts['to_run']} run in {time.time() - t0:.1f} s, {counts['reused_queries']} reused" if counts["to_run"]
            else "all reused")

@@ -1,5 +1,6 @@
 import subprocess
 import sys
+from pathlib import Path
 
 import pixloc
 
@@ -23,63 +24,69 @@ def test_lm_benchmark_prints_both_rates():
     assert row[:2] == ["2", "200"] and float(row[2]) > 0 and float(row[3]) > 0 and row[4].endswith("x")
 
 
-def _localize_args(*argv):
+def _localize_job(*argv, tmp_path=None):
+    """The job that ``pixloc localize ... ARGV`` runs (a store's default features)."""
     import argparse
 
-    from workflows.cli_localize import LOCALIZE_DEFAULTS, add_arguments, resolve
+    from pipeline.features import FeatureConfig
+    from pipeline.shard import LocalizationJob
+    from workflows.cli_localize import add_arguments, job_settings
+    from workflows.options import build
     p = argparse.ArgumentParser()
     add_arguments(p)
     args = p.parse_args(["list", "q.txt", "--store", "m.zarr", "--output", "o", *argv])
-    resolve(args, LOCALIZE_DEFAULTS)
-    return args
+    return build(LocalizationJob, {"store": "m.zarr", "features": FeatureConfig(), "model": "m"}, job_settings(args))
 
 
 def test_presets_set_the_paper_settings():
     from workflows import presets
     assert {"7scenes", "cambridge", "aachen", "robotcar", "cmu", "colmap", "kapture"} <= set(presets.available())
-    args = _localize_args("--preset", "aachen", "--iters", "7")
-    assert (args.num_dbs, args.prior, args.retrieval_k) == (3, "average", 50)
-    assert args.iters == 7  # an explicit option wins over the preset
+    job = _localize_job("--preset", "aachen", "--iters", "7")
+    assert (job.localizer.num_dbs, job.prior, job.retrieval.k) == (3, "average", 50)
+    assert job.localizer.num_iters == 7  # an explicit option wins over the preset
     assert presets.load("robotcar")["retrieval"]["same_tag"] == "camera"
     assert presets.load("cambridge")["localizer"]["average_observations"] is True
     # refinement mode from hloc logs takes the preset's from_poses settings (official run_Aachen.py)
-    args = _localize_args("--prior", "hloc")
-    assert (args.num_dbs, args.iters, args.min_points, args.point_selection, args.levels, args.scales,
-            args.average_observations, args.prior) == (5, 100, 10, "all", None, None, False, "hloc")
-    args = _localize_args("--prior", "hloc", "--preset", "aachen")
-    assert (args.num_dbs, args.iters, args.min_points, args.point_selection, args.levels, args.scales,
-            args.average_observations, args.prior) == (5, 50, 100, "inliers", [0, 1], [1], True, "hloc")
+    job = _localize_job("--prior", "hloc")
+    L = job.localizer
+    assert (L.num_dbs, L.num_iters, L.min_points, job.point_selection, job.levels, job.scales,
+            L.average_observations, job.prior) == (5, 100, 10, "all", None, None, False, "hloc")
+    job = _localize_job("--prior", "hloc", "--preset", "aachen")
+    L = job.localizer
+    assert (L.num_dbs, L.num_iters, L.min_points, job.point_selection, job.levels, job.scales,
+            L.average_observations, job.prior) == (5, 50, 100, "inliers", (0, 1), (1,), True, "hloc")
 
 
 def test_explicit_flags_win_even_at_the_builtin_default():
     """Before: a flag equal to the parser default lost to the preset (--prior top1 ran average)."""
-    args = _localize_args("--preset", "aachen", "--prior", "top1", "--iters", "100")
-    assert (args.prior, args.iters) == ("top1", 100)
-    args = _localize_args("--preset", "aachen")
-    assert (args.prior, args.iters) == ("average", 150)
-    args = _localize_args()  # no preset: the configs' defaults
-    assert (args.prior, args.iters, args.num_dbs, args.min_track_length, args.point_selection) == (
-        "top1", 100, 5, 3, "all")
+    job = _localize_job("--preset", "aachen", "--prior", "top1", "--iters", "100")
+    assert (job.prior, job.localizer.num_iters) == ("top1", 100)
+    job = _localize_job("--preset", "aachen")
+    assert (job.prior, job.localizer.num_iters) == ("average", 150)
+    job = _localize_job()  # no preset: the dataclasses' defaults
+    assert (job.prior, job.localizer.num_iters, job.localizer.num_dbs, job.localizer.min_track_length,
+            job.point_selection, job.localizer.verification.enabled) == ("top1", 100, 5, 3, "all", True)
+    job = _localize_job("--no-verify", "--min-confidence", "0.3", "--pairs", "p.txt")
+    assert (job.localizer.verification.enabled, job.localizer.verification.min_confidence) == (False, 0.3)
+    assert job.retrieval.method == "pairs" and Path(job.retrieval.pairs).is_absolute()
 
 
 def test_every_preset_works_with_every_prior(tmp_path):
     """Before: --preset aachen --prior poses always failed (point selection 'inliers' needs hloc)."""
+    import dataclasses
+
     from workflows import presets
-    from pipeline.features import FeatureConfig
-    from pipeline.localize import LocalizerConfig
-    from pipeline.shard import PRIORS, LocalizationJob, RetrievalConfig
+    from pipeline.shard import PRIORS
     (tmp_path / "poses.txt").write_text("")
     (tmp_path / "logs.pkl").write_bytes(b"")
     for name in presets.available():
         for prior in PRIORS:
-            args = _localize_args("--preset", name, "--prior", prior)
-            job = LocalizationJob("m.zarr", FeatureConfig(), "m", LocalizerConfig(num_dbs=args.num_dbs),
-                                  RetrievalConfig(k=args.retrieval_k), prior=prior,
-                                  prior_poses=str(tmp_path / "poses.txt"), hloc_logs=str(tmp_path / "logs.pkl"),
-                                  point_selection=args.point_selection)
+            job = _localize_job("--preset", name, "--prior", prior)
+            job = dataclasses.replace(job, prior_poses=str(tmp_path / "poses.txt"),
+                                      hloc_logs=str(tmp_path / "logs.pkl"))
             job.validate()  # raises for a combination that cannot run
-    args = _localize_args("--preset", "aachen", "--prior", "poses")
-    assert args.point_selection == "all" and args.levels == [0, 1]
+    job = _localize_job("--preset", "aachen", "--prior", "poses")
+    assert job.point_selection == "all" and job.levels == (0, 1)
 
 
 def test_one_default_model_everywhere():
@@ -87,8 +94,15 @@ def test_one_default_model_everywhere():
 
     from pipeline.features import FeatureConfig
     from pixloc.nets.registry import DEFAULT_MODEL
-    from workflows.cli_build_map import add_arguments
+    from workflows import presets
+    from workflows.cli_build_map import FLAGS, add_arguments
+    from workflows.options import build, given
     p = argparse.ArgumentParser()
     add_arguments(p)
     args = p.parse_args(["strecha", "x", "--store", "s.zarr"])
-    assert DEFAULT_MODEL == "pixloc-lite0" == args.model == FeatureConfig().model
+    assert DEFAULT_MODEL == "pixloc-lite0" == build(FeatureConfig, given(args, FLAGS)).model == FeatureConfig().model
+    assert "(default pixloc-lite0)" in " ".join(p.format_help().split()).replace("- ", "-")
+    # the preset's feature settings, then the command line's
+    args = p.parse_args(["strecha", "x", "--store", "s.zarr", "--preset", "7scenes", "--pad", "3"])
+    conf = build(FeatureConfig, presets.feature_settings(presets.load(args.preset)), given(args, FLAGS))
+    assert (conf.resize, conf.image_scales, conf.pad) == (1024, (4, 1), 3)

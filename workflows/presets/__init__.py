@@ -1,9 +1,31 @@
-"""Dataset presets: the paper's settings per dataset, as YAML data (see the .yaml files here)."""
+"""Dataset presets: the paper's settings per dataset, as YAML data (see the .yaml files here).
+
+A preset's keys are the fields of the jobs it sets, by the same names: ``localizer.num_iters``,
+``retrieval.k``, ``prior`` ... of ``pipeline.shard.LocalizationJob`` and ``features.resize`` ...
+of the map's ``pipeline.features.FeatureConfig``; a ``from_poses`` block overrides them in
+refinement mode; ``thresholds`` and ``pose_names`` set the outputs; ``description``, ``layout``
+and ``model_hint`` document it. Any other key is refused with the nearest valid name.
+"""
 
 from importlib import resources
 from typing import Any, Dict, List, Optional
 
 import yaml
+
+from pipeline.shard import LocalizationJob
+
+from ..options import check_keys, dotted, field_types
+
+# what a preset cannot set: the run's inputs, and the store's own feature settings (a localize job
+# takes them from the store)
+INPUTS = {"store", "model", "device", "prior_poses", "hloc_logs", "retrieval.method", "retrieval.pairs",
+          "retrieval.descriptors", "features"}
+DOCUMENTATION = {"description", "layout", "model_hint"}
+OUTPUTS = {"thresholds", "pose_names"}
+SETTINGS = {k for k in field_types(LocalizationJob) if k not in INPUTS and not k.startswith("features.")} | \
+    {k for k in field_types(LocalizationJob) if k.startswith("features.") and k != "features.model"}
+# every key a preset may hold (also under ``from_poses``: the settings)
+PRESET_KEYS = SETTINGS | DOCUMENTATION | OUTPUTS | {f"from_poses.{k}" for k in SETTINGS}
 
 
 def available() -> List[str]:
@@ -15,83 +37,27 @@ def load(name: str) -> Dict:
     if not path.is_file():
         raise ValueError(f"Unknown preset {name!r}; available: {', '.join(available())}.")
     preset = yaml.safe_load(path.read_text()) or {}
-    check_keys(_dotted(preset), PRESET_KEYS | {f"from_poses.{k}" for k in PRESET_KEYS}, f"preset {name}.yaml")
+    check_keys(dotted(preset, keep=("layout",)), PRESET_KEYS, f"preset {name}.yaml")
     return preset
 
 
-def check_keys(keys, allowed, where: str) -> None:
-    """Refuse keys that are not in ``allowed`` (a misspelt key would pass unnoticed and its
-    setting be the default), with the nearest valid name."""
-    import difflib
-
-    unknown = sorted(set(keys) - set(allowed))
-    if unknown:
-        hints = []
-        for key in unknown:
-            near = difflib.get_close_matches(key, sorted(allowed), n=1, cutoff=0.6)
-            hints.append(f"{key!r}" + (f" (did you mean {near[0]!r}?)" if near else ""))
-        raise ValueError(f"{where}: unknown key{'s' if len(unknown) > 1 else ''} {', '.join(hints)}; "
-                         f"valid keys: {', '.join(sorted(allowed))}.")
-
-
-def _dotted(d: Dict, prefix: str = "") -> List[str]:
-    out = []
-    for k, v in d.items():
-        if isinstance(v, dict) and k not in ("layout",):
-            out += _dotted(v, f"{prefix}{k}.")
-        else:
-            out.append(prefix + k)
-    return out
-
-
-# command-line option -> where a preset holds its value
-MAPPING = {
-    "resize": ("features", "resize"), "image_scales": ("features", "image_scales"), "pad": ("features", "pad"),
-    "num_dbs": ("localizer", "num_dbs"), "average_observations": ("localizer", "average_observations"),
-    "iters": ("localizer", "num_iters"), "retrieval_k": ("retrieval", "k"),
-    "same_tag": ("retrieval", "same_tag"), "prior": ("prior",), "levels": ("levels",),
-    "point_selection": ("point_selection",), "min_points": ("localizer", "min_points"), "scales": ("scales",),
-    "points_per_cell": ("localizer", "points_per_cell"),
-    "pose_names": ("pose_names",),
-}
-
-
-# what a preset may hold: the settings of MAPPING (also under ``from_poses``), and its documentation
-PRESET_KEYS = {".".join(path) for path in MAPPING.values()} | {"description", "layout", "thresholds", "model_hint"}
-
-
-def _lookup(preset: Dict, keys) -> Any:
-    value = preset
-    for k in keys:
-        value = value.get(k) if isinstance(value, dict) else None
-    return value
-
-
-def apply(args, preset: Optional[Dict], defaults: Dict) -> None:
-    """Resolve the options in ``defaults`` that the command line left unset (``None``): the
-    preset's value if it has one, else the built-in default. An option given on the command
-    line always wins, whatever its value.
-
-    A preset's ``from_poses`` block (the paper's refinement-mode settings) overrides the rest
-    when the prior comes from another pipeline (``--prior hloc`` or ``poses``); its point
-    selection (hloc's PnP inliers) applies only with ``--prior hloc``, which has them.
-    """
-    preset = preset or {}
-    prior = args.prior if getattr(args, "prior", None) is not None else preset.get("prior")
-    if prior in ("hloc", "poses") and "from_poses" in preset:
-        from_poses = dict(preset["from_poses"])
+def job_settings(preset: Optional[Dict], prior: Optional[str]) -> Dict[str, Any]:
+    """The localize job's fields that ``preset`` sets, by dotted path: its ``from_poses`` block
+    (the paper's refinement-mode settings) overrides the rest when the prior comes from another
+    pipeline (``prior`` ``hloc`` or ``poses``: the command line's, else the preset's); its point
+    selection (hloc's PnP inliers) applies only with ``hloc``, which has them."""
+    preset = dict(preset or {})
+    prior = prior if prior is not None else preset.get("prior")
+    from_poses = dict(preset.pop("from_poses", None) or {})
+    settings = {k: v for k, v in dotted(preset, keep=("layout",)).items()
+                if k in SETTINGS and not k.startswith("features.")}
+    if prior in ("hloc", "poses") and from_poses:
         if prior != "hloc":
             from_poses.pop("point_selection", None)
-        preset = _merge(preset, from_poses)
-    for arg, default in defaults.items():
-        if not hasattr(args, arg) or getattr(args, arg) is not None:
-            continue
-        value = _lookup(preset, MAPPING[arg]) if arg in MAPPING else None
-        setattr(args, arg, value if value is not None else default)
+        settings.update(dotted(from_poses))
+    return settings
 
 
-def _merge(base: Dict, override: Dict) -> Dict:
-    out = dict(base)
-    for k, v in override.items():
-        out[k] = _merge(base[k], v) if isinstance(v, dict) and isinstance(base.get(k), dict) else v
-    return out
+def feature_settings(preset: Optional[Dict]) -> Dict[str, Any]:
+    """The map's feature settings (``FeatureConfig`` fields) that ``preset`` sets."""
+    return dotted((preset or {}).get("features", {}))

@@ -1,0 +1,167 @@
+"""One configuration path for every job: a nested dataclass holds the settings and their defaults
+(``LocalizationJob``, ``FeatureConfig``); a dataset preset (YAML) and then the command line
+override its fields, named by dotted path (``localizer.num_iters``).
+
+- ``Flag(path, help)``: the command-line option of one field; ``add_flags`` takes its type,
+  choices and shown default from the dataclass, so a new option is its field plus one line.
+- ``given(args, flags)``: the fields the command line set.
+- ``build(cls, *layers)``: the dataclass from its defaults and the layers, later ones winning; a key
+  that is no field is refused with the nearest valid name.
+"""
+
+import argparse
+import dataclasses
+import difflib
+import typing
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Dict, Iterable, Optional, Sequence
+
+
+@dataclass(frozen=True)
+class Flag:
+    """The command-line option of the field at ``path``. ``choices``: its valid values; ``value``: a
+    flag without argument that sets the field to this value (``--no-verify``: ``False``); ``file``:
+    a path, made absolute once; ``metavar``: its placeholder in the help."""
+
+    path: str
+    help: str
+    choices: Optional[Sequence[str]] = None
+    value: Any = None
+    file: bool = False
+    metavar: Optional[str] = None
+
+
+def field_types(cls, prefix: str = "") -> Dict[str, Any]:
+    """Every field of ``cls`` and of its nested dataclasses, by dotted path, with its type (a
+    nested dataclass is a field too: it can be given whole)."""
+    out = {}
+    hints = typing.get_type_hints(cls)
+    for f in dataclasses.fields(cls):
+        out[prefix + f.name] = hints[f.name]
+        if _dataclass(hints[f.name]):
+            out.update(field_types(hints[f.name], f"{prefix}{f.name}."))
+    return out
+
+
+def default_of(cls, path: str) -> Any:
+    """The default of the field at ``path`` (nested dataclasses at their own defaults)."""
+    head, _, rest = path.partition(".")
+    f = next(f for f in dataclasses.fields(cls) if f.name == head)
+    if rest:
+        return default_of(typing.get_type_hints(cls)[head], rest)
+    if f.default is not dataclasses.MISSING:
+        return f.default
+    return f.default_factory() if f.default_factory is not dataclasses.MISSING else None
+
+
+def add_flags(parser: argparse.ArgumentParser, cls, flags: Dict[str, Flag]) -> None:
+    """One option per flag, defaulting to ``None`` (unset: the preset or the dataclass decides)."""
+    types = field_types(cls)
+    for name, flag in flags.items():
+        kind = _plain(types[flag.path])
+        default = default_of(cls, flag.path)
+        switch = flag.value is not None or kind is bool  # a flag without argument
+        shown = "" if "default" in flag.help or switch or default is None else f" (default {_show(default)})"
+        kwargs: Dict[str, Any] = {"dest": flag.path, "default": None, "help": flag.help + shown}
+        if switch:
+            kwargs.update(action="store_const", const=True if flag.value is None else flag.value)
+        else:
+            item = _item(kind)
+            kwargs["type"] = Path if flag.file else item
+            if flag.choices:
+                kwargs["choices"] = list(flag.choices)
+            else:
+                kwargs["metavar"] = flag.metavar or name.lstrip("-").upper().replace("-", "_")
+            if item is not kind:  # a tuple: several values
+                kwargs["nargs"] = "+"
+        parser.add_argument(name, **kwargs)
+
+
+def given(args: argparse.Namespace, flags: Dict[str, Flag]) -> Dict[str, Any]:
+    """The fields that the command line set, by dotted path (files made absolute)."""
+    out = {}
+    for flag in flags.values():
+        value = getattr(args, flag.path, None)
+        if value is not None:
+            out[flag.path] = str(Path(value).expanduser().resolve()) if flag.file else value
+    return out
+
+
+def dotted(tree: Dict, prefix: str = "", keep: Iterable[str] = ()) -> Dict[str, Any]:
+    """A nested dict as ``{dotted path: value}``; the keys in ``keep`` stay whole."""
+    out = {}
+    for k, v in tree.items():
+        if isinstance(v, dict) and k not in keep:
+            out.update(dotted(v, f"{prefix}{k}.", keep))
+        else:
+            out[prefix + k] = v
+    return out
+
+
+def check_keys(keys, allowed, where: str) -> None:
+    """Refuse keys that are not in ``allowed`` (a misspelt key would pass unnoticed and its
+    setting be the default), with the nearest valid name."""
+    unknown = sorted(set(keys) - set(allowed))
+    if unknown:
+        hints = []
+        for key in unknown:
+            near = difflib.get_close_matches(key, sorted(allowed), n=1, cutoff=0.6)
+            hints.append(f"{key!r}" + (f" (did you mean {near[0]!r}?)" if near else ""))
+        raise ValueError(f"{where}: unknown key{'s' if len(unknown) > 1 else ''} {', '.join(hints)}; "
+                         f"valid keys: {', '.join(sorted(allowed))}.")
+
+
+def build(cls, *layers: Dict[str, Any], where: str = "settings"):
+    """``cls`` from its defaults, then each layer (``{dotted path: value}``) in turn."""
+    values: Dict[str, Any] = {}
+    for layer in layers:
+        check_keys(layer, field_types(cls), where)
+        values.update(layer)
+    return _build(cls, values, "")
+
+
+def _build(cls, values: Dict[str, Any], prefix: str):
+    hints = typing.get_type_hints(cls)
+    kwargs = {}
+    for f in dataclasses.fields(cls):
+        key, kind = prefix + f.name, hints[f.name]
+        if key in values:
+            kwargs[f.name] = _coerce(values[key], kind)
+        elif _dataclass(kind) and (f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING
+                                   or any(k.startswith(key + ".") for k in values)):
+            base = values.get(key)
+            kwargs[f.name] = _build(kind, values, key + ".") if base is None else base
+    return cls(**kwargs)
+
+
+def _dataclass(kind) -> bool:
+    return isinstance(kind, type) and dataclasses.is_dataclass(kind)
+
+
+def _plain(kind):
+    """``Optional[X]`` as ``X``."""
+    args = [a for a in typing.get_args(kind) if a is not type(None)]
+    return args[0] if typing.get_origin(kind) is typing.Union and len(args) == 1 else kind
+
+
+def _item(kind):
+    """The type of one value: ``Tuple[int, ...]`` -> int; others as they are."""
+    if typing.get_origin(kind) in (tuple, list):
+        return typing.get_args(kind)[0]
+    return kind
+
+
+def _coerce(value, kind):
+    """YAML and argparse give lists where the dataclass keeps tuples (hashable, as recorded)."""
+    plain = _plain(kind)
+    if isinstance(value, list) and typing.get_origin(plain) is tuple:
+        return tuple(value)
+    return value
+
+
+def _show(value) -> str:
+    if isinstance(value, tuple):
+        return " ".join(str(v) for v in value)
+    return str(value)
+
