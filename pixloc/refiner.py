@@ -7,7 +7,7 @@ of the previous one (Sarlin et al. 2021, Sec. 3.3; official
 """
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Dict, List, Sequence
+from typing import TYPE_CHECKING, Dict, List, Optional, Sequence
 
 import torch
 from torch import Tensor, nn
@@ -91,8 +91,9 @@ class TwoViewRefiner(nn.Module):
             pred = self.extractor(image)
         return {k: [x.float() for x in v] if isinstance(v, list) else v for k, v in pred.items()}
 
-    def forward(self, batch: PairBatch) -> Dict[str, List]:
-        """Returns ``query_from_ref`` (poses after each level, coarse to fine) and ``failed``."""
+    def forward(self, batch: PairBatch, num_iters: Optional[int] = None) -> Dict[str, List]:
+        """Returns ``query_from_ref`` (poses after each level, coarse to fine) and ``failed``;
+        ``num_iters``: the LM iterations per level (default: each solver's own budget)."""
         pred_ref = self.extract(batch.image_ref)
         pred_q = self.extract(batch.image_query)
         T = batch.query_from_ref_init
@@ -114,7 +115,7 @@ class TwoViewRefiner(nn.Module):
             if self.normalize_features:
                 F_ref, F_q = normalize(F_ref, dim=-1), normalize(F_q, dim=1)
             problem = FeaturemetricProblem(batch.p3d_ref, F_ref, F_q, cam_q, W_ref, W_q, mask)
-            result = solver(problem, T)
+            result = solver(problem, T, num_iters=num_iters)
             inits.append(T)
             poses.append(result.pose)
             failed.append(result.failed)

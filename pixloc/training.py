@@ -81,8 +81,6 @@ class Trainer:
         self.optimizer = torch.optim.Adam([
             {"params": others, "lr": conf.lr},
             {"params": damping, "lr": conf.lr * conf.damping_lr_scale}])
-        for s in model.solvers:
-            s.num_iters = conf.num_iters
         if hasattr(model.extractor, "grad_checkpointing"):
             model.extractor.grad_checkpointing = conf.grad_checkpointing
         self.step_count = 0
@@ -140,7 +138,7 @@ class Trainer:
         finite = True
         for parts in groups.values():
             b = (parts[0] if len(parts) == 1 else PairBatch.stack(parts)).to(self.device)
-            pred = self.model(b)
+            pred = self.model(b, num_iters=self.conf.num_iters)
             losses = self.model.loss(pred, b)
             with torch.no_grad():
                 losses["error_px/init"] = reprojection_px(b.query_from_ref_init, b)

@@ -27,12 +27,11 @@ from typing import Dict, List, Optional, Sequence, Tuple
 import torch
 
 from pipeline.evaluate import fmt, summarize
-from pipeline.scene import CameraRecord
 from pipeline.training_data import PairDataset
 from pixloc.geometry import pose_error
 from pixloc.nets.registry import load_refiner
 
-from .train import default_data_root, load_config, load_sources, pair_config
+from .train import default_data_root, load_config, load_sources
 
 logger = logging.getLogger(__name__)
 THRESHOLDS = ((0.05, 2.0), (0.25, 2.0))
@@ -63,12 +62,10 @@ def evaluate_models(models: Sequence[str], datasets: Sequence[Tuple[str, PairDat
     results["prior"] = summaries(pair_errors["prior"])
     for model in models:
         refiner = load_refiner(model).eval()
-        for s in refiner.solvers:
-            s.num_iters = num_iters
         per, t0 = {}, time.perf_counter()
         with torch.no_grad():
             for name, ps in pairs.items():
-                per[name] = [errors(refiner(b)["query_from_ref"][-1], b) for b in ps]
+                per[name] = [errors(refiner(b, num_iters=num_iters)["query_from_ref"][-1], b) for b in ps]
         pair_errors[model] = per
         results[model] = summaries(per)
         results[model]["all"]["seconds_per_pair"] = (time.perf_counter() - t0) / sum(map(len, pairs.values()))
@@ -161,18 +158,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    config = load_config(args.config)
-    held_out: List[Dict] = config.get("held_out_sources") or []
+    run = load_config(args.config)
+    held_out: List[Dict] = list(run.held_out_sources)
     if not held_out:
         raise ValueError(f"Config {args.config!r} names no held-out sources (held_out_sources).")
     data_root = args.data_root or default_data_root()
-    m, w, h, params = config.get("synthetic_camera", ["PINHOLE", 320, 240, [250.0, 250.0, 160.0, 120.0]])
-    sources, skipped = load_sources(held_out, data_root, args.output / "data", CameraRecord(m, w, h, tuple(params)))
+    sources, skipped = load_sources(held_out, data_root, args.output / "data", run.camera())
     if skipped:
         raise ValueError(f"Held-out data missing under {data_root}: {', '.join(skipped)}.")
-    pconf = replace(pair_config(config), far_init_prob=0.0,  # every pair from the one range evaluated
-                    max_size=args.max_size or int(config.get("max_size", 320)),
-                    init_range=tuple(args.init_range or config.get("init_range", (0.75, 1.0))))
+    pconf = replace(run.pairs, far_init_prob=0.0,  # every pair from the one range evaluated
+                    max_size=args.max_size or run.pairs.max_size,
+                    init_range=tuple(args.init_range or run.pairs.init_range))
     datasets = [(s.name, s.dataset(pconf)) for s in sources]
     pair_errors: Errors = {}
     results = evaluate_models(args.models, datasets, args.max_pairs, args.iters, args.seed, pair_errors)

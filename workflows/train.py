@@ -21,7 +21,7 @@ import logging
 import os
 import platform
 import time
-from dataclasses import dataclass, replace
+from dataclasses import asdict, dataclass, field, fields, replace
 from importlib import resources
 from pathlib import Path
 from typing import Dict, List, Optional, Tuple
@@ -36,7 +36,7 @@ from pipeline.training_data import PairConfig, PairDataset, synthetic_scene
 from pixloc.nets.registry import load_refiner, save_model
 from pixloc.training import Trainer, TrainConfig, reprojection_px
 
-from .presets import check_keys
+from .options import build, check_keys
 from .sources import MapSource, load_scene
 
 logger = logging.getLogger(__name__)
@@ -50,8 +50,74 @@ def default_data_root() -> Path:
     return Path(shared) / "data" if shared else Path("../shared/data")
 
 
-def load_config(spec: str) -> Dict:
-    """A config file, or the name of a packaged one (workflows/presets/training/NAME.yaml)."""
+@dataclass(frozen=True)
+class TrainingRun:
+    """A training run as its YAML config says. The config is flat: the run's own keys (these
+    fields), the optimiser's by ``pixloc.training.TrainConfig``'s names (``lr``, ``ema``,
+    ``num_iters`` ...) and the pairs' by ``pipeline.training_data.PairConfig``'s (``max_size``,
+    ``init_range`` ...); each default lives in its dataclass alone, and any other key is refused
+    with the nearest valid name.
+
+    data, validation, held_out_sources: source entries (``load_sources``); held_out: the names
+    kept out of training, for the model card. steps: total steps; decay_steps: where a cosine
+    schedule ends (default ``steps``). batch_size: pairs per step; workers: data loading
+    processes. val_pairs, val_every, checkpoint_every: validation and checkpoint cadence.
+    synthetic_camera: the camera of synthetic scenes (model, width, height, params)."""
+
+    data: Tuple[Dict, ...] = ()
+    validation: Tuple[Dict, ...] = ()
+    held_out: Tuple[str, ...] = ()
+    held_out_sources: Tuple[Dict, ...] = ()
+    description: str = ""
+    architecture: str = "lite0"
+    model: str = "lite0-imagenet"
+    steps: int = 1000
+    decay_steps: Optional[int] = None
+    seed: int = 0
+    batch_size: int = 1
+    workers: int = 0
+    val_pairs: int = 24
+    val_every: int = 100
+    checkpoint_every: int = 100
+    synthetic_camera: Tuple = ("PINHOLE", 320, 240, (250.0, 250.0, 160.0, 120.0))
+    trainer: TrainConfig = field(default_factory=TrainConfig)
+    pairs: PairConfig = field(default_factory=PairConfig)
+
+    @classmethod
+    def from_dict(cls, config: Dict, where: str = "training config") -> "TrainingRun":
+        nested = {"trainer": {f.name for f in fields(TrainConfig)} - {"total_steps"},
+                  "pairs": {f.name for f in fields(PairConfig)}}
+        own = {f.name for f in fields(cls)} - set(nested)
+        check_keys(config, own | nested["trainer"] | nested["pairs"], where)
+        layer = {next((f"{n}.{k}" for n, keys in nested.items() if k in keys), k): v for k, v in config.items()}
+        run = build(cls, layer, where=where)
+        return replace(run, trainer=replace(run.trainer, total_steps=run.decay_steps or run.steps))
+
+    def to_dict(self) -> Dict:
+        """The flat config, every key resolved (written to the run folder as config.yaml)."""
+        out = {f.name: getattr(self, f.name) for f in fields(self) if f.name not in ("trainer", "pairs")}
+        out.update({k: v for k, v in asdict(self.trainer).items() if k != "total_steps"})
+        out.update(asdict(self.pairs))
+        return _plain(out)
+
+    def camera(self) -> CameraRecord:
+        """The camera of the synthetic scenes."""
+        m, w, h, params = self.synthetic_camera
+        return CameraRecord(m, int(w), int(h), tuple(params))
+
+
+def _plain(value):
+    """Tuples as lists, for YAML."""
+    if isinstance(value, dict):
+        return {k: _plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    return value
+
+
+def load_config(spec: str, overrides: Optional[Dict] = None) -> TrainingRun:
+    """A config file, or the name of a packaged one (workflows/presets/training/NAME.yaml), with
+    ``overrides`` (flat keys, as the command line sets them) on top."""
     path = Path(spec)
     if not path.is_file():
         packaged = resources.files(__package__) / "presets" / "training" / f"{spec}.yaml"
@@ -59,17 +125,7 @@ def load_config(spec: str) -> Dict:
             raise ValueError(f"Training config {spec!r} is neither a file nor a packaged config.")
         path = Path(str(packaged))
     config = yaml.safe_load(path.read_text()) or {}
-    check_keys(config, CONFIG_KEYS, f"training config {path}")
-    return config
-
-
-# every key a training config may hold (``train`` reads them with their defaults)
-CONFIG_KEYS = {
-    "description", "architecture", "model", "data", "held_out", "held_out_sources", "validation", "val_pairs",
-    "val_every", "checkpoint_every", "steps", "seed", "device", "workers", "batch_size", "amp",
-    "grad_checkpointing", "lr", "lr_schedule", "lr_min_factor", "decay_steps", "decay_start", "damping_lr_scale",
-    "clip_grad", "ema", "num_points", "num_iters", "max_size", "min_covisible", "init_range", "far_init_prob",
-    "far_init_range", "synthetic_camera"}
+    return TrainingRun.from_dict({**config, **(overrides or {})}, f"training config {path}")
 
 
 @dataclass
@@ -184,7 +240,7 @@ def validate(trainer: Trainer, pairs) -> Dict[str, float]:
         model.eval()
         for batch in pairs:
             batch = batch.to(trainer.device)
-            pred = model(batch)
+            pred = model(batch, num_iters=trainer.conf.num_iters)
             losses.append(float(model.loss(pred, batch)["total"].mean()))
             init.append(float(reprojection_px(batch.query_from_ref_init, batch).mean()))
             final.append(float(reprojection_px(pred["query_from_ref"][-1], batch).mean()))
@@ -252,17 +308,15 @@ def plot_curves(out: Path) -> Path:
     return out / "curves.png"
 
 
-def contact_sheet(config: Dict, out: Path, data_root: Path, pairs_per_source: int = 2, seed: int = 0) -> Path:
-    """``out/contact_sheet.jpg``: sampled training pairs of every source of ``config`` (and its
+def contact_sheet(run: TrainingRun, out: Path, data_root: Path, pairs_per_source: int = 2, seed: int = 0) -> Path:
+    """``out/contact_sheet.jpg``: sampled training pairs of every source of ``run`` (and its
     validation), each as reference | query, the pair's points at the truth in the reference
     (green) and in the query at the initial pose (red) and at the truth (green)."""
     import cv2
-    pconf = pair_config(config)
-    m, w, h, params = config.get("synthetic_camera", ["PINHOLE", 320, 240, [250.0, 250.0, 160.0, 120.0]])
-    sources, _ = load_sources(config["data"] + config.get("validation", []), data_root, out / "data",
-                              CameraRecord(m, int(w), int(h), tuple(params)))
+    pconf = run.pairs
+    sources, _ = load_sources(list(run.data + run.validation), data_root, out / "data", run.camera())
     rng = np.random.default_rng(seed)
-    rows, size = [], int(config.get("max_size", 320))
+    rows, size = [], pconf.max_size
 
     def draw(image, camera, T, p3d, mask, colour):
         p2d, valid = camera.cam2image(T.transform(p3d))
@@ -296,49 +350,31 @@ def contact_sheet(config: Dict, out: Path, data_root: Path, pairs_per_source: in
     return path
 
 
-def pair_config(config: Dict) -> PairConfig:
-    """The training pairs' settings of a config."""
-    return PairConfig(max_size=int(config.get("max_size", 320)), num_points=int(config.get("num_points", 512)),
-                      min_covisible=int(config.get("min_covisible", 50)),
-                      init_range=tuple(config.get("init_range", (0.75, 1.0))),
-                      far_init_prob=float(config.get("far_init_prob", 0.0)),
-                      far_init_range=tuple(config.get("far_init_range", (0.25, 0.75))))
-
-
-def train(config: Dict, out: Path, data_root: Path, resume: bool = True, threads: int = 0) -> Dict:
-    """Train (or resume) as ``config`` says; returns the final validation metrics."""
-    check_keys(config, CONFIG_KEYS, "training config")
+def train(run, out: Path, data_root: Path, resume: bool = True, threads: int = 0) -> Dict:
+    """Train (or resume) as ``run`` (a ``TrainingRun``, or its flat config) says; returns the final
+    validation metrics."""
+    if not isinstance(run, TrainingRun):
+        run = TrainingRun.from_dict(run)
     out.mkdir(parents=True, exist_ok=True)
     if threads:
         torch.set_num_threads(threads)
-    (out / "config.yaml").write_text(yaml.safe_dump(config, sort_keys=False))
-    model, arch = config.get("model", "lite0-imagenet"), config.get("architecture", "lite0")
-    pconf = pair_config(config)
-    m, w, h, params = config.get("synthetic_camera", ["PINHOLE", 320, 240, [250.0, 250.0, 160.0, 120.0]])
-    camera = CameraRecord(m, int(w), int(h), tuple(params))
-    sources, skipped = load_sources(config["data"], data_root, out / "data", camera)
+    (out / "config.yaml").write_text(yaml.safe_dump(run.to_dict(), sort_keys=False))
+    model, arch = run.model, run.architecture
+    pconf, camera = run.pairs, run.camera()
+    sources, skipped = load_sources(list(run.data), data_root, out / "data", camera)
     if not sources:
         raise ValueError("No training data: every source of the config is missing.")
     datasets = [s.dataset(pconf) for s in sources]
     p = np.array([s.weight for s in sources]) / np.sum([s.weight for s in sources])
-    sampler = StepSampler(datasets, p, int(config.get("seed", 0)), int(config.get("batch_size", 1)))
-    workers = int(config.get("workers", 0))
-    val_sources, _ = load_sources(config.get("validation", []), data_root, out / "data", camera)
-    val_pairs = [b for s in val_sources for b in s.dataset(pconf).fixed(int(config.get("val_pairs", 24)), seed=0)]
+    sampler = StepSampler(datasets, p, run.seed, run.batch_size)
+    workers = run.workers
+    val_sources, _ = load_sources(list(run.validation), data_root, out / "data", camera)
+    val_pairs = [b for s in val_sources for b in s.dataset(pconf).fixed(run.val_pairs, seed=0)]
 
     refiner = load_refiner(model)
-    tconf = TrainConfig(lr=float(config.get("lr", 1e-4)), clip_grad=float(config.get("clip_grad", 1.0)),
-                        damping_lr_scale=float(config.get("damping_lr_scale", 100.0)),
-                        num_iters=int(config.get("num_iters", 15)),
-                        grad_checkpointing=bool(config.get("grad_checkpointing", False)),
-                        lr_schedule=str(config.get("lr_schedule", "constant")),
-                        total_steps=int(config.get("decay_steps", config.get("steps", 1000))),
-                        decay_start=int(config.get("decay_start", 0)),
-                        lr_min_factor=float(config.get("lr_min_factor", 0.1)),
-                        device=str(config.get("device", "cpu")), amp=bool(config.get("amp", False)),
-                        ema=float(config.get("ema", 0.0)))
+    tconf = run.trainer
     trainer = Trainer(refiner, tconf)
-    torch.manual_seed(int(config.get("seed", 0)))
+    torch.manual_seed(run.seed)
     wall = 0.0
     ckpt_path = out / "checkpoint.pt"
     if resume and ckpt_path.is_file():
@@ -349,10 +385,10 @@ def train(config: Dict, out: Path, data_root: Path, resume: bool = True, threads
     start = trainer.step_count
     train_log = CsvLog(out / "metrics.csv", TRAIN_KEYS + ("source",), start)
     val_log = CsvLog(out / "validation.csv", VAL_KEYS, start)
-    steps = int(config.get("steps", 1000))
-    val_every, ckpt_every = int(config.get("val_every", 100)), int(config.get("checkpoint_every", 100))
+    steps = run.steps
+    val_every, ckpt_every = run.val_every, run.checkpoint_every
     info = {"architecture": arch, "init": model, "data": [s.name for s in sources], "skipped_data": skipped,
-            "held_out": config.get("held_out", []), "max_size": pconf.max_size, "lr": tconf.lr, "ema": tconf.ema,
+            "held_out": list(run.held_out), "max_size": pconf.max_size, "lr": tconf.lr, "ema": tconf.ema,
             "hardware": f"{platform.processor() or platform.machine()}, {torch.get_num_threads()} threads, "
                         f"{tconf.device}"
                         + (f" ({torch.cuda.get_device_name()})" if tconf.device.startswith("cuda") else "")}
@@ -436,22 +472,18 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    config = load_config(args.config)
-    for key in ("steps", "lr", "max_size", "device", "batch_size", "workers"):
-        if getattr(args, key) is not None:
-            config[key] = getattr(args, key)
-    if args.grad_checkpointing:
-        config["grad_checkpointing"] = True
-    if args.amp:
-        config["amp"] = True
-    if str(config.get("device", "cpu")).startswith("cuda") and not torch.cuda.is_available():
+    overrides = {key: getattr(args, key) for key in ("steps", "lr", "max_size", "device", "batch_size", "workers")
+                 if getattr(args, key) is not None}
+    overrides.update({key: True for key in ("grad_checkpointing", "amp") if getattr(args, key)})
+    run = load_config(args.config, overrides)
+    if run.trainer.device.startswith("cuda") and not torch.cuda.is_available():
         raise ValueError("--device cuda: no CUDA device is available to torch here.")
     if args.synthetic_only:
-        config["data"] = [d for d in config["data"] if d["kind"] == "synthetic"]
+        run = replace(run, data=tuple(d for d in run.data if d["kind"] == "synthetic"))
     if args.contact_sheet:
-        print(f"contact sheet: {contact_sheet(config, args.output, args.data_root or default_data_root())}")
+        print(f"contact sheet: {contact_sheet(run, args.output, args.data_root or default_data_root())}")
         return 0
-    val = train(config, args.output, args.data_root or default_data_root(), resume=not args.restart,
+    val = train(run, args.output, args.data_root or default_data_root(), resume=not args.restart,
                 threads=args.threads)
     print(f"model: {args.output / 'model.pt'}  curves: {args.output / 'curves.png'}")
     if val:

@@ -30,3 +30,21 @@ def test_a_misspelt_training_key_is_refused_with_the_nearest_name(tmp_path):
         load_config(str(tmp_path / "run.yaml"))
     with pytest.raises(ValueError, match="did you mean 'damping_lr_scale'"):
         train({"damping_lr_scal": 0.0}, tmp_path / "out", tmp_path)
+
+
+def test_a_training_config_takes_each_default_from_its_dataclass_and_reads_back(tmp_path):
+    """Before: train() read ~30 keys with config.get(key, default), and its defaults disagreed with
+    TrainConfig's (lr 1e-4 against 1e-5)."""
+    import yaml
+
+    from pipeline.training_data import PairConfig
+    from pixloc.training import TrainConfig
+    from workflows.train import TrainingRun
+    run = TrainingRun.from_dict({"steps": 40, "ema": 0.9, "max_size": 256})
+    assert run.trainer.lr == TrainConfig().lr and run.trainer.ema == 0.9 and run.trainer.total_steps == 40
+    assert run.pairs == PairConfig(max_size=256)
+    assert TrainingRun.from_dict({"steps": 40, "decay_steps": 30}).trainer.total_steps == 30
+    packaged = load_config("lite0", {"steps": 7, "lr": 3e-5})
+    assert (packaged.steps, packaged.trainer.lr, packaged.trainer.total_steps) == (7, 3e-5, 7)
+    (tmp_path / "resolved.yaml").write_text(yaml.safe_dump(packaged.to_dict()))  # as train writes config.yaml
+    assert load_config(str(tmp_path / "resolved.yaml")) == packaged
