@@ -124,12 +124,12 @@ def query_table(records: List[Dict], errors: Dict[str, Dict], thresholds, units:
         num = (lambda v, spec: f"<td data-v='{v if v is not None else ''}'>{fmt(v, spec)}</td>")
         out.append(
             f"<tr class='{o}'><td>{html.escape(r['name'])}</td>"
-            f"<td class='text'>{html.escape(_tags_text(r.get('tags', {})))}</td>"
+            f"<td class='text tags'>{html.escape(_tags_text(r.get('tags', {})))}</td>"
             f"<td data-v='{OUTCOME_ORDER[o]}'>{o}</td>" + num(e["t"], ".3f") + num(e["R"], ".2f")
             + num(e["refined_t"], ".3f") + num(e["refined_R"], ".2f") + num(e["prior_t"], ".3f")
             + num(e["prior_R"], ".2f") + num(refinement_confidence(r), ".2f")
             + f"<td class='text'>{html.escape(r['reason'])}</td>"
-            f"<td class='text'>{html.escape(_references_text(r['references']))}</td>"
+            f"<td class='text refs'>{html.escape(_references_text(r['references']))}</td>"
             + num(r.get("num_points"), "d") + num(r.get("iterations"), "d")
             + num(r.get("timings", {}).get("total"), ".2f") + "</tr>")
     out.append("</tbody></table>")
@@ -173,7 +173,28 @@ th[data-order=asc]::after{content:' \\25B2'} th[data-order=desc]::after{content:
 .wide{overflow-x:auto} .note{color:#666;font-size:13px}
 #queries td:first-child{word-break:break-all;min-width:10em;max-width:22em}
 #queries td.text{min-width:14em;text-align:left}
+#queries td.refs,#queries td.tags{word-break:break-all;min-width:12em;max-width:20em}
 """
+
+
+def threshold_section(records: List[Dict], gt: Dict, threshold, job: Dict, units: str) -> str:
+    """The verification threshold's precision/recall trade-off over the refined queries with ground
+    truth; a note instead where none of them is right (flat curves at zero); nothing without any."""
+    curves = threshold_tradeoff(records, gt, threshold) if gt else None
+    if curves is None:
+        return ""
+    head = "<h2 id='threshold'>Verification threshold</h2><p class='note'>"
+    if curves[3] == 0:
+        return (head + f"None of the refined queries with ground truth is within {threshold[0]:g} {units}, "
+                f"{threshold[1]:g} deg: there is no right refinement for a minimum confidence "
+                "(<code>--min-confidence</code>) to keep or reject, so no trade-off to show. Each refinement's "
+                "error is in the per-query table.</p>")
+    verification = job["localizer"].get("verification", {})
+    return (head + "What each minimum confidence (<code>--min-confidence</code>) would keep, over the refined "
+            "queries with ground truth: the fraction of accepted refinements that are right, and of right refinements "
+            "that are accepted. Rejections of right poses are what the threshold is tuned on.</p>"
+            + _img(tradeoff_figure(curves, threshold, float(verification.get("min_confidence", 0.5)), units),
+                   "precision and recall against the minimum confidence"))
 
 
 def accuracy_tables(summary: Dict, thresholds, units: str, group_by=None) -> str:
@@ -307,15 +328,7 @@ def make_report(output: Path, queries: List[QueryRecord], num_examples: int = 3,
                      "dashed.</p>" + accuracy_tables(summary, thresholds, units, group_by))
     else:
         parts.append("<p>No ground truth: accuracy is not evaluated (pass --ground-truth POSES).</p>")
-    curves = threshold_tradeoff(records, gt, thresholds[0]) if gt else None
-    if curves is not None:
-        verification = job["localizer"].get("verification", {})
-        parts.append("<h2 id='threshold'>Verification threshold</h2><p class='note'>What each minimum confidence "
-                     "(<code>--min-confidence</code>) would keep, over the refined queries with ground truth: the "
-                     "fraction of accepted refinements that are right, and of right refinements that are accepted. "
-                     "Rejections of right poses are what the threshold is tuned on.</p>"
-                     + _img(tradeoff_figure(curves, thresholds[0], float(verification.get("min_confidence", 0.5)),
-                                            units), "precision and recall against the minimum confidence"))
+    parts.append(threshold_section(records, gt, thresholds[0], job, units))
     parts.append(f"<h2 id='failures-section'>Failures and rejections</h2>{failure_summary(records)}")
     parts.append(f"<h2 id='queries-section'>Queries</h2><p class='note'>{len(records)} rows: failed (red) and "
                  "rejected (yellow) first, then by error, largest first. Click a header to sort.</p>"

@@ -72,6 +72,22 @@ def test_the_threshold_tradeoff_counts_right_refinements_kept():
     assert np.isnan(at[1.0][0]) and at[1.0][1] == 0.0  # nothing accepted: precision undefined
 
 
+def test_no_right_refinement_gives_a_note_not_flat_curves():
+    """Before: a kapture run whose refinements all missed (0.25 m, 2 deg) drew two curves flat at zero."""
+    from workflows.report import threshold_section
+    job = {"localizer": {"verification": {"min_confidence": 0.5}}}
+    wrong = [{"name": f"q{k}", "refined": _moved(3.0), "confidence": c, "success": c >= 0.5, "prior": _moved(1.0),
+              "reason": ""} for k, c in enumerate([0.99, 0.0, 0.0])]
+    gt = {r["name"]: T for r in wrong}
+    html_text = threshold_section(wrong, gt, (0.25, 2.0), job, "m")
+    assert "None of the refined queries with ground truth is within 0.25 m, 2 deg" in html_text
+    assert "<img" not in html_text
+    right = wrong + [{"name": "q9", "refined": _moved(0.01), "confidence": 0.9, "success": True, "prior": _moved(1.0),
+                      "reason": ""}]
+    assert "<img" in threshold_section(right, {**gt, "q9": T}, (0.25, 2.0), job, "m")
+    assert threshold_section(wrong, {}, (0.25, 2.0), job, "m") == ""
+
+
 def test_the_evidence_panel_names_things_and_fits():
     """Before: raw keys (contrast_3px, last_R) and references clipped at the panel's edge."""
     from workflows.report_figures import evidence_text
