@@ -58,6 +58,8 @@ FLAGS = {
     "--iters": Flag("localizer.num_iters", "LM iterations per level"),
     "--min-confidence": Flag("localizer.verification.min_confidence", "verification: refinements with a lower "
                              "confidence are rejected and keep their prior (docs/verification.md)"),
+    "--max-turn": Flag("localizer.verification.max_move_R", "verification: a refinement that turns the camera more "
+                       "than this many degrees from its prior is rejected"),
     "--no-verify": Flag("localizer.verification.enabled", "report every converged refinement as a success (official "
                         "PixLoc behaviour)", value=False),
     "--device": Flag("device", "torch device of the network and the LM (cpu, cuda)"),

@@ -66,6 +66,7 @@ def test_explicit_flags_win_even_at_the_builtin_default():
     job = _localize_job()  # no preset: the dataclasses' defaults
     assert (job.prior, job.localizer.num_iters, job.localizer.num_dbs, job.localizer.min_track_length,
             job.point_selection, job.localizer.verification.enabled) == ("top1", 100, 5, 3, "all", True)
+    assert _localize_job("--max-turn", "20").localizer.verification.max_move_R == 20.0  # one Flag line
     job = _localize_job("--no-verify", "--min-confidence", "0.3", "--pairs", "p.txt")
     assert (job.localizer.verification.enabled, job.localizer.verification.min_confidence) == (False, 0.3)
     assert job.retrieval.method == "pairs" and Path(job.retrieval.pairs).is_absolute()
