@@ -1,10 +1,14 @@
 """A misspelt key of a dataset preset or a training config is refused with the nearest valid
 name, instead of passing unnoticed while its setting keeps the default."""
 
+from pathlib import Path
+
 import pytest
 
 from workflows import presets
 from workflows.train import load_config, train
+
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def test_every_packaged_preset_and_training_config_loads():
@@ -13,6 +17,10 @@ def test_every_packaged_preset_and_training_config_loads():
     for path in (presets.resources.files(presets.__package__) / "training").iterdir():
         if path.name.endswith(".yaml"):
             load_config(str(path))
+    experiments = sorted((ROOT / "docs" / "experiments").glob("*.yaml"))  # the unshipped candidates' configs
+    assert len(experiments) >= 4
+    for path in experiments:
+        load_config(str(path))
 
 
 def test_an_unknown_preset_key_is_refused_with_the_nearest_name(tmp_path, monkeypatch):
