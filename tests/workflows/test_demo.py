@@ -129,3 +129,24 @@ def test_the_demo_output_can_be_evaluated_and_reported_again(demo, demo_dir, tmp
     doc = json.loads((out / "evaluation.json").read_text())
     assert doc["thresholds"] == [[0.1, 1.0], [0.25, 2.0], [1.0, 5.0]]  # the demo's, from its job.json
     assert len(doc["queries"]) == len(demo[1])
+
+
+def test_the_scale_benchmarks_driver_processes_run_on_the_demo(demo, demo_dir, tmp_path):
+    """The processes that `pixloc benchmark scale` and `city` start are a module (they were Python
+    kept in strings that no linter or import check saw): each prints its figures as JSON."""
+    import json
+
+    from pipeline.features import FeatureConfig
+    from workflows.benchmarks.drivers import command
+    from workflows.cli_localize import store_feature_config
+    store = demo_dir / "map.zarr"
+    conf: FeatureConfig = store_feature_config(store)
+    read = subprocess.run(command("read", store, json.dumps(conf.to_dict()), 3, 0), capture_output=True, text=True)
+    assert read.returncode == 0, read.stderr[-2000:]
+    figures = json.loads(read.stdout.strip().splitlines()[-1])
+    assert figures["obs_per_query"] > 0 and figures["bytes_read"] > 0 and figures["peak_rss"] > 0
+    loc = subprocess.run(command("localize", demo_dir / "scene", store, tmp_path / "run"), capture_output=True,
+                         text=True)
+    assert loc.returncode == 0, loc.stderr[-2000:]
+    figures = json.loads(loc.stdout.strip().splitlines()[-1])
+    assert figures["queries"] == 12 and figures["s_per_query"] > 0 and figures["recall"]["recall@1.0m,5.0deg"] > 0.5

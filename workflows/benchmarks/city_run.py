@@ -21,50 +21,12 @@ import json
 import os
 import signal
 import subprocess
-import sys
 import time
 from pathlib import Path
 from typing import Dict, List, Optional
 
 from ..process_cluster import ProcessCluster, wait_for
-
-DRIVER = r"""
-import json, sys, time
-from pathlib import Path
-from distributed import Client
-from pipeline.localize import LocalizerConfig
-from pipeline.shard import LocalizationJob, RetrievalConfig
-from pipeline.synthetic import read_synthetic
-from workflows.cli_localize import store_feature_config
-from workflows.localize import plan_localization, run_dask, run_sync
-from workflows.benchmarks.city_run import warm_up
-root, store, out, sched, limit, order, warm = sys.argv[1:8]
-_, queries = read_synthetic(root)
-queries = sorted(queries, key=lambda q: q.name)[:int(limit) or None]
-conf = store_feature_config(Path(store))
-job = LocalizationJob(store, conf, conf.model, LocalizerConfig(num_dbs=3, num_iters=30),
-                      RetrievalConfig(k=5, same_tag="area"))
-if sched.startswith("sync:"):  # a bare process: its slice of the queries, in-process, no Dask
-    part, parts = map(int, sched[5:].split("/"))
-    queries = queries[part::parts]
-    warm_up(job)
-    plan = plan_localization(job, queries, Path(out), workers=1, order=order)
-    t = time.perf_counter()
-    records = run_sync(plan)
-    print(json.dumps({"elapsed": time.perf_counter() - t, "queries": len(records)}), flush=True)
-    sys.exit(0)
-with Client(scheduler_file=sched, timeout=60) as client:
-    workers = len(client.scheduler_info()["workers"])
-    if warm == "1":  # P3 times steady state: each worker loads the network and opens the store first
-        client.run(warm_up, job)
-    plan = plan_localization(job, queries, Path(out), workers=workers, order=order)
-    print(json.dumps({"start": {"shards": len(plan.shards), "pending": len(plan.pending()),
-                                "shard_size": plan.shard_size, "workers": workers}}), flush=True)
-    t = time.perf_counter()
-    records = run_dask(plan, client)
-    print(json.dumps({"elapsed": time.perf_counter() - t, "queries": len(records)}), flush=True)
-"""
-
+from .drivers import command
 
 def warm_up(job) -> None:
     """Load the network and open the map in this (worker) process: one-off costs of a worker's first
@@ -77,8 +39,8 @@ def warm_up(job) -> None:
 
 def driver(root: Path, store: Path, out: Path, cluster: ProcessCluster, limit: int = 0, order: str = "list",
            warm: bool = False):
-    return subprocess.Popen([sys.executable, "-c", DRIVER, str(root), str(store), str(out), str(cluster.sched),
-                             str(limit), order, str(int(warm))], env={**os.environ, "OMP_NUM_THREADS": "1"},
+    return subprocess.Popen(command("city", root, store, out, cluster.sched, limit, order, int(warm)),
+                            env={**os.environ, "OMP_NUM_THREADS": "1"},
                             stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
 
 
@@ -203,8 +165,8 @@ def bare_run(args, root: Path, store: Path, parts: int) -> Dict:
     outs = [args.work / f"p3-bare-{parts}-{k}" for k in range(parts)]
     for out in outs:
         shutil.rmtree(out, ignore_errors=True)
-    procs = [subprocess.Popen([sys.executable, "-c", DRIVER, str(root), str(store), str(out), f"sync:{k}/{parts}",
-                               str(args.p3_queries), "list", "1"], env={**os.environ, "OMP_NUM_THREADS": "1"},
+    procs = [subprocess.Popen(command("city", root, store, out, f"sync:{k}/{parts}", args.p3_queries, "list", 1),
+                              env={**os.environ, "OMP_NUM_THREADS": "1"},
                               stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
              for k, out in enumerate(outs)]
     done = [lines(p)[-1] for p in procs]

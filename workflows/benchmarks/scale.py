@@ -32,7 +32,6 @@ version-2 layout (one file per 256-row chunk per array, float16), computed for t
 import argparse
 import json
 import subprocess
-import sys
 import time
 from pathlib import Path
 from typing import Dict
@@ -41,6 +40,8 @@ import numpy as np
 
 from pipeline.features import FeatureConfig, ImageFeatures
 from pipeline.scene import CameraRecord, ImageRecord, Scene
+
+from .drivers import command
 
 AACHEN = {"images": 6697, "points": 6_100_000, "observations": 29_800_000}
 DIMS = [32, 128, 128]
@@ -116,39 +117,6 @@ def build(store: Path, scene: Scene, conf: FeatureConfig, seed: int) -> Dict:
     return {"structure_s": t1 - t0, "features_s": t2 - t1, "images_per_s": len(num_obs) / (t2 - t1)}
 
 
-READER = r"""
-import json, sys, time
-import numpy as np
-from pipeline.features import FeatureConfig
-from pipeline.map_reader import MapReader
-def rss():
-    return int(open('/proc/self/status').read().split('VmRSS:')[1].split()[0]) * 1024
-def hwm():  # this process's peak (ru_maxrss would include the parent's, kept across exec)
-    return int(open('/proc/self/status').read().split('VmHWM:')[1].split()[0]) * 1024
-store, conf, queries, seed = sys.argv[1], json.loads(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4])
-conf['image_scales'] = tuple(conf['image_scales'])
-before = rss()
-t0 = time.perf_counter()
-reader = MapReader(store, FeatureConfig(**conf), cache_images=64)
-open_s = time.perf_counter() - t0
-opened = rss()
-rng = np.random.default_rng(seed)
-lat = []
-for q in range(queries):
-    i = int(rng.integers(0, len(reader.names) - 3))
-    t = time.perf_counter()
-    obs = reader.observations([i, i + 1, i + 2], 1)
-    for k in range(len(conf['image_scales'])):
-        reader.features(obs, k)
-    lat.append(time.perf_counter() - t)
-print(json.dumps({"open_s": open_s, "rss_before": before, "rss_open": opened, "rss_end": rss(),
-                  "peak_rss": hwm(),
-                  "read_ms_median": 1e3 * float(np.median(lat)), "read_ms_p90": 1e3 * float(np.quantile(lat, 0.9)),
-                  "obs_per_query": int(len(obs.rows)), "bytes_read": reader.stats["bytes"],
-                  "blocks": reader.stats["blocks"]}))
-"""
-
-
 def v2_figures(num_obs: np.ndarray, scales: int) -> Dict:
     """The version-2 layout for the same counts: per image, ceil(n / 256) chunks of each of
     3 arrays per scale and level, and 1,047 bytes per observation with two image scales (measured
@@ -156,39 +124,6 @@ def v2_figures(num_obs: np.ndarray, scales: int) -> Dict:
     chunks = np.maximum(1, -(-num_obs // 256))
     return {"files": int(chunks.sum() * 3 * len(DIMS) * scales + 3 * len(num_obs)),
             "bytes": float(num_obs.sum() * 1047 / 2 * scales)}
-
-
-LOCALIZE = r"""
-import json, sys, time
-from pathlib import Path
-from pipeline.features import FeatureConfig
-from pipeline.localize import LocalizerConfig
-from pipeline.shard import LocalizationJob, RetrievalConfig
-from pipeline.synthetic import read_synthetic
-from workflows.localize import plan_localization, run_sync
-from workflows.cli_localize import store_feature_config
-def hwm():  # this process's peak (ru_maxrss would include the parent's, kept across exec)
-    return int(open('/proc/self/status').read().split('VmHWM:')[1].split()[0]) * 1024
-root, store, out = sys.argv[1:4]
-_, queries = read_synthetic(root)
-conf = store_feature_config(Path(store))
-job = LocalizationJob(store, conf, conf.model, LocalizerConfig(num_dbs=3, num_iters=30),
-                      RetrievalConfig(k=5, same_tag="area"))
-plan = plan_localization(job, queries, Path(out), shard_size=8, overwrite=True)
-t = time.perf_counter()
-records = run_sync(plan)
-elapsed = time.perf_counter() - t
-from pipeline.evaluate import evaluate
-s = evaluate(records, {q.name: q.cam_from_world_gt for q in queries}, ((0.25, 2.0), (1.0, 5.0)))["all"]["refined"]
-io = [r["store_io"] for r in records if r.get("store_io")]
-import numpy as np
-print(json.dumps({"queries": len(records), "s_per_query": elapsed / len(records),
-                  "points": float(np.mean([r["num_points"] for r in records])),
-                  "iterations": float(np.mean([r["iterations"] for r in records])),
-                  "peak_rss": hwm(),
-                  "recall": {k: v for k, v in s.items() if k.startswith("recall@")},
-                  "bytes_per_query": sum(x["bytes_read"] / x["shard_queries"] for x in io) / max(len(io), 1)}))
-"""
 
 
 def city_rows(args) -> list:
@@ -210,8 +145,7 @@ def city_rows(args) -> list:
         conf = FeatureConfig(resize=160, image_scales=(1,), dtype="int8", descriptor="grid")
         build_sync(plan_build(scene, store, conf))
         t2 = time.perf_counter()
-        out = subprocess.run([sys.executable, "-c", LOCALIZE, str(root), str(store),
-                              str(args.work / f"city-{n}x{n}-run")],
+        out = subprocess.run(command("localize", root, store, args.work / f"city-{n}x{n}-run"),
                              capture_output=True, text=True, check=True)
         r = json.loads(out.stdout.strip().splitlines()[-1])
         rows.append({**r, "blocks": f"{n}x{n}", "images": len(mapping), "map_points": len(scene.points),
@@ -365,8 +299,8 @@ def store_at_scale(args: argparse.Namespace) -> int:
         del scene
     files = [f for f in store.rglob("*") if f.is_file()]
     size = sum(f.stat().st_size for f in files)
-    out = subprocess.run([sys.executable, "-c", READER, str(store), json.dumps(conf.to_dict()), str(args.queries),
-                          str(args.seed)], capture_output=True, text=True, check=True)
+    out = subprocess.run(command("read", store, json.dumps(conf.to_dict()), args.queries, args.seed),
+                         capture_output=True, text=True, check=True)
     r = json.loads(out.stdout.strip().splitlines()[-1])
     v2 = v2_figures(num_obs, len(args.image_scales))
     scale = 1 / args.fraction
