@@ -126,3 +126,10 @@ def database_rows(database, table: str) -> Callable[[], int]:
         with closing(sqlite3.connect(f"file:{database}?mode=ro&immutable=1", uri=True)) as db:
             return int(db.execute(f"SELECT COUNT(*) FROM {table}").fetchone()[0])
     return count
+
+
+def count(n: int, noun: str) -> str:
+    """'1 query', '2 queries', '3 finished shards'."""
+    if n == 1:
+        return f"1 {noun}"
+    return f"{n} {noun[:-1] + 'ies' if noun.endswith('y') and noun[-2:-1] not in 'aeiou' else noun + 's'}"

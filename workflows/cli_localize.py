@@ -17,6 +17,7 @@ import numpy as np
 from pipeline.evaluate import (DEFAULT_THRESHOLDS, INDOOR_THRESHOLDS, evaluate, evaluation_document, fmt,
                                parse_thresholds, recall_label, shown_families, to_json)
 from pipeline.features import FeatureConfig
+from pipeline.progress import count
 from pipeline.results import POSE_NAMES, REJECTED, outcome, pose_names_problem, read_records, reason_groups
 from pipeline.shard import POINT_SELECTIONS, PRIORS, LocalizationJob
 from pipeline.store import StoreError, open_store
@@ -214,7 +215,8 @@ def main(args: argparse.Namespace) -> int:
     by = Counter(outcome(r) for r in records)
     ran = (f"{counts['to_run']} run in {time.time() - t0:.1f} s, {counts['reused_queries']} reused" if counts["to_run"]
            else "all reused")
-    print(f"\n{len(records)} queries ({ran}): {by['refined']} refined, {by['rejected']} rejected by verification, "
+    print(f"\n{count(len(records), 'query')} ({ran}): {by['refined']} refined, {by['rejected']} rejected by "
+          "verification, "
           f"{by['failed']} failed; poses.txt has the prior of those without a verified pose, where they have "
           f"one.\n  -> {output / 'poses.txt'}, "
           f"{output / 'kapture'}, {output / 'failed.txt'}, {output / 'records.jsonl'}"

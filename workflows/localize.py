@@ -29,6 +29,7 @@ from typing import Dict, List, Optional
 
 import numpy as np
 
+from pipeline.progress import count
 from pipeline.queries import QueryRecord
 from pipeline.regions import camera_centres, region_order
 from pipeline.feature_groups import feature_key
@@ -143,9 +144,10 @@ class LocalizationPlan:
         c = self.counts()
         order = ("list order" if self.order == "list" else
                  "grouped by map region after a retrieval stage" + (" (to run)" if self.needs_retrieval() else ""))
-        return (f"localize {c['queries']} queries in {c['shards']} shards ({order}) against {self.job.store}\n"
-                f"  to run  {c['to_run']} queries ({c['retried']} failures retried); reused {c['reused_queries']} "
-                f"queries, {c['reused_shards']} finished shards\n"
+        return (f"localize {count(c['queries'], 'query')} in {count(c['shards'], 'shard')} ({order}) against "
+                f"{self.job.store}\n"
+                f"  to run  {count(c['to_run'], 'query')} ({count(c['retried'], 'failure')} retried); reused "
+                f"{count(c['reused_queries'], 'query')}, {count(c['reused_shards'], 'finished shard')}\n"
                 f"  output  {self.output}\n  model   {self.job.model}")
 
 

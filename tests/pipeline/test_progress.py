@@ -36,3 +36,10 @@ def test_shards_give_every_worker_several_tasks():
     assert auto_shard_size(20, 2) == 3
     assert auto_shard_size(75_000, 64) == 8  # one LM batch of 8 per task at scale
     assert auto_shard_size(1, 1) == 1
+
+
+def test_counts_read_as_english():
+    """Before: 'localize 1 queries in 1 shards', '1 failures retried'."""
+    from pipeline.progress import count
+    assert [count(1, "query"), count(2, "query"), count(0, "failure"), count(3, "finished shard"), count(2, "day")] \
+        == ["1 query", "2 queries", "0 failures", "3 finished shards", "2 days"]
