@@ -83,6 +83,41 @@ class QueryResult:
         return self.refined if self.success else self.prior
 
 
+@dataclass
+class Candidate:
+    """One start of a query's refinement: the references ``dbs`` (map image indices), the start
+    pose ``prior`` (cam_from_world, 3 x 4) and where it came from (``origin``, e.g. "top-1
+    reference"). The starts of one query share its image ``rgb`` and ``cache`` (scale index ->
+    network prediction, and the references' features); ``selected``: (point, reference) pairs that
+    restrict the observations (hloc's PnP inliers)."""
+
+    query: QueryRecord
+    dbs: List[int]
+    prior: np.ndarray
+    rgb: Optional[np.ndarray] = None
+    cache: Optional[Dict] = None
+    selected: Optional[np.ndarray] = None
+    origin: str = "prior"
+
+
+@dataclass
+class LevelState:
+    """A candidate while ``Localizer.localize_batch`` refines it: its observations and current pose
+    ``T``, the reference features of the image scale being run (``refs``), whether it is still
+    ``active``, its own seconds (``t_own``) and the result being filled."""
+
+    query: QueryRecord
+    rgb: Optional[np.ndarray]
+    cache: Dict
+    result: QueryResult
+    active: bool = False
+    t_own: float = 0.0
+    obs: Optional[Observations] = None
+    T: Optional[Pose] = None
+    prior_T: Optional[Pose] = None
+    refs: Optional[Tuple] = None
+
+
 class Localizer:
     """Localizes queries against one map with one network and its per-level solvers."""
 
@@ -143,87 +178,85 @@ class Localizer:
         """Refine ``prior`` against references ``dbs``; ``rgb`` and ``cache`` (k -> prediction)
         let callers reuse the query image and predictions across hypotheses; ``selected``
         (K, 2) (point, reference) pairs restricts the observations (hloc PnP inliers)."""
-        return self.localize_batch([(query, dbs, prior, rgb, cache, selected)])[0]
+        return self.localize_batch([Candidate(query, dbs, prior, rgb, cache, selected)])[0]
 
     @torch.no_grad()
-    def localize_batch(self, items: List[Tuple]) -> List[QueryResult]:
-        """Localize several queries, solving each level as one LM batch per group of queries
+    def localize_batch(self, candidates: List[Candidate]) -> List[QueryResult]:
+        """Localize several candidates, solving each level as one LM batch per group of queries
         whose feature maps have the same shape and whose cameras the same model.
 
-        items: (query, dbs, prior, rgb or None, cache or None[, selected or None]). The
-        per-problem stopping rule of the solver makes the result of each query the same as
+        The per-problem stopping rule of the solver makes the result of each query the same as
         localizing it alone. An error in one query (a bad reference block, a network error)
         fails that query with its reason, not the batch; an error in a group's solve fails
         that group's queries.
         """
         states = []
-        for item in items:
+        for c in candidates:
             t_item = time.perf_counter()
-            query, dbs, prior, rgb, cache, selected = (*item, None)[:6]
-            result = QueryResult(query.name, False, np.asarray(prior, np.float64), None,
-                                 [self.reader.names[i] for i in dbs], notes=list(query.notes))
-            st = {"query": query, "rgb": rgb, "cache": {} if cache is None else cache, "result": result,
-                  "active": False, "t_own": 0.0}
+            query = c.query
+            result = QueryResult(query.name, False, np.asarray(c.prior, np.float64), None,
+                                 [self.reader.names[i] for i in c.dbs], notes=list(query.notes))
+            st = LevelState(query, c.rgb, {} if c.cache is None else c.cache, result)
             states.append(st)
             try:
-                seen = self.reader.observations(dbs, 1, selected)
+                seen = self.reader.observations(c.dbs, 1, c.selected)
                 keep = self.reader.track_length[seen.point] >= self.conf.min_track_length
-                st["obs"] = Observations(seen.point[keep], seen.db[keep], seen.rows[keep])
-                points = np.unique(st["obs"].point)
+                st.obs = Observations(seen.point[keep], seen.db[keep], seen.rows[keep])
+                points = np.unique(st.obs.point)
                 if self.max_points and len(points) > self.max_points:
                     chosen = np.random.default_rng(0).choice(points, self.max_points, replace=False)
-                    sub = np.isin(st["obs"].point, chosen)
-                    st["obs"] = Observations(st["obs"].point[sub], st["obs"].db[sub], st["obs"].rows[sub])
-                result.num_points = int(len(np.unique(st["obs"].point)))
+                    sub = np.isin(st.obs.point, chosen)
+                    st.obs = Observations(st.obs.point[sub], st.obs.db[sub], st.obs.rows[sub])
+                result.num_points = int(len(np.unique(st.obs.point)))
                 result.filters["short_tracks"] = int(len(np.unique(seen.point))) - result.num_points
                 if result.num_points < self.conf.min_points:
                     result.reason = f"references see {result.num_points} points (< {self.conf.min_points})"
                     continue
-                if st["rgb"] is None:  # a library caller: the same read and size rule as a shard's
-                    st["rgb"], camera, note = read_image_for(query.path, query.camera)
+                if st.rgb is None:  # a library caller: the same read and size rule as a shard's
+                    st.rgb, camera, note = read_image_for(query.path, query.camera)
                     if note:
-                        st["query"] = dataclasses.replace(query, camera=camera)
+                        st.query = dataclasses.replace(query, camera=camera)
                         result.notes.append(note)
-                st["T"] = st["prior_T"] = Pose.from_matrix(prior).float()
-                st["active"] = True
+                st.T = st.prior_T = Pose.from_matrix(c.prior).float()
+                st.active = True
             except (ImageReadError, StoreReadError, ValueError) as e:
                 result.reason = str(e)
             finally:
-                st["t_own"] += time.perf_counter() - t_item
+                st.t_own += time.perf_counter() - t_item
         for k in self.scales:
             image_scale = self.reader.conf.image_scales[k]
-            active = [st for st in states if st["active"]]
+            active = [st for st in states if st.active]
             for st in active:
                 t_item = time.perf_counter()
                 try:
                     # the starts of one query's search share its cache, references and points:
                     # their reference features are read and averaged once
-                    obs = st["obs"]
+                    obs = st.obs
                     key = ("refs", k, tuple(self.levels), hash((obs.point.tobytes(), obs.db.tobytes(),
                                                                  obs.rows.tobytes())))
-                    if key not in st["cache"]:
+                    if key not in st.cache:
                         stats: Dict = {}
-                        st["cache"][key] = (self.reference_features(obs, k, stats), stats)
-                    st["refs"], stats = st["cache"][key]
-                    st["result"].filters.update(stats)
-                    if k not in st["cache"]:
-                        st["cache"][k] = self.predict(st["rgb"], k)
+                        st.cache[key] = (self.reference_features(obs, k, stats), stats)
+                    st.refs, stats = st.cache[key]
+                    st.result.filters.update(stats)
+                    if k not in st.cache:
+                        st.cache[k] = self.predict(st.rgb, k)
                 except (StoreReadError, ValueError, RuntimeError) as e:
                     self._fail(st, f"{type(e).__name__}: {e}" if not isinstance(e, StoreReadError) else str(e))
                 # this query's own work at this scale: its reference features and its network pass
-                st["result"].timings[f"features_s{k}"] = time.perf_counter() - t_item
-                st["t_own"] += time.perf_counter() - t_item
-            groups: Dict[Tuple, List[Dict]] = {}
+                st.result.timings[f"features_s{k}"] = time.perf_counter() - t_item
+                st.t_own += time.perf_counter() - t_item
+            groups: Dict[Tuple, List[LevelState]] = {}
             for st in active:
-                if st["active"]:
-                    pred = st["cache"][k][0]
-                    key = (tuple(pred["features"][0].shape), st["query"].camera.to_pixloc().distortion)
+                if st.active:
+                    pred = st.cache[k][0]
+                    key = (tuple(pred["features"][0].shape), st.query.camera.to_pixloc().distortion)
                     groups.setdefault(key, []).append(st)
             t0 = time.perf_counter()
             for level in self.levels:
                 final = k == self.scales[-1] and level == self.levels[-1]
                 for group in groups.values():
-                    group = [st for st in group if st["active"]]
+                    group = [st for st in group if st.active]
                     if not group:
                         continue
                     try:
@@ -236,22 +269,22 @@ class Localizer:
             # the LM solves the group as one batch: each query gets an equal share of its time
             t_optim = (time.perf_counter() - t0) / max(len(active), 1)
             for st in active:
-                st["result"].timings[f"optim_s{k}"] = t_optim
-                st["t_own"] += t_optim
+                st.result.timings[f"optim_s{k}"] = t_optim
+                st.t_own += t_optim
         for st in states:
-            result = st["result"]
-            if st["active"]:
-                result.refined = st["T"].to_matrix(orthonormal=True)
+            result = st.result
+            if st.active:
+                result.refined = st.T.to_matrix(orthonormal=True)
                 result.confidence, reason = verify(result.evidence, self.conf.verification)
                 result.success = reason is None
                 result.reason = reason or ""
-            result.timings["total"] = st["t_own"]  # its own work, plus its share of the batched LM
-        return [st["result"] for st in states]
+            result.timings["total"] = st.t_own  # its own work, plus its share of the batched LM
+        return [st.result for st in states]
 
     @staticmethod
-    def _fail(st: Dict, reason: str) -> None:
-        st["active"] = False
-        st["result"].reason = reason
+    def _fail(st: LevelState, reason: str) -> None:
+        st.active = False
+        st.result.reason = reason
 
     def _subset(self, n: int, cells: int, level: int) -> Optional[torch.Tensor]:
         """The points LM uses at a level with ``cells`` feature-map cells (``points_per_cell``):
@@ -264,18 +297,18 @@ class Localizer:
         rng = np.random.default_rng(level)
         return torch.from_numpy(np.sort(rng.choice(n, keep, replace=False)))
 
-    def _solve_level(self, group: List[Dict], k: int, image_scale: int, level: int, final: bool) -> None:
+    def _solve_level(self, group: List[LevelState], k: int, image_scale: int, level: int, final: bool) -> None:
         """One LM batch for ``group`` at one level; points are padded and masked to a common N.
         Records the evidence of the level's start and end poses (``pixloc.optim.evidence``) and,
         at the ``final`` level, of the prior, for verification."""
         stride = self.net.strides[level]
-        first = group[0]["cache"][k][0]["features"][level]
-        subsets = [self._subset(len(st["refs"][0]), first.shape[-2] * first.shape[-1], level) for st in group]
-        n_max = max(len(st["refs"][0]) if sub is None else len(sub) for st, sub in zip(group, subsets))
+        first = group[0].cache[k][0]["features"][level]
+        subsets = [self._subset(len(st.refs[0]), first.shape[-2] * first.shape[-1], level) for st in group]
+        n_max = max(len(st.refs[0]) if sub is None else len(sub) for st, sub in zip(group, subsets))
         p3d, F_ref, W_ref, mask, cams = [], [], [], [], []
         maps = new_query_maps((len(group),) + tuple(first.shape[1:]), first)  # normalised features + confidence
         for st, sub in zip(group, subsets):
-            xyz, levels = st["refs"]
+            xyz, levels = st.refs
             f, w = levels[level]
             if sub is not None:
                 xyz, f, w = xyz[sub], f[sub], w[sub]
@@ -285,31 +318,31 @@ class Localizer:
             F_ref.append(torch.cat([f, f.new_zeros(pad, f.shape[1])]))
             W_ref.append(torch.cat([w, w.new_zeros(pad)]))
             mask.append(torch.arange(n_max) < n)
-            pred, (sx, sy) = st["cache"][k]
+            pred, (sx, sy) = st.cache[k]
             f = pred["features"][level][0]  # official: the dense map is L2-normalised (as F.normalize)
             torch.div(f, torch.linalg.vector_norm(f, dim=0, keepdim=True).clamp_min(1e-12), out=maps[len(cams), :-1])
             # models without confidences (photometric) weigh every pixel the same
             maps[len(cams), -1] = pred["confidences"][level][0, 0] if "confidences" in pred else 1.0
-            cams.append(st["query"].camera.to_pixloc(torch.float64).scale((sx / stride, sy / stride)).float())
+            cams.append(st.query.camera.to_pixloc(torch.float64).scale((sx / stride, sy / stride)).float())
         device = maps.device
         problem = FeaturemetricProblem(torch.stack(p3d).to(device), torch.stack(F_ref).to(device),
                                        maps[:, :-1], Camera.stack(cams).to(device),
                                        torch.stack(W_ref).to(device), maps[:, -1],
                                        torch.stack(mask).to(device), maps=maps)
-        T = Pose.stack([st["T"] for st in group]).to(device)
+        T = Pose.stack([st.T for st in group]).to(device)
         solver = self.solvers[level]
         lm = solver(problem, T, num_iters=self.conf.num_iters)
         start = alignment_evidence(problem, T, solver.loss_fn, solver.interpolator)
         end = alignment_evidence(problem, lm.pose, solver.loss_fn, solver.interpolator)
         at_prior, contrast = None, {}
         if final:
-            prior = Pose.stack([st["prior_T"] for st in group]).to(device)
+            prior = Pose.stack([st.prior_T for st in group]).to(device)
             at_prior = alignment_evidence(problem, prior, solver.loss_fn, solver.interpolator)
             contrast = {f"contrast_{px:g}px": alignment_contrast(problem, lm.pose, solver.loss_fn,
                                                                  solver.interpolator, px) for px in CONTRAST_SHIFTS}
         for b, st in enumerate(group):
             failed = bool(lm.failed[b])
-            result = st["result"]
+            result = st.result
             evidence = {f"{key}_{which}": float(ev[key][b]) for which, ev in (("start", start), ("end", end))
                         for key in ("inliers", "weighted_inliers", "valid", "cost")}
             result.per_level.append({"scale": int(image_scale), "level": level, "failed": failed,
@@ -321,14 +354,14 @@ class Localizer:
             if failed:
                 result.reason = (f"LM failed at image scale {image_scale}, level {level} "
                                  f"({int(lm.num_valid[b])} valid points)")
-                st["active"] = False
+                st.active = False
                 continue
-            st["T"] = lm.pose[b].cpu()
+            st.T = lm.pose[b].cpu()
             if final:
                 result.evidence = evidence_summary(result.per_level, {
                     key: float(at_prior[key][b]) for key in at_prior if key != "points"},
                     {key: float(v[b]) for key, v in contrast.items()},
-                    np.asarray(result.prior), st["T"].to_matrix(orthonormal=True),
+                    np.asarray(result.prior), st.T.to_matrix(orthonormal=True),
                     problem.p3d_world[b][problem.mask[b]].cpu().numpy())
 
 

@@ -260,17 +260,6 @@ def open_reader(path, conf: FeatureConfig, digest: Optional[str] = None) -> MapR
     return reader
 
 
-def global_descriptor_ranking(reader: MapReader, descriptor: np.ndarray, k: int,
-                              candidates: Optional[List[int]] = None) -> List[int]:
-    """Top-k usable reference images by cosine similarity of global descriptors."""
-    ids = np.array([i for i in (candidates if candidates is not None else range(len(reader.names)))
-                    if reader.usable(i)])
-    if len(ids) == 0:
-        return []
-    sim = reader.global_descriptors[ids] @ descriptor
-    return [int(i) for i in ids[np.argsort(-sim, kind="stable")[:k]]]
-
-
 def by_name(reader: MapReader, names: List[str]) -> Tuple[List[int], List[str]]:
     """Indices of reference names, and the names not in the map."""
     found = [reader.index[n] for n in names if n in reader.index]

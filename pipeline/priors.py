@@ -1,58 +1,172 @@
-"""Pose priors from retrieved reference images.
+"""Where a query's refinement starts: one function per prior, in ``PRIORS`` (the job's ``prior``
+and the command line's choices come from it), each ``(start: Start) -> Prepared``: the
+query's candidates (``pipeline.localize.Candidate``, several for ``hypotheses`` and
+``search``), or its failure with the reason.
 
-- ``top1``: the pose of the best reference (official PixLoc retrieval default).
-- ``average``: as the paper's appendix / official ``do_pose_approximation``: keep the
-  largest covisibility cluster of the top-k references, and average their poses with
-  weights (cosine similarity)^8: centres linearly, rotations by quaternion averaging
-  (Markley et al. 2007, "Averaging Quaternions").
+- ``top1``: the pose of the best reference (official PixLoc retrieval default);
+- ``average``: the references' covisibility cluster averaged (``pipeline.pose_averaging``);
+- ``hypotheses``: each of the top ``num_hypotheses`` reference poses, the most confident
+  refinement wins;
+- ``search``: the top references' poses, the average pose and perturbations of each, screened
+  at the coarsest level (``pipeline.search``);
+- ``poses``: refinement mode from another pipeline's poses file (``prior_poses``);
+- ``hloc``: refinement mode from hloc's logs (its PnP pose, the references with most inliers,
+  optionally only the inlier points), as the paper's.
+
+A new prior is a function here and its line in ``PRIORS``.
 """
 
-from typing import Callable, List, Sequence
+import functools
+import logging
+from dataclasses import dataclass
+from typing import Any, Callable, Dict, List, Optional, Tuple, Union
 
 import numpy as np
 
-from .scene import qvec_to_rotmat, rotmat_to_qvec
+from .localize import Candidate, QueryResult
+from .map_reader import MapReader
+from .pose_averaging import covisibility_clusters, pose_approximation
+from .queries import QueryRecord
+from .readers.hloc import PnPLog, read_hloc_logs
+from .retrieval import Retrieved
+from .search import Hypotheses, hypotheses, median_depth
+from .textfiles import NameIndex, PoseTable, find_by_name, read_poses
+
+logger = logging.getLogger(__name__)
+
+Prepared = Union[QueryResult, List[Candidate]]  # a Hypotheses is a list of candidates too
 
 
-def covisibility_clusters(dbs: Sequence[int], image_points: Callable[[int], np.ndarray]) -> List[List[int]]:
-    """Connected components of ``dbs`` where two images are linked if they see a common point
-    (``image_points(i)``: the points of image i); largest first, ties by the rank of their best
-    image (official ``do_covisibility_clustering``)."""
-    points = {i: set(image_points(i).tolist()) for i in dbs}
-    clusters, visited = [], set()
-    for start in dbs:
-        if start in visited:
-            continue
-        cluster, queue = [], [start]
-        while queue:
-            i = queue.pop()
-            if i in visited:
-                continue
-            visited.add(i)
-            cluster.append(i)
-            queue += [j for j in dbs if j not in visited and points[i] & points[j]]
-        clusters.append(cluster)
-    return sorted(clusters, key=len, reverse=True)
+@dataclass
+class Start:
+    """What a prior works from: the job (``pipeline.shard.LocalizationJob``: the prior's
+    settings), the map, the query with its decoded image and its cache, and its references
+    (``references()``: retrieved when first asked, so that ``hloc`` runs no retrieval)."""
+
+    job: Any
+    reader: MapReader
+    query: QueryRecord
+    rgb: np.ndarray
+    cache: Dict
+    references: Callable[[], Retrieved]
+
+    def candidate(self, dbs: List[int], prior: np.ndarray, origin: str,
+                  selected: Optional[np.ndarray] = None) -> Candidate:
+        return Candidate(self.query, list(dbs), np.asarray(prior, np.float64), self.rgb, self.cache, selected, origin)
 
 
-def average_poses(poses: Sequence[np.ndarray], weights: Sequence[float]) -> np.ndarray:
-    """Weighted average of cam_from_world (3, 4) poses: camera centres linearly, rotations by
-    the principal eigenvector of sum w q q^T (Markley)."""
-    w = np.asarray(weights, np.float64)
-    w = w / w.sum()
-    Rs = [np.asarray(T)[:, :3] for T in poses]
-    centres = np.stack([-R.T @ np.asarray(T)[:, 3] for R, T in zip(Rs, poses)])
-    qs = np.stack([rotmat_to_qvec(R) for R in Rs])
-    M = (w[:, None, None] * qs[:, :, None] * qs[:, None, :]).sum(0)
-    q = np.linalg.eigh(M)[1][:, -1]
-    R = qvec_to_rotmat(q)
-    c = (w[:, None] * centres).sum(0)
-    return np.concatenate([R, (-R @ c)[:, None]], 1)
+def failure(query: QueryRecord, reason: str, prior=None, refs=None) -> QueryResult:
+    """A query that cannot be refined, with the reason (and the prior it has, if any)."""
+    return QueryResult(query.name, False, prior, None, list(refs or []), reason=reason, notes=list(query.notes))
 
 
-def pose_approximation(poses: Sequence[np.ndarray], similarities: Sequence[float], alpha: float = 8.0
-                       ) -> np.ndarray:
-    """Official ``pose_approximation``: weights = similarity^alpha."""
-    s = np.clip(np.asarray(similarities, np.float64), 0, None)
-    weights = s ** alpha if (s > 0).any() else np.ones_like(s)
-    return average_poses(poses, weights)
+NO_MATCH = "no retrieval match among the map's usable reference images"
+
+
+def top1(s: Start) -> Prepared:
+    r = s.references()
+    if not r.dbs:
+        return failure(s.query, NO_MATCH)
+    return [s.candidate(r.dbs[:s.job.localizer.num_dbs], s.reader.cam_from_world[r.dbs[0]], "top-1 reference")]
+
+
+def average_pose(s: Start, r: Retrieved) -> Tuple[List[int], np.ndarray]:
+    """The covisibility cluster of the top references and its similarity-weighted average pose."""
+    similarity = r.similarity if r.similarity is not None else np.ones(len(r.dbs))
+    sim = dict(zip(r.dbs, similarity))
+    cluster = covisibility_clusters(r.dbs[:s.job.localizer.num_dbs], s.reader.image_points)[0]
+    return cluster, pose_approximation([s.reader.cam_from_world[i] for i in cluster], [sim[i] for i in cluster])
+
+
+def average(s: Start) -> Prepared:
+    r = s.references()
+    if not r.dbs:
+        return failure(s.query, NO_MATCH)
+    cluster, prior = average_pose(s, r)
+    return [s.candidate(cluster, prior, "average pose")]
+
+
+def reference_hypotheses(s: Start) -> Prepared:
+    r = s.references()
+    if not r.dbs:
+        return failure(s.query, NO_MATCH)
+    dbs = r.dbs[:s.job.localizer.num_dbs]
+    return [s.candidate(dbs, s.reader.cam_from_world[i], f"reference {n + 1}")
+            for n, i in enumerate(r.dbs[:s.job.num_hypotheses])]
+
+
+def search(s: Start) -> Prepared:
+    r = s.references()
+    if not r.dbs:
+        return failure(s.query, NO_MATCH)
+    conf = s.job.search
+    prior = average_pose(s, r)[1] if conf.average else None
+    starts = hypotheses(s.reader, r.dbs, conf, prior)
+    # always refined: the top-1 pose (first) and the average pose (first of the last block)
+    always = [0] + ([len(starts) - conf.size()] if conf.average else [])
+    dbs = r.dbs[:s.job.localizer.num_dbs]
+    return Hypotheses([s.candidate(dbs, T, label) for T, label in starts], always=always,
+                      depth=median_depth(s.reader, r.dbs[0]))
+
+
+@functools.lru_cache(maxsize=2)
+def poses_file(path: str) -> PoseTable:
+    """A poses file (priors), read once per process (``pipeline.textfiles.read_poses``)."""
+    return read_poses(path)
+
+
+def other_pipeline(s: Start) -> Prepared:
+    r = s.references()
+    if not r.dbs:
+        return failure(s.query, NO_MATCH)
+    dbs = r.dbs[:s.job.localizer.num_dbs]
+    prior = poses_file(s.job.prior_poses).find(s.query.name)
+    if prior is None:
+        return failure(s.query, f"no prior pose for this query in {s.job.prior_poses}", refs=dbs)
+    return [s.candidate(dbs, prior, f"pose in {s.job.prior_poses}")]
+
+
+@functools.lru_cache(maxsize=2)
+def hloc_logs(path: str) -> Tuple[Dict[str, PnPLog], NameIndex]:
+    """The logs of an hloc ``_logs.pkl`` and their name index, built once per process."""
+    logs = read_hloc_logs(path)
+    return logs, NameIndex(logs, path)
+
+
+def hloc(s: Start) -> Prepared:
+    """Refinement mode from hloc's logs (official PoseRefiner): start from the PnP pose, use the
+    references that gave the most inliers, optionally only the inlier points."""
+    job, reader, query = s.job, s.reader, s.query
+    logs, index = hloc_logs(job.hloc_logs)
+    log = find_by_name(logs, query.name, index)
+    if log is None:
+        return failure(query, f"no hloc log for this query in {job.hloc_logs}")
+    if not log.success:
+        return failure(query, "hloc PnP failed: no initial pose")
+    prior = log.cam_from_world
+    if log.num_inliers < job.min_inliers:
+        return failure(query, f"hloc PnP has {log.num_inliers} inliers (< {job.min_inliers})", prior)
+    images, points = reader.source_ids
+    inliers = log.inliers_per_db()
+    ranked = [log.db_ids[i] for i in np.argsort(-inliers, kind="stable") if inliers[i] > job.min_matches_db]
+    ranked = [i for i in ranked if i in images and reader.usable(images[i])][:job.localizer.num_dbs]
+    if not ranked:
+        unknown = [i for i in log.db_ids if i not in images]
+        reason = (f"none of the log's references (COLMAP image ids {unknown[:5]}) is in the map: build the "
+                  "store from the SfM model hloc localized against" if len(unknown) == len(log.db_ids) else
+                  f"no usable reference with more than {job.min_matches_db} PnP inliers")
+        return failure(query, reason, prior)
+    selected = None
+    if job.point_selection != "all":
+        pairs = log.inlier_observations(ranked, inliers_only=job.point_selection == "inliers")
+        known = [(points[p], images[i]) for p, i in pairs if p in points]
+        if len(known) < len(pairs):
+            logger.warning("%s: %d of %d hloc matches name points that are not in the map.", query.name,
+                           len(pairs) - len(known), len(pairs))
+        selected = np.array(known, dtype=np.int64).reshape(-1, 2)
+    return [s.candidate([images[i] for i in ranked], prior, "hloc PnP pose", selected)]
+
+
+PRIORS: Dict[str, Callable[[Start], Prepared]] = {
+    "top1": top1, "average": average, "hypotheses": reference_hypotheses, "search": search,
+    "poses": other_pipeline, "hloc": hloc}

@@ -153,25 +153,30 @@ def screening_order(results: List[QueryResult], conf: SearchConfig, skip=()) -> 
 
 
 class Hypotheses(list):
-    """The localize_batch items of one query's search, with a label per starting pose; after the
-    screening, also the top-1 start (the prior a rejected search reports) and how many were screened;
-    ``always``: the starts refined whatever the screening ranks them; ``depth``: the top reference's
-    median point depth (the scale of the scene); ``merged``: kept starts left out as duplicates;
-    ``first``: the top-1 start's refinement through every level when it ran before the search."""
+    """The candidates of one query's search (``pipeline.localize.Candidate``, each labelled by its
+    ``origin``); after the screening, also the top-1 start's pose (the prior a rejected search
+    reports) and how many were screened; ``always``: the starts refined whatever the screening
+    ranks them; ``depth``: the top reference's median point depth (the scale of the scene);
+    ``merged``: kept starts left out as duplicates; ``first``: the top-1 start's refinement through
+    every level when it ran before the search."""
 
-    def __init__(self, items, labels, top1=None, screened=None, always=(0,), depth=1.0, merged=0, first=None,
+    def __init__(self, candidates, top1=None, screened=None, always=(0,), depth=1.0, merged=0, first=None,
                  first_label=None):
-        super().__init__(items)
-        self.labels, self.top1, self.screened, self.always = labels, top1, screened, list(always)
+        super().__init__(candidates)
+        self.top1, self.screened, self.always = top1, screened, list(always)
         self.depth, self.merged = depth, merged
         self.first, self.first_label = first, first_label  # the top-1 start's full refinement, if done first
 
+    @property
+    def labels(self) -> List[str]:
+        return [c.origin for c in self]
+
 
 def solve(localizer: Localizer, prepared: List) -> List[Tuple]:
-    """(prepared, its results) per query: one localize_batch for every query's items; a failure
-    (QueryResult) comes with None."""
-    items = [it for p in prepared if isinstance(p, list) for it in p]
-    solved = iter(localizer.localize_batch(items)) if items else iter(())
+    """(prepared, its results) per query: one localize_batch for every query's candidates; a
+    failure (QueryResult) comes with None."""
+    candidates = [c for p in prepared if isinstance(p, list) for c in p]
+    solved = iter(localizer.localize_batch(candidates)) if candidates else iter(())
     return [(p, None if isinstance(p, QueryResult) else [next(solved) for _ in p]) for p in prepared]
 
 
@@ -227,7 +232,7 @@ def screen(localizer: Localizer, reader: MapReader, prepared: List, conf: Search
         merged = len(candidates) - len(kept)
         if p.first is not None and kept and kept[0] == 0:  # the top-1 start: refined already
             kept = kept[1:]
-        out.append(Hypotheses([(*p[j][:2], results[j].refined, *p[j][3:]) for j in kept],
-                               [p.labels[j] for j in kept], top1=p[0][2], screened=len(p),
-                               merged=merged, first=p.first, first_label=p.first_label))
+        out.append(Hypotheses([dataclasses.replace(p[j], prior=results[j].refined) for j in kept],
+                              top1=p[0].prior, screened=len(p), merged=merged, first=p.first,
+                              first_label=p.first_label))
     return out

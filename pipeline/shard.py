@@ -21,32 +21,17 @@ from pixloc.nets.registry import load_refiner, state_digest
 from .features import FeatureConfig, global_descriptor
 from .images import ImageReadError, read_image_for
 from .localize import Localizer, LocalizerConfig, QueryResult
-from .map_reader import MapReader, by_name, global_descriptor_ranking, open_reader
-from .priors import covisibility_clusters, pose_approximation
+from .map_reader import MapReader, open_reader
+from .priors import PRIORS as PRIOR_FUNCTIONS, Prepared, Start, failure, poses_file
 from .queries import QueryRecord
-from .readers.hloc import PnPLog, read_hloc_logs
 from .results import read_records, result_to_record, write_records
-from .search import Hypotheses, SearchConfig, hypotheses, median_depth, rank_results, screen, solve, top1_first
+from .retrieval import RETRIEVERS, RetrievalConfig, pairs_file, retrieve
+from .search import Hypotheses, SearchConfig, rank_results, screen, solve, top1_first
 from .runtime import restore_malloc_thresholds, torch_threads
 from .store import StoreError
-from .textfiles import InputError, NameIndex, PoseTable, find_by_name, read_pairs, read_poses, write_atomic
+from .textfiles import InputError, write_atomic
 
 logger = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class RetrievalConfig:
-    """method: ``global`` (top-k by the store's global descriptors), ``pairs`` (a ranked
-    pairs file) or ``hloc`` (global descriptors of queries and references from an hloc
-    HDF5 file ``descriptors``, e.g. NetVLAD, as official PixLoc reads them). k:
-    references retrieved. same_tag: restrict references to those sharing this tag with
-    the query (RobotCar practice: ``camera``)."""
-
-    method: str = "global"
-    pairs: Optional[str] = None
-    k: int = 10
-    same_tag: Optional[str] = None
-    descriptors: Optional[str] = None
 
 
 @dataclass(frozen=True)
@@ -135,13 +120,13 @@ class LocalizationJob:
         # text inputs are read in full now: a bad line is one clear error (file:line) before
         # the run, not the same failure in every query
         if method == "pairs":
-            _pairs(self.retrieval.pairs)
+            pairs_file(self.retrieval.pairs)
         if self.prior == "poses":
-            read_poses_file(self.prior_poses)
+            poses_file(self.prior_poses)
 
 
-PRIORS = ("top1", "average", "hypotheses", "search", "poses", "hloc")
-RETRIEVAL_METHODS = ("global", "pairs", "hloc")
+PRIORS = tuple(PRIOR_FUNCTIONS)  # the names of the registries: the job's and the command line's choices
+RETRIEVAL_METHODS = tuple(RETRIEVERS)
 POINT_SELECTIONS = ("all", "inliers", "matched")
 
 
@@ -150,39 +135,6 @@ def localization_model(model: str, device: str = "cpu"):
     """The refiner (network + per-level solvers) and its network's digest, once per process."""
     refiner = load_refiner(model).to(device).eval()
     return refiner, state_digest(refiner.extractor)
-
-
-@functools.lru_cache(maxsize=4)
-def _pairs(path: str) -> Dict[str, List[str]]:
-    return read_pairs(path)
-
-
-@functools.lru_cache(maxsize=2)
-def _hloc_descriptors(path: str) -> Dict[str, np.ndarray]:
-    """``name -> global_descriptor`` of an hloc global-features HDF5 file (NetVLAD, ...)."""
-    import h5py
-
-    out = {}
-    with h5py.File(path, "r") as f:
-        def visit(name, obj):
-            if isinstance(obj, h5py.Dataset) and name.endswith("/global_descriptor"):
-                d = np.asarray(obj, np.float32).reshape(-1)
-                out[name[: -len("/global_descriptor")]] = d / max(np.linalg.norm(d), 1e-12)
-        f.visititems(visit)
-    return out
-
-
-@functools.lru_cache(maxsize=2)
-def read_poses_file(path: str) -> PoseTable:
-    """A poses file (priors), read once per process (``pipeline.textfiles.read_poses``)."""
-    return read_poses(path)
-
-
-@functools.lru_cache(maxsize=2)
-def _hloc_logs(path: str) -> Tuple[Dict[str, PnPLog], NameIndex]:
-    """The logs of an hloc ``_logs.pkl`` and their name index, built once per process."""
-    logs = read_hloc_logs(path)
-    return logs, NameIndex(logs, path)
 
 
 def fit_query(query: QueryRecord) -> Tuple[QueryRecord, np.ndarray]:
@@ -196,121 +148,33 @@ def fit_query(query: QueryRecord) -> Tuple[QueryRecord, np.ndarray]:
     return query, rgb
 
 
-def _failure(query: QueryRecord, reason: str, prior=None, refs=None) -> QueryResult:
-    return QueryResult(query.name, False, prior, None, list(refs or []), reason=reason, notes=list(query.notes))
+def describer(reader: MapReader, localizer: Localizer, rgb: Optional[np.ndarray], cache: Dict):
+    """The query's global descriptor, computed when first asked (the network at the coarsest
+    image scale, kept in ``cache`` for the refinement)."""
+    def describe() -> np.ndarray:
+        k_last = len(reader.conf.image_scales) - 1
+        if k_last not in cache:
+            cache[k_last] = localizer.predict(rgb, k_last)
+        return global_descriptor(cache[k_last][0]["features"][-1][0], reader.conf.descriptor).cpu().numpy()
+    return describe
 
 
-def _retrieve(job: LocalizationJob, reader: MapReader, localizer: Localizer, query: QueryRecord,
-              rgb: np.ndarray, cache: Dict):
-    if query.retrieved is not None:  # found by the retrieval stage (``retrieve_queries``)
-        dbs, _ = by_name(reader, query.retrieved["dbs"])
-        sim = query.retrieved.get("similarity")
-        keep = [j for j, i in enumerate(dbs) if reader.usable(i)]
-        return [dbs[j] for j in keep], None if sim is None else np.asarray(sim, np.float64)[keep]
-    candidates = None
-    if job.retrieval.same_tag:
-        value = query.tags.get(job.retrieval.same_tag)
-        candidates = [i for i, t in enumerate(reader.tags) if t.get(job.retrieval.same_tag) == value]
-    if job.retrieval.method == "pairs":
-        names = _pairs(job.retrieval.pairs).get(query.name, [])
-        dbs, missing = by_name(reader, names)
-        if missing:
-            logger.warning("%s: %d retrieved references are not in the map: %s", query.name, len(missing),
-                           missing[:3])
-        dbs = [i for i in dbs if reader.usable(i) and (candidates is None or i in candidates)][:job.retrieval.k]
-        return dbs, None
-    if job.retrieval.method == "hloc":
-        descriptors = _hloc_descriptors(job.retrieval.descriptors)
-        if query.name not in descriptors:
-            return [], None
-        ids = [i for i in range(len(reader.names)) if reader.usable(i) and reader.names[i] in descriptors
-               and (candidates is None or i in candidates)]
-        sim = np.array([descriptors[reader.names[i]] @ descriptors[query.name] for i in ids])
-        order = np.argsort(-sim, kind="stable")[:job.retrieval.k]
-        return [ids[j] for j in order], sim[order]
-    k_last = len(reader.conf.image_scales) - 1
-    if k_last not in cache:
-        cache[k_last] = localizer.predict(rgb, k_last)
-    descriptor = global_descriptor(cache[k_last][0]["features"][-1][0], reader.conf.descriptor).cpu().numpy()
-    dbs = global_descriptor_ranking(reader, descriptor, job.retrieval.k, candidates)
-    return dbs, reader.global_descriptors[dbs] @ descriptor
-
-
-def prepare_query(job: LocalizationJob, reader: MapReader, localizer: Localizer, query: QueryRecord):
-    """Retrieval and prior of one query: a failure (QueryResult), or the localize_batch item(s)
-    (several for ``hypotheses``)."""
+def prepare_query(job: LocalizationJob, reader: MapReader, localizer: Localizer, query: QueryRecord) -> Prepared:
+    """Retrieval and prior of one query (``pipeline.retrieval``, ``pipeline.priors``): a failure
+    (QueryResult), or its candidates."""
     if query.error:
-        return _failure(query, query.error)
+        return failure(query, query.error)
     reason = query.camera.check()
     if reason:
-        return _failure(query, reason)
+        return failure(query, reason)
     try:
         query, rgb = fit_query(query)
     except ImageReadError as e:
-        return _failure(query, str(e))
+        return failure(query, str(e))
     cache: Dict = {}
-    if job.prior == "hloc":
-        return _prepare_hloc(job, reader, query, rgb, cache)
-    dbs, similarity = _retrieve(job, reader, localizer, query, rgb, cache)
-    if not dbs:
-        return _failure(query, "no retrieval match among the map's usable reference images")
-    num = job.localizer.num_dbs
-    if job.prior == "average" or (job.prior == "search" and job.search.average):
-        if similarity is None:
-            similarity = np.ones(len(dbs))
-        sim = dict(zip(dbs, similarity))
-        cluster = covisibility_clusters(dbs[:num], reader.image_points)[0]
-        prior = pose_approximation([reader.cam_from_world[i] for i in cluster], [sim[i] for i in cluster])
-        if job.prior == "average":
-            return [(query, cluster, prior, rgb, cache)]
-    if job.prior == "hypotheses":
-        return [(query, dbs[:num], reader.cam_from_world[i], rgb, cache) for i in dbs[:job.num_hypotheses]]
-    if job.prior == "search":
-        starts = hypotheses(reader, dbs, job.search, prior if job.search.average else None)
-        # always refined: the top-1 pose (first) and the average pose (first of the last block)
-        always = [0] + ([len(starts) - job.search.size()] if job.search.average else [])
-        return Hypotheses([(query, dbs[:num], T, rgb, cache) for T, _ in starts], [label for _, label in starts],
-                           always=always, depth=median_depth(reader, dbs[0]))
-    if job.prior == "poses":
-        prior = read_poses_file(job.prior_poses).find(query.name)
-        if prior is None:
-            return _failure(query, f"no prior pose for this query in {job.prior_poses}", refs=dbs[:num])
-        return [(query, dbs[:num], prior, rgb, cache)]
-    return [(query, dbs[:num], reader.cam_from_world[dbs[0]], rgb, cache)]
-
-
-def _prepare_hloc(job: LocalizationJob, reader: MapReader, query: QueryRecord, rgb, cache):
-    """Refinement mode from hloc's logs (official PoseRefiner): start from the PnP pose, use the
-    references that gave the most inliers, optionally only the inlier points."""
-    logs, index = _hloc_logs(job.hloc_logs)
-    log = find_by_name(logs, query.name, index)
-    if log is None:
-        return _failure(query, f"no hloc log for this query in {job.hloc_logs}")
-    if not log.success:
-        return _failure(query, "hloc PnP failed: no initial pose")
-    prior = log.cam_from_world
-    if log.num_inliers < job.min_inliers:
-        return _failure(query, f"hloc PnP has {log.num_inliers} inliers (< {job.min_inliers})", prior)
-    images, points = reader.source_ids
-    inliers = log.inliers_per_db()
-    ranked = [log.db_ids[i] for i in np.argsort(-inliers, kind="stable") if inliers[i] > job.min_matches_db]
-    ranked = [i for i in ranked if i in images and reader.usable(images[i])][:job.localizer.num_dbs]
-    if not ranked:
-        unknown = [i for i in log.db_ids if i not in images]
-        reason = (f"none of the log's references (COLMAP image ids {unknown[:5]}) is in the map: build the "
-                  "store from the SfM model hloc localized against" if len(unknown) == len(log.db_ids) else
-                  f"no usable reference with more than {job.min_matches_db} PnP inliers")
-        return _failure(query, reason, prior)
-    dbs = [images[i] for i in ranked]
-    selected = None
-    if job.point_selection != "all":
-        pairs = log.inlier_observations(ranked, inliers_only=job.point_selection == "inliers")
-        known = [(points[p], images[i]) for p, i in pairs if p in points]
-        if len(known) < len(pairs):
-            logger.warning("%s: %d of %d hloc matches name points that are not in the map.", query.name,
-                           len(pairs) - len(known), len(pairs))
-        selected = np.array(known, dtype=np.int64).reshape(-1, 2)
-    return [(query, dbs, prior, rgb, cache, selected)]
+    describe = describer(reader, localizer, rgb, cache)
+    return PRIOR_FUNCTIONS[job.prior](Start(job, reader, query, rgb, cache,
+                                            lambda: retrieve(job.retrieval, reader, query, describe)))
 
 
 def localize_queries(job: LocalizationJob, reader: MapReader, localizer: Localizer,
@@ -330,7 +194,7 @@ def localize_queries(job: LocalizationJob, reader: MapReader, localizer: Localiz
             prepared.append(prepare_query(job, reader, localizer, q))
         except (OSError, ValueError, RuntimeError) as e:  # recorded, never dropped
             logger.warning("Query %s failed: %s", q.name, e)
-            prepared.append(_failure(q, f"{type(e).__name__}: {e}"))
+            prepared.append(failure(q, f"{type(e).__name__}: {e}"))
         own[q.name] = time.perf_counter() - t0
     if job.prior == "search":
         t0 = time.perf_counter()
@@ -387,7 +251,8 @@ def retrieve_queries(job: LocalizationJob, queries: List[QueryRecord], out_path)
                 if q.error or q.camera is None or q.camera.check():
                     continue
                 rgb = fit_query(q)[1] if job.retrieval.method == "global" else None
-                dbs, sim = _retrieve(job, reader, localizer, q, rgb, {})
+                found = retrieve(job.retrieval, reader, q, describer(reader, localizer, rgb, {}))
+                dbs, sim = found.dbs, found.similarity
             except (OSError, ValueError, RuntimeError, ImageReadError) as e:
                 logger.warning("Retrieval of %s failed: %s", q.name, e)
                 continue
@@ -414,9 +279,9 @@ def localize_shard(job: LocalizationJob, queries: List[QueryRecord], out_path) -
             localizer = Localizer(refiner.extractor, refiner.solvers, reader, job.localizer, job.device,
                                   levels=job.levels, scales=job.scales)
         except StoreError as e:  # every query gets a record with the reason
-            results = [_failure(q, f"map store unusable: {e}") for q in queries]
+            results = [failure(q, f"map store unusable: {e}") for q in queries]
         except ValueError as e:  # a job setting the store cannot serve (image scales)
-            results = [_failure(q, f"job does not fit the map store: {e}") for q in queries]
+            results = [failure(q, f"job does not fit the map store: {e}") for q in queries]
         else:
             before = dict(reader.stats)
             results = localize_queries(job, reader, localizer, queries)

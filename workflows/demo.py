@@ -21,7 +21,8 @@ from pipeline.evaluate import evaluate, evaluation_document, fmt, to_json
 from pipeline.features import FeatureConfig
 from pipeline.localize import LocalizerConfig
 from pipeline.scene import CameraRecord
-from pipeline.shard import LocalizationJob, RetrievalConfig
+from pipeline.retrieval import RetrievalConfig
+from pipeline.shard import LocalizationJob
 from pipeline.synthetic import SyntheticConfig, ensure_generated, read_synthetic
 from pipeline.textfiles import write_atomic
 

@@ -16,7 +16,8 @@ from pipeline.readers.colmap import read_colmap
 from pipeline.readers.hloc import read_hloc_logs
 from pipeline.results import read_records, record_pose
 from pipeline.scene import SceneError
-from pipeline.shard import LocalizationJob, RetrievalConfig, localize_shard
+from pipeline.retrieval import RetrievalConfig
+from pipeline.shard import LocalizationJob, localize_shard
 
 QUERY = "32809961_8274055477.jpg"
 FCONF = FeatureConfig(model="pixloc-lite0", resize=1024, image_scales=(1,))

@@ -20,7 +20,8 @@ from pipeline.features import FeatureConfig
 from pipeline.localize import LocalizerConfig
 from pipeline.readers.rgbd import read_7scenes
 from pipeline.results import read_records, record_pose
-from pipeline.shard import LocalizationJob, RetrievalConfig
+from pipeline.retrieval import RetrievalConfig
+from pipeline.shard import LocalizationJob
 from tests.workflows.test_build_map import cluster  # noqa: F401  (fixture)
 from workflows.process_cluster import wait_for
 from workflows.localize import plan_localization, run_dask, run_sync
@@ -201,9 +202,11 @@ def test_html_report(seven_scenes, tmp_path):
     images = re.findall(r'src="data:image/(png|jpeg);base64,([A-Za-z0-9+/=]+)"', page)
     magic = {"png": b"\x89PNG\r\n\x1a\n", "jpeg": b"\xff\xd8\xff"}
     assert all(base64.b64decode(b)[:len(magic[f])] == magic[f] for f, b in images)
-    # curves of 'all' and of the 'sequence' family (two values), the verification threshold's trade-off and the
-    # top view; no curves for 'split' (one value)
-    assert sum(f == "png" for f, _ in images) == 4 and "id='threshold'" in page
+    # curves of 'all' and of the 'sequence' family (two values) and the top view; no curves for 'split' (one
+    # value); the verification threshold's section says that no refinement is right (the map's images are
+    # 41-53 deg from every query), instead of two curves flat at zero
+    assert sum(f == "png" for f, _ in images) == 3 and "id='threshold'" in page
+    assert "None of the refined queries with ground truth is within 0.05 m, 5 deg" in page
     # per sequence the best and the worst query, then failures of other kinds
     assert 4 <= sum(f == "jpeg" for f, _ in images) <= 7
     assert page.count("(sequence=seq-01: best by error)") == 1 and "(sequence=seq-04: worst by error)" in page

@@ -19,7 +19,8 @@ from pipeline.localize import LocalizerConfig
 from pipeline.readers.colmap import triangulate_known_poses
 from pipeline.readers.kapture import read_kapture
 from pipeline.readers.strecha import read_strecha
-from pipeline.shard import LocalizationJob, RetrievalConfig
+from pipeline.retrieval import RetrievalConfig
+from pipeline.shard import LocalizationJob
 from workflows.localize import plan_localization, run_sync
 from workflows.sources import load_queries
 

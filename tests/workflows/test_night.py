@@ -8,7 +8,8 @@ import pytest
 from pipeline.evaluate import pose_errors
 from pipeline.localize import LocalizerConfig
 from pipeline.results import record_pose
-from pipeline.shard import LocalizationJob, RetrievalConfig
+from pipeline.retrieval import RetrievalConfig
+from pipeline.shard import LocalizationJob
 from workflows.benchmarks.sacre_coeur import MEDIAN_DISTANCE, night_reference, sacre_coeur
 from workflows.benchmarks.search import SACRE_COEUR_FEATURES
 from workflows.localize import plan_localization, run_sync

@@ -10,7 +10,8 @@ from pipeline.evaluate import pose_errors
 from pipeline.features import FeatureConfig
 from pipeline.localize import LocalizerConfig
 from pipeline.results import record_pose
-from pipeline.shard import LocalizationJob, RetrievalConfig
+from pipeline.retrieval import RetrievalConfig
+from pipeline.shard import LocalizationJob
 from pipeline.synthetic import SyntheticConfig, ensure_generated, read_synthetic
 from workflows.build_map import plan_build, run_sync as build_sync
 from workflows.demo import DEMO_CAMERA, DEMO_SEED

@@ -32,16 +32,25 @@ def rss() -> int:
 def _job(store: str):
     """The benchmarks' localization job: 3 references, 30 LM iterations, retrieval within the area."""
     from pipeline.localize import LocalizerConfig
-    from pipeline.shard import LocalizationJob, RetrievalConfig
+    from pipeline.retrieval import RetrievalConfig
+    from pipeline.shard import LocalizationJob
     from workflows.cli_localize import store_feature_config
     conf = store_feature_config(Path(store))
     return LocalizationJob(store, conf, conf.model, LocalizerConfig(num_dbs=3, num_iters=30),
                            RetrievalConfig(k=5, same_tag="area"))
 
 
+def warm_up(job) -> None:
+    """Load the network and open the map in this (worker) process: one-off costs of a worker's first
+    task, which P3 leaves out so that it compares the steady-state rates of 1 and 2 workers."""
+    from pipeline.map_reader import open_reader
+    from pipeline.shard import localization_model
+    _, digest = localization_model(job.model, job.device)
+    open_reader(job.store, job.features, digest)
+
+
 def city(root: str, store: str, out: str, sched: str, limit: str, order: str, warm: str) -> None:
     from pipeline.synthetic import read_synthetic
-    from workflows.benchmarks.city_run import warm_up
     from workflows.localize import plan_localization, run_dask, run_sync
     _, queries = read_synthetic(root)
     queries = sorted(queries, key=lambda q: q.name)[:int(limit) or None]

@@ -24,7 +24,8 @@ from pipeline.localize import LocalizerConfig
 from pipeline.queries import read_queries_with_intrinsics
 from pipeline.textfiles import read_pairs
 from pipeline.readers.colmap import read_colmap
-from pipeline.shard import LocalizationJob, RetrievalConfig
+from pipeline.retrieval import RetrievalConfig
+from pipeline.shard import LocalizationJob
 
 from .. import executor
 from ..localize import plan_localization, run_dask

@@ -61,7 +61,8 @@ def main(args: argparse.Namespace) -> int:
     from pipeline.features import FeatureConfig
     from pipeline.localize import LocalizerConfig
     from pipeline.readers.rgbd import read_7scenes
-    from pipeline.shard import LocalizationJob, RetrievalConfig, localization_model
+    from pipeline.retrieval import RetrievalConfig
+    from pipeline.shard import LocalizationJob, localization_model
     from pipeline.verify import VerificationConfig
     from workflows.localize import plan_localization, run_sync
     from workflows.presets import load

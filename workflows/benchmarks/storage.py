@@ -28,7 +28,8 @@ import numpy as np
 from pipeline.evaluate import evaluate, fmt
 from pipeline.features import FeatureConfig
 from pipeline.localize import LocalizerConfig
-from pipeline.shard import LocalizationJob, RetrievalConfig
+from pipeline.retrieval import RetrievalConfig
+from pipeline.shard import LocalizationJob
 from pipeline.feature_groups import feature_key
 from pipeline.store import open_store
 from pixloc.nets.registry import DEFAULT_MODEL

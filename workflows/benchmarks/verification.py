@@ -26,7 +26,8 @@ from pipeline.readers.colmap import triangulate_known_poses
 from pipeline.readers.rgbd import read_7scenes
 from pipeline.readers.strecha import read_strecha
 from pipeline.scene import rotmat_to_qvec
-from pipeline.shard import LocalizationJob, RetrievalConfig
+from pipeline.retrieval import RetrievalConfig
+from pipeline.shard import LocalizationJob
 from pipeline.verify import VerificationConfig, verify
 
 from ..build_map import plan_build, run_sync as build_sync

@@ -15,7 +15,8 @@ from pipeline.depth import rgbd_scene
 from pipeline.features import FeatureConfig
 from pipeline.localize import LocalizerConfig
 from pipeline.readers.rgbd import read_7scenes
-from pipeline.shard import LocalizationJob, RetrievalConfig
+from pipeline.retrieval import RetrievalConfig
+from pipeline.shard import LocalizationJob
 from pipeline.verify import VerificationConfig
 from workflows.sources import load_queries
 

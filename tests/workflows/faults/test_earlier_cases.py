@@ -23,7 +23,8 @@ from pipeline.localize import LocalizerConfig
 from pipeline.readers.hloc import parse_loc
 from pipeline.readers.rgbd import read_7scenes
 from pipeline.results import read_records
-from pipeline.shard import LocalizationJob, RetrievalConfig
+from pipeline.retrieval import RetrievalConfig
+from pipeline.shard import LocalizationJob
 from pipeline.feature_groups import feature_key
 from pipeline.store import StoreError, open_store
 from pipeline.store_check import check_store

@@ -1,0 +1,128 @@
+"""Which map images a query is localized against: its references, ranked.
+
+One function per method, in ``RETRIEVERS`` (the job's ``retrieval.method`` and the command
+line's choices come from it), each ``(conf, reader, query, describe, candidates) -> Retrieved``:
+
+- ``global``: the top ``k`` by cosine similarity of the store's global descriptors with the
+  query's (``describe()`` runs the network on the query only when this method asks for it);
+- ``pairs``: a ranked pairs file (hloc's ``pairs-query-*.txt``: ``query reference`` per line);
+- ``hloc``: global descriptors of queries and references from an hloc HDF5 file (NetVLAD ...),
+  as official PixLoc reads them.
+
+``retrieve`` applies what every method shares: references found by a run's retrieval stage
+(``query.retrieved``) are used as they are, and ``same_tag`` restricts the candidates to the
+map images that share that tag with the query (RobotCar practice: ``camera``).
+"""
+
+import functools
+import logging
+from dataclasses import dataclass
+from typing import Callable, Dict, List, Optional
+
+import numpy as np
+
+from .map_reader import MapReader, by_name
+from .queries import QueryRecord
+from .textfiles import read_pairs
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class RetrievalConfig:
+    """method: a name of ``RETRIEVERS``; pairs: the pairs file of ``pairs``; k: references
+    retrieved; same_tag: restrict references to those sharing this tag with the query;
+    descriptors: the HDF5 file of ``hloc``."""
+
+    method: str = "global"
+    pairs: Optional[str] = None
+    k: int = 10
+    same_tag: Optional[str] = None
+    descriptors: Optional[str] = None
+
+
+@dataclass
+class Retrieved:
+    """A query's references (map image indices, best first) and their similarities (None where the
+    method has none, e.g. a pairs file)."""
+
+    dbs: List[int]
+    similarity: Optional[np.ndarray] = None
+
+
+@functools.lru_cache(maxsize=4)
+def pairs_file(path: str) -> Dict[str, List[str]]:
+    """A ranked pairs file, read once per process (``pipeline.textfiles.read_pairs``)."""
+    return read_pairs(path)
+
+
+@functools.lru_cache(maxsize=2)
+def hloc_descriptors(path: str) -> Dict[str, np.ndarray]:
+    """``name -> global_descriptor`` (L2-normalised) of an hloc global-features HDF5 file."""
+    import h5py
+
+    out = {}
+    with h5py.File(path, "r") as f:
+        def visit(name, obj):
+            if isinstance(obj, h5py.Dataset) and name.endswith("/global_descriptor"):
+                d = np.asarray(obj, np.float32).reshape(-1)
+                out[name[: -len("/global_descriptor")]] = d / max(np.linalg.norm(d), 1e-12)
+        f.visititems(visit)
+    return out
+
+
+def global_ranking(reader: MapReader, descriptor: np.ndarray, k: int,
+                   candidates: Optional[List[int]] = None) -> List[int]:
+    """Top-k usable reference images by cosine similarity of global descriptors."""
+    ids = np.array([i for i in (candidates if candidates is not None else range(len(reader.names)))
+                    if reader.usable(i)])
+    if len(ids) == 0:
+        return []
+    sim = reader.global_descriptors[ids] @ descriptor
+    return [int(i) for i in ids[np.argsort(-sim, kind="stable")[:k]]]
+
+
+def by_global_descriptors(conf: RetrievalConfig, reader: MapReader, query: QueryRecord,
+                          describe: Callable[[], np.ndarray], candidates: Optional[List[int]]) -> Retrieved:
+    descriptor = describe()
+    dbs = global_ranking(reader, descriptor, conf.k, candidates)
+    return Retrieved(dbs, reader.global_descriptors[dbs] @ descriptor)
+
+
+def by_pairs_file(conf: RetrievalConfig, reader: MapReader, query: QueryRecord,
+                  describe: Callable[[], np.ndarray], candidates: Optional[List[int]]) -> Retrieved:
+    dbs, missing = by_name(reader, pairs_file(conf.pairs).get(query.name, []))
+    if missing:
+        logger.warning("%s: %d retrieved references are not in the map: %s", query.name, len(missing), missing[:3])
+    return Retrieved([i for i in dbs if reader.usable(i) and (candidates is None or i in candidates)][:conf.k])
+
+
+def by_hloc_descriptors(conf: RetrievalConfig, reader: MapReader, query: QueryRecord,
+                        describe: Callable[[], np.ndarray], candidates: Optional[List[int]]) -> Retrieved:
+    descriptors = hloc_descriptors(conf.descriptors)
+    if query.name not in descriptors:
+        return Retrieved([])
+    ids = [i for i in range(len(reader.names)) if reader.usable(i) and reader.names[i] in descriptors
+           and (candidates is None or i in candidates)]
+    sim = np.array([descriptors[reader.names[i]] @ descriptors[query.name] for i in ids])
+    order = np.argsort(-sim, kind="stable")[:conf.k]
+    return Retrieved([ids[j] for j in order], sim[order])
+
+
+RETRIEVERS: Dict[str, Callable[..., Retrieved]] = {
+    "global": by_global_descriptors, "pairs": by_pairs_file, "hloc": by_hloc_descriptors}
+
+
+def retrieve(conf: RetrievalConfig, reader: MapReader, query: QueryRecord,
+             describe: Callable[[], np.ndarray]) -> Retrieved:
+    """The query's usable references, best first (see the module docstring)."""
+    if query.retrieved is not None:  # found by a run's retrieval stage (``shard.retrieve_queries``)
+        dbs, _ = by_name(reader, query.retrieved["dbs"])
+        sim = query.retrieved.get("similarity")
+        keep = [j for j, i in enumerate(dbs) if reader.usable(i)]
+        return Retrieved([dbs[j] for j in keep], None if sim is None else np.asarray(sim, np.float64)[keep])
+    candidates = None
+    if conf.same_tag:
+        value = query.tags.get(conf.same_tag)
+        candidates = [i for i, t in enumerate(reader.tags) if t.get(conf.same_tag) == value]
+    return RETRIEVERS[conf.method](conf, reader, query, describe, candidates)
