@@ -6,7 +6,6 @@ build resumes where it stopped. A bad image is recorded as failed with its
 reason; the rest of the map is built.
 """
 
-import functools
 import logging
 from dataclasses import dataclass
 from typing import Dict, List, Optional, Sequence
@@ -14,11 +13,11 @@ from typing import Dict, List, Optional, Sequence
 import numpy as np
 import torch
 
-from pixloc.nets.registry import load_extractor, state_digest
 
 from .compression import fit_pca
 from .features import FeatureConfig, extract_image_features
 from .images import read_image, resize_max, to_tensor
+from .models import network
 from .runtime import restore_malloc_thresholds, torch_threads
 from .scene import Scene
 from .feature_groups import consolidate, feature_key, init_features, mark_failed, write_image_features
@@ -37,13 +36,6 @@ class ImageResult:
     name: str
     status: str
     reason: str = ""
-
-
-@functools.lru_cache(maxsize=2)
-def network(model: str, device: str = "cpu"):
-    """The feature network and its weights' digest, loaded once per process."""
-    net = load_extractor(model).to(device)
-    return net, state_digest(net)
 
 
 def write_structure(scene: Scene, store_path, conf: FeatureConfig, *, chunk_rows: int = 256,

@@ -140,7 +140,7 @@ def image_descriptors(paths: Sequence[Path], model: str, resize: int = 320) -> n
     """GeM global descriptors of the network's coarsest features at a small size (for ``retrieval``)."""
     import torch
 
-    from .build import network
+    from .models import network
     from .features import global_descriptor
     from .images import read_image, resize_max, to_tensor
     net, _ = network(model)

@@ -6,7 +6,6 @@ Every query gets exactly one record; a query that cannot be localized gets
 """
 
 import dataclasses
-import functools
 import json
 import logging
 import time
@@ -16,12 +15,11 @@ from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
-from pixloc.nets.registry import load_refiner, state_digest
-
 from .features import FeatureConfig, global_descriptor
 from .images import ImageReadError, read_image_for
 from .localize import Localizer, LocalizerConfig, QueryResult
 from .map_reader import MapReader, open_reader
+from .models import localization_model
 from .priors import PRIORS as PRIOR_FUNCTIONS, Prepared, Start, failure, poses_file
 from .queries import QueryRecord
 from .results import read_records, result_to_record, write_records
@@ -128,13 +126,6 @@ class LocalizationJob:
 PRIORS = tuple(PRIOR_FUNCTIONS)  # the names of the registries: the job's and the command line's choices
 RETRIEVAL_METHODS = tuple(RETRIEVERS)
 POINT_SELECTIONS = ("all", "inliers", "matched")
-
-
-@functools.lru_cache(maxsize=2)
-def localization_model(model: str, device: str = "cpu"):
-    """The refiner (network + per-level solvers) and its network's digest, once per process."""
-    refiner = load_refiner(model).to(device).eval()
-    return refiner, state_digest(refiner.extractor)
 
 
 def fit_query(query: QueryRecord) -> Tuple[QueryRecord, np.ndarray]:

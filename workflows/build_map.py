@@ -14,7 +14,8 @@ from pathlib import Path
 from typing import Dict, List, Optional
 
 
-from pipeline.build import ImageResult, extract_features, finish_build, network, pending_images, write_structure
+from pipeline.build import ImageResult, extract_features, finish_build, pending_images, write_structure
+from pipeline.models import network
 from pipeline.features import FeatureConfig
 from pipeline.scene import Scene
 

@@ -295,7 +295,7 @@ def make_report(output: Path, queries: List[QueryRecord], num_examples: int = 3,
     to those of the map's source; ``num_examples`` queries per condition (best, median, worst);
     ``group_by``: the tag families to tabulate (default: ``pipeline.evaluate.shown_families``).
     ``reuse``: keep a report made from the same inputs and code (a no-op rerun rewrites nothing)."""
-    from pipeline.shard import localization_model
+    from pipeline.models import localization_model
 
     output = Path(output)
     thresholds = tuple(thresholds or DEFAULT_THRESHOLDS)

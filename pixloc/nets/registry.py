@@ -8,6 +8,7 @@ decoder), ``photometric`` (raw RGB, no learning). Files: a model saved by
 """
 
 import hashlib
+from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
 from typing import Any, Callable, Dict, Optional
@@ -23,7 +24,6 @@ from ..refiner import TwoViewRefiner
 
 MODEL_FORMAT = "pixloc-at-scale-model"
 DEFAULT_MODEL = "pixloc-lite0"  # the one default of every command and config
-SHIPPED = {"pixloc-lite0": "pixloc-lite0.pt"}  # name -> file in pixloc/nets/weights
 
 
 def _seeded(build: Callable[[], nn.Module], seed: int = 0) -> Callable[[], nn.Module]:
@@ -38,9 +38,24 @@ ARCHITECTURES: Dict[str, Callable[[], nn.Module]] = {
     "lite0": lambda: lite0_unet(pretrained=False),
     "photometric": PhotometricExtractor,
 }
-MODELS: Dict[str, Callable[[], nn.Module]] = {
-    "lite0-imagenet": _seeded(lambda: lite0_unet(pretrained=True)),
-    "photometric": PhotometricExtractor,
+
+
+@dataclass(frozen=True)
+class Named:
+    """A model known by name: what it is, and either the file of its weights in
+    pixloc/nets/weights (shipped) or the function that builds its network."""
+
+    description: str
+    weights: Optional[str] = None
+    build: Optional[Callable[[], nn.Module]] = None
+    normalize_features: bool = True
+
+
+# every model known by name, in one table (what the commands list and accept)
+NAMED: Dict[str, Named] = {
+    "pixloc-lite0": Named("trained by this project (shipped)", weights="pixloc-lite0.pt"),
+    "lite0-imagenet": Named("untrained initialisation", build=_seeded(lambda: lite0_unet(pretrained=True))),
+    "photometric": Named("raw RGB features (baseline)", build=PhotometricExtractor, normalize_features=False),
 }
 
 
@@ -52,21 +67,19 @@ def _refiner(net: nn.Module, normalize_features: bool = True) -> TwoViewRefiner:
 
 def available_models() -> Dict[str, str]:
     """Name -> what it is."""
-    return {"pixloc-lite0": "trained by this project (shipped)",
-            "lite0-imagenet": "untrained initialisation",
-            "photometric": "raw RGB features (baseline)"}
+    return {name: m.description for name, m in NAMED.items()}
 
 
 def shipped_model_path(name: str) -> Path:
-    return Path(str(resources.files(__package__) / "weights" / SHIPPED[name]))
+    return Path(str(resources.files(__package__) / "weights" / NAMED[name].weights))
 
 
 def load_refiner(spec: str) -> TwoViewRefiner:
     """A model by name, or from a file saved by ``save_model`` or an official checkpoint."""
-    if spec in MODELS:
-        net = MODELS[spec]().eval()
-        return _refiner(net, normalize_features=spec != "photometric")
-    if spec in SHIPPED:
+    named = NAMED.get(spec)
+    if named is not None and named.build is not None:
+        return _refiner(named.build().eval(), normalize_features=named.normalize_features)
+    if named is not None:
         path = shipped_model_path(spec)
         if not path.is_file():
             raise CheckpointError(f"The package has no weights for {spec!r} ({path} is missing).")
@@ -104,7 +117,7 @@ def load_model(path) -> TwoViewRefiner:
 
 def model_info(spec: str) -> Dict[str, Any]:
     """The ``info`` dict of a model file or shipped model ({} for other models)."""
-    path = shipped_model_path(spec) if spec in SHIPPED else Path(spec)
+    path = shipped_model_path(spec) if NAMED.get(spec, Named("")).weights else Path(spec)
     if not path.is_file():
         return {}
     ckpt = read_checkpoint(path)
@@ -122,11 +135,6 @@ def _from_model_dict(ckpt: Dict[str, Any], path) -> TwoViewRefiner:
     except RuntimeError as e:
         raise CheckpointError(f"{path}: weights do not fit the {ckpt['architecture']} network: {e}") from None
     return refiner.eval()
-
-
-def load_extractor(spec: str) -> nn.Module:
-    """The feature network of ``load_refiner(spec)``, in eval mode."""
-    return load_refiner(spec).extractor.eval()
 
 
 def state_digest(module: nn.Module) -> str:

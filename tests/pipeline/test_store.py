@@ -5,7 +5,8 @@ import pytest
 import torch
 from torch.nn.functional import grid_sample
 
-from pipeline.build import build_map, network
+from pipeline.build import build_map
+from pipeline.models import network
 from pipeline.features import FeatureConfig
 from pipeline.images import read_image, resize_max, to_tensor
 from pipeline.scene import CameraRecord, Scene, SceneError

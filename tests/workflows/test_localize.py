@@ -265,7 +265,7 @@ def test_shard_batches_queries_like_one_at_a_time(seven_scenes, sync_records):
     """A shard solves its queries as one LM batch per level; each result equals a solo run."""
     from pipeline.localize import Localizer
     from pipeline.map_reader import MapReader
-    from pipeline.shard import localization_model, localize_queries
+    from pipeline.models import localization_model, localize_queries
     job, queries = seven_scenes
     refiner, digest = localization_model(job.model)
     reader = MapReader(job.store, FCONF, digest)

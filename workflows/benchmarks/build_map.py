@@ -51,7 +51,7 @@ def main(args: argparse.Namespace) -> int:
         try:
             store = tmp / "map.zarr"
             with executor.dask_client(workers=workers, dashboard=False) as client:
-                client.run(lambda: __import__("pipeline.build").build.network(conf.model))  # warm-up
+                client.run(lambda: __import__("pipeline.models").models.network(conf.model))  # warm-up
                 plan = plan_build(scene, store, conf)
                 t0 = time.perf_counter()
                 results = run_dask(plan, client)

@@ -44,7 +44,7 @@ def warm_up(job) -> None:
     """Load the network and open the map in this (worker) process: one-off costs of a worker's first
     task, which P3 leaves out so that it compares the steady-state rates of 1 and 2 workers."""
     from pipeline.map_reader import open_reader
-    from pipeline.shard import localization_model
+    from pipeline.models import localization_model
     _, digest = localization_model(job.model, job.device)
     open_reader(job.store, job.features, digest)
 

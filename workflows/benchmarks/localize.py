@@ -47,8 +47,8 @@ def _peak_rss_mib() -> float:
 def _warm_up(model: str) -> None:
     """Import the pipeline and load the network in a worker, so that both ways are timed
     in steady state (process start and model loading are one-off costs, the same for both)."""
-    from pipeline.build import network
-    from pipeline.shard import localization_model
+    from pipeline.models import network
+    from pipeline.models import localization_model
     localization_model(model)
     network(model)
 

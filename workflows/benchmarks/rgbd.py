@@ -62,7 +62,8 @@ def main(args: argparse.Namespace) -> int:
     from pipeline.localize import LocalizerConfig
     from pipeline.readers.rgbd import read_7scenes
     from pipeline.retrieval import RetrievalConfig
-    from pipeline.shard import LocalizationJob, localization_model
+    from pipeline.models import localization_model
+    from pipeline.shard import LocalizationJob
     from pipeline.verify import VerificationConfig
     from workflows.localize import plan_localization, run_sync
     from workflows.presets import load

@@ -408,7 +408,8 @@ def test_hypotheses_keep_the_most_confident_refinement(stairs):
     """Before: the lowest mean cost won, over different sets of valid points."""
     from pipeline.localize import Localizer
     from pipeline.map_reader import MapReader
-    from pipeline.shard import localization_model, localize_queries, prepare_query
+    from pipeline.models import localization_model
+    from pipeline.shard import localize_queries, prepare_query
     job, queries, _ = stairs
     hjob = dataclasses.replace(job, prior="hypotheses", num_hypotheses=3)
     refiner, digest = localization_model(job.model)
@@ -429,7 +430,7 @@ def test_search_refines_the_top1_start_first_and_searches_only_where_it_is_not_v
     stays one of the candidates."""
     from pipeline.localize import Localizer
     from pipeline.map_reader import MapReader
-    from pipeline.shard import localization_model, localize_queries
+    from pipeline.models import localization_model, localize_queries
     from pipeline.verify import VerificationConfig
     job, queries, _ = stairs
     refiner, digest = localization_model(job.model)

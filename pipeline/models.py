@@ -1,0 +1,25 @@
+"""The model a process works with, loaded once: the refiner (feature network and its per-level
+solvers) and its network's digest. Map building takes its network, localization all of it; a
+process that does both holds one copy."""
+
+import functools
+from typing import Tuple
+
+from torch import nn
+
+from pixloc.nets.registry import load_refiner, state_digest
+from pixloc.refiner import TwoViewRefiner
+
+
+@functools.lru_cache(maxsize=2)
+def localization_model(model: str, device: str = "cpu") -> Tuple[TwoViewRefiner, str]:
+    """The refiner of ``model`` (a name or a file, ``pixloc.nets.registry.load_refiner``) on
+    ``device``, in eval mode, and its network's digest (what a store records of its features)."""
+    refiner = load_refiner(model).to(device).eval()
+    return refiner, state_digest(refiner.extractor)
+
+
+def network(model: str, device: str = "cpu") -> Tuple[nn.Module, str]:
+    """The feature network of ``localization_model`` and its digest."""
+    refiner, digest = localization_model(model, device)
+    return refiner.extractor, digest
