@@ -11,10 +11,14 @@ from pixloc.nets.registry import load_refiner, state_digest
 from pixloc.refiner import TwoViewRefiner
 
 
-@functools.lru_cache(maxsize=2)
 def localization_model(model: str, device: str = "cpu") -> Tuple[TwoViewRefiner, str]:
     """The refiner of ``model`` (a name or a file, ``pixloc.nets.registry.load_refiner``) on
     ``device``, in eval mode, and its network's digest (what a store records of its features)."""
+    return _loaded(model, device)  # one cache key however the device is passed
+
+
+@functools.lru_cache(maxsize=2)
+def _loaded(model: str, device: str) -> Tuple[TwoViewRefiner, str]:
     refiner = load_refiner(model).to(device).eval()
     return refiner, state_digest(refiner.extractor)
 
