@@ -52,7 +52,7 @@ def record_errors(rec: Optional[Dict], T_gt: np.ndarray) -> Dict[str, Tuple[floa
     """(t, R) errors of a record against ground truth: ``result`` (the reported pose: refined where
     verified, else the prior), ``refined`` (the refinement, verified or not) and ``prior``; inf
     where there is no such pose (no record, a failure)."""
-    from .results import record_pose
+    from pipeline.localization.results import record_pose
 
     def err(T):
         return pose_errors(None if T is None else np.asarray(T, np.float64), T_gt)
@@ -151,7 +151,7 @@ def evaluation_document(summary: Dict, records: List[Dict], ground_truth: Dict, 
     ``count``, ``median_t``, ``median_R`` and ``recall@{t}m,{R}deg`` (fractions of all its
     queries). ``result`` is the reported pose: refined where verification accepted it, else the prior.
     """
-    from .results import outcome
+    from pipeline.localization.results import outcome
 
     gt, _ = usable_ground_truth(ground_truth)
     by_name = {r["name"]: r for r in records}

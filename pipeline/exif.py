@@ -11,7 +11,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import List, Optional, Sequence
 
-from .scene import CameraRecord
+from pipeline.scene import CameraRecord
 
 DEFAULT_FOCAL_FACTOR = 1.2
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp")
@@ -44,7 +44,7 @@ def exif_camera(path, name: Optional[str] = None, default_factor: float = DEFAUL
 
     from PIL import Image
 
-    from .images import read_image
+    from pipeline.images import read_image
 
     height, width = read_image(path).shape[:2]  # EXIF orientation applied, as localize decodes
     try:

@@ -8,8 +8,8 @@ import numpy as np
 
 from pixloc.geometry import COLMAP_MODELS
 
-from .scene import CameraRecord, SceneError, name_problem
-from .textfiles import data_lines
+from pipeline.scene import CameraRecord, SceneError, name_problem
+from pipeline.textfiles import data_lines
 
 
 @dataclass
@@ -67,7 +67,7 @@ def also_in_map(queries: List[QueryRecord], map_names: List[str], map_paths: Lis
     """The queries that are map images too: the same name, or a file of the same bytes (a query
     localized against itself retrieves itself, and its error says nothing). File sizes are
     compared first; only files of a size that a map image has are hashed."""
-    from .images import file_sha256
+    from pipeline.images import file_sha256
 
     names = set(map_names)
     sizes: Dict[int, List[Path]] = {}

@@ -66,7 +66,7 @@ def _numbers(fields: List[str], where: str) -> np.ndarray:
 
 def pose_from_line(fields: List[str], where: str) -> np.ndarray:
     """cam_from_world (3, 4) from ``qw qx qy qz tx ty tz``; refuses a zero or non-finite quaternion."""
-    from .scene import qvec_to_rotmat
+    from pipeline.scene import qvec_to_rotmat
 
     if len(fields) != 7:
         raise InputError(f"{where}: expected 'name qw qx qy qz tx ty tz' (8 fields), got {len(fields) + 1}")

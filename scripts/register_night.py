@@ -28,7 +28,7 @@ import pycolmap
 
 from pipeline.exif import exif_camera
 from pipeline.images import read_image
-from pipeline.readers.colmap import run_sfm
+from pipeline.mapping.readers.colmap import run_sfm
 
 HERE = Path(__file__).resolve().parent.parent
 

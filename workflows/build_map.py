@@ -14,9 +14,9 @@ from pathlib import Path
 from typing import Dict, List, Optional
 
 
-from pipeline.build import ImageResult, extract_features, finish_build, pending_images, write_structure
+from pipeline.mapping.build import ImageResult, extract_features, finish_build, pending_images, write_structure
 from pipeline.models import network
-from pipeline.features import FeatureConfig
+from pipeline.mapping.features import FeatureConfig
 from pipeline.scene import Scene
 
 from . import executor
@@ -73,11 +73,11 @@ def plan_build(scene: Scene, store, conf: FeatureConfig, *, batch_size: int = 1,
                overwrite: bool = False) -> BuildPlan:
     """Plan a build; images already done in an existing store are not planned again (all are
     with ``overwrite``, which rebuilds the store). Images of ``scene`` that an existing store does
-    not have are added to it (a new mapping session, ``pipeline.store.extend_store``): they get
+    not have are added to it (a new mapping session, ``pipeline.store.layout.extend_store``): they get
     the indices after the stored ones."""
     store = Path(store)
     if store.exists() and not overwrite:
-        from pipeline.store import open_store, read
+        from pipeline.store.layout import open_store, read
         stored = set(str(n) for n in read(open_store(store), "images/name"))
         new = sum(im.name not in stored for im in scene.images)
         todo = pending_images(store, conf) + list(range(len(stored), len(stored) + new))

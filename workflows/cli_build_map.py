@@ -7,8 +7,8 @@ import time
 from collections import Counter
 from pathlib import Path
 
-from pipeline.features import DTYPES, FeatureConfig
-from pipeline.pairs import METHODS as PAIR_METHODS, PairsConfig
+from pipeline.mapping.features import DTYPES, FeatureConfig
+from pipeline.mapping.image_pairs import METHODS as PAIR_METHODS, PairsConfig
 from . import executor, presets
 from .build_map import pending_batches, plan_build, prepare_structure, run_dask, run_sync
 from .localize import store_lock
@@ -142,11 +142,11 @@ def add_check_store_arguments(p: argparse.ArgumentParser) -> None:
 
 def check_store_main(args: argparse.Namespace) -> int:
     """Verify every chunk (checksums) and the layout; exit 1 when anything is bad."""
-    from pipeline.store_check import check_store
+    from pipeline.store.check import check_store
     report = check_store(args.store, progress=lambda name: logger.debug("checking %s", name))
     print(report.summary())
     if args.repair and report.bad_images():
-        from pipeline.store_check import mark_pending
+        from pipeline.store.check import mark_pending
         n = mark_pending(args.store, report.bad_images())
         print(f"repair: {len(report.bad_images())} images marked pending ({n} feature rows); run the build-map "
               "command again to rebuild them")

@@ -16,11 +16,11 @@ import numpy as np
 
 from pipeline.evaluate import (DEFAULT_THRESHOLDS, INDOOR_THRESHOLDS, evaluate, evaluation_document, fmt,
                                parse_thresholds, recall_label, shown_families, to_json)
-from pipeline.features import FeatureConfig
+from pipeline.mapping.features import FeatureConfig
 from pipeline.progress import count
-from pipeline.results import POSE_NAMES, REJECTED, outcome, pose_names_problem, read_records, reason_groups
-from pipeline.shard import POINT_SELECTIONS, PRIORS, LocalizationJob
-from pipeline.store import StoreError, open_store
+from pipeline.localization.results import POSE_NAMES, REJECTED, outcome, pose_names_problem, read_records, reason_groups
+from pipeline.localization.shard import POINT_SELECTIONS, PRIORS, LocalizationJob
+from pipeline.store.layout import StoreError, open_store
 from pipeline.textfiles import read_json, write_atomic
 
 from . import executor
@@ -323,7 +323,7 @@ def evaluate_main(args: argparse.Namespace) -> int:
 def queries_in_map(store, queries) -> list:
     """The queries that are also images of the store's map (``pipeline.queries.also_in_map``)."""
     from pipeline.queries import also_in_map
-    from pipeline.store import image_records
+    from pipeline.store.layout import image_records
     images = image_records(open_store(store))
     return also_in_map(queries, [im.name for im in images], [im.path for im in images])
 

@@ -16,14 +16,14 @@ import time
 from pathlib import Path
 from typing import Dict
 
-from pipeline.depth import rgbd_scene
+from pipeline.mapping.depth import rgbd_scene
 from pipeline.evaluate import evaluate, evaluation_document, fmt, to_json
-from pipeline.features import FeatureConfig
-from pipeline.localize import LocalizerConfig
+from pipeline.mapping.features import FeatureConfig
+from pipeline.localization.refine import LocalizerConfig
 from pipeline.scene import CameraRecord
-from pipeline.retrieval import RetrievalConfig
-from pipeline.shard import LocalizationJob
-from pipeline.synthetic import SyntheticConfig, ensure_generated, read_synthetic
+from pipeline.localization.retrieval import RetrievalConfig
+from pipeline.localization.shard import LocalizationJob
+from pipeline.data.synthetic import SyntheticConfig, ensure_generated, read_synthetic
 from pipeline.textfiles import write_atomic
 
 from . import build_map, executor, localize

@@ -27,7 +27,7 @@ from typing import Dict, List, Optional, Sequence, Tuple
 import torch
 
 from pipeline.evaluate import fmt, summarize
-from pipeline.training_data import PairDataset
+from pipeline.data.training_data import PairDataset
 from pixloc.geometry import pose_error
 from pixloc.nets.registry import load_refiner
 

@@ -29,15 +29,22 @@ from typing import Dict, List, Optional
 
 import numpy as np
 
+from pipeline.localization.refine import QueryResult
+from pipeline.localization.results import (
+    is_retryable,
+    read_records,
+    result_to_record,
+    write_failed,
+    write_kapture,
+    write_poses,
+    write_records,
+)
+from pipeline.localization.shard import LocalizationJob, localize_shard, retrieve_queries
 from pipeline.progress import count
 from pipeline.queries import QueryRecord
 from pipeline.regions import camera_centres, region_order
-from pipeline.feature_groups import feature_key
-from pipeline.localize import QueryResult
-from pipeline.results import (is_retryable, read_records, result_to_record, write_failed, write_kapture, write_poses,
-                              write_records)
-from pipeline.store import StoreError, store_fingerprint
-from pipeline.shard import LocalizationJob, localize_shard, retrieve_queries
+from pipeline.store.feature_groups import feature_key
+from pipeline.store.layout import StoreError, store_fingerprint
 from pipeline.textfiles import InputError, read_json, write_atomic
 
 from . import executor
@@ -67,7 +74,7 @@ class LocalizationPlan:
     shard_size: int = 8
     keep_failures: bool = False
     whole: set = field(default_factory=set)  # shards of ``todo`` that run whole (not written yet)
-    pose_names: str = "full"  # names of an extra poses file for benchmarks (pipeline.results.pose_name)
+    pose_names: str = "full"  # names of an extra poses file for benchmarks (pipeline.localization.results.pose_name)
     order: str = "list"  # ``list`` (query order) or ``region`` (by the map region of the top-1 reference)
     queries: List[QueryRecord] = field(default_factory=list)  # in list order
     store: Dict = field(default_factory=dict)  # the store's fingerprint (``store_fingerprint``), into job.json
@@ -91,7 +98,7 @@ class LocalizationPlan:
         retrieved = {}
         for k in range(len(self.retrieval_parts())):
             retrieved.update(json.loads(self.retrieval_path(k).read_text()))
-        from pipeline.store import open_store, read
+        from pipeline.store.layout import open_store, read
         root = open_store(self.job.store)
         names = [str(n) for n in read(root, "images/name")]
         T = read(root, "images/cam_from_world")
@@ -206,7 +213,7 @@ def plan_localization(job: LocalizationJob, queries: List[QueryRecord], output, 
                       workers: int = 2, keep_failures: bool = False, overwrite: bool = False,
                       order: str = "auto", allow_partial_map: bool = False) -> LocalizationPlan:
     """Plan a run into ``output``; writes nothing. A folder holding another job, a run against
-    another map (``pipeline.store.store_fingerprint``), or files of no run, is refused (the first
+    another map (``pipeline.store.layout.store_fingerprint``), or files of no run, is refused (the first
     two unless ``overwrite``, which redoes everything); so is a store with images not built yet,
     unless ``allow_partial_map``. Without ``shard_size``, a run of the same
     job and queries keeps its shard size, and a new one gets ``auto_shard_size``. ``order``:

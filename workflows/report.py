@@ -20,10 +20,10 @@ from typing import Dict, List, Optional, Tuple
 import numpy as np
 
 from pipeline.evaluate import DEFAULT_THRESHOLDS, evaluate, fmt, shown_families
-from pipeline.features import FeatureConfig
-from pipeline.map_reader import MapReader
+from pipeline.mapping.features import FeatureConfig
+from pipeline.store.reader import MapReader
 from pipeline.queries import QueryRecord
-from pipeline.results import outcome, read_records, reason_groups
+from pipeline.localization.results import outcome, read_records, reason_groups
 from pipeline.textfiles import write_atomic
 
 from .report_figures import (error_curves, example_figure, natural_key, query_errors, refinement_confidence,

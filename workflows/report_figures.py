@@ -11,9 +11,9 @@ import numpy as np
 import torch
 
 from pipeline.evaluate import fmt, pose_errors, record_errors
-from pipeline.map_reader import MapReader
+from pipeline.store.reader import MapReader
 from pipeline.queries import QueryRecord
-from pipeline.results import REJECTED, outcome, record_pose
+from pipeline.localization.results import REJECTED, outcome, record_pose
 
 
 def natural_key(text: str) -> List:
@@ -214,7 +214,7 @@ def example_figure(record: Dict, why: str, query: QueryRecord, reader: MapReader
     level's pose against ground truth (its update from the previous level without one)."""
     plt = _plt()
     from pipeline.images import resize_max, to_tensor
-    from pipeline.shard import fit_query
+    from pipeline.localization.shard import fit_query
 
     query, rgb = fit_query(query)
     dbs = [reader.index[n] for n in record["references"] if n in reader.index]
@@ -301,7 +301,7 @@ def example_figure(record: Dict, why: str, query: QueryRecord, reader: MapReader
     return _png(fig, "jpeg", tight=False)
 
 
-# the verification evidence (pipeline.verify), as a reader would name it: (key, label, value format)
+# the verification evidence (pipeline.localization.verify), as a reader would name it: (key, label, value format)
 EVIDENCE_LABELS = (
     ("confidence", "confidence", "{:.2f}"),
     ("contrast_3px", "cost lower than 3 px away", "{:.1%}"),

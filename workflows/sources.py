@@ -7,16 +7,16 @@ from typing import Callable, List, Optional, Sequence, Tuple
 
 import numpy as np
 
-from pipeline.depth import densify, rgbd_scene
-from pipeline.pairs import PairsConfig
+from pipeline.mapping.depth import densify, rgbd_scene
+from pipeline.mapping.image_pairs import PairsConfig
 from pipeline.progress import Silent
 from pipeline.queries import QueryRecord, read_queries_with_intrinsics
 from pipeline.scene import name_problem
-from pipeline.readers.colmap import image_names, read_colmap, run_sfm, triangulate_known_poses
-from pipeline.readers.kapture import read_kapture
+from pipeline.mapping.readers.colmap import image_names, read_colmap, run_sfm, triangulate_known_poses
+from pipeline.mapping.readers.kapture import read_kapture
 from pipeline.images import read_image
-from pipeline.readers.rgbd import read_7scenes, read_pose_txt
-from pipeline.readers.strecha import read_strecha
+from pipeline.mapping.readers.rgbd import read_7scenes, read_pose_txt
+from pipeline.mapping.readers.strecha import read_strecha
 from pipeline.scene import CameraRecord, Scene
 
 KINDS = ("colmap", "sfm", "strecha", "kapture", "7scenes", "posetxt")
@@ -157,7 +157,7 @@ def load_queries(kind: str, path: Path, images: Optional[Path] = None, sequences
     elif kind == "colmap":
         queries = [_as_query(im) for im in read_colmap(path, images or path.parent / "images").images]
     elif kind == "synthetic":  # a generated scene (the demo's outputs/demo/scene), with ground truth
-        from pipeline.synthetic import read_synthetic
+        from pipeline.data.synthetic import read_synthetic
         queries = read_synthetic(path)[1]
     else:
         raise ValueError(f"Unknown query source {kind!r}; known: {', '.join(QUERY_KINDS)}.")

@@ -30,9 +30,9 @@ import numpy as np
 import torch
 import yaml
 
-from pipeline.readers.pixloc_training import read_cmu_slice, read_megadepth
+from pipeline.mapping.readers.pixloc_training import read_cmu_slice, read_megadepth
 from pipeline.scene import CameraRecord, Scene
-from pipeline.training_data import PairConfig, PairDataset, synthetic_scene
+from pipeline.data.training_data import PairConfig, PairDataset, synthetic_scene
 from pixloc.nets.registry import load_refiner, save_model
 from pixloc.training import Trainer, TrainConfig, reprojection_px
 
@@ -54,7 +54,7 @@ def default_data_root() -> Path:
 class TrainingRun:
     """A training run as its YAML config says. The config is flat: the run's own keys (these
     fields), the optimiser's by ``pixloc.training.TrainConfig``'s names (``lr``, ``ema``,
-    ``num_iters`` ...) and the pairs' by ``pipeline.training_data.PairConfig``'s (``max_size``,
+    ``num_iters`` ...) and the pairs' by ``pipeline.data.training_data.PairConfig``'s (``max_size``,
     ``init_range`` ...); each default lives in its dataclass alone, and any other key is refused
     with the nearest valid name.
 

@@ -1,6 +1,6 @@
 import pytest
 
-from pipeline.readers.colmap import read_colmap
+from pipeline.mapping.readers.colmap import read_colmap
 
 
 @pytest.fixture(scope="session")

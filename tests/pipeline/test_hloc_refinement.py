@@ -8,16 +8,16 @@ import numpy as np
 import pycolmap
 import pytest
 
-from pipeline.build import build_map
-from pipeline.features import FeatureConfig
-from pipeline.localize import LocalizerConfig
+from pipeline.mapping.build import build_map
+from pipeline.mapping.features import FeatureConfig
+from pipeline.localization.refine import LocalizerConfig
 from pipeline.queries import QueryRecord
-from pipeline.readers.colmap import read_colmap
-from pipeline.readers.hloc import read_hloc_logs
-from pipeline.results import read_records, record_pose
+from pipeline.mapping.readers.colmap import read_colmap
+from pipeline.mapping.readers.hloc import read_hloc_logs
+from pipeline.localization.results import read_records, record_pose
 from pipeline.scene import SceneError
-from pipeline.retrieval import RetrievalConfig
-from pipeline.shard import LocalizationJob, localize_shard
+from pipeline.localization.retrieval import RetrievalConfig
+from pipeline.localization.shard import LocalizationJob, localize_shard
 
 QUERY = "32809961_8274055477.jpg"
 FCONF = FeatureConfig(model="pixloc-lite0", resize=1024, image_scales=(1,))

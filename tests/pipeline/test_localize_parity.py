@@ -11,14 +11,14 @@ import numpy as np
 import pytest
 import torch
 
-from pipeline.build import build_map
-from pipeline.features import FeatureConfig
-from pipeline.localize import Localizer, LocalizerConfig
-from pipeline.map_reader import MapReader
+from pipeline.mapping.build import build_map
+from pipeline.mapping.features import FeatureConfig
+from pipeline.localization.refine import Localizer, LocalizerConfig
+from pipeline.store.reader import MapReader
 from pipeline.queries import read_queries_with_intrinsics
 from pipeline.textfiles import read_pairs
-from pipeline.readers.colmap import read_colmap
-from pipeline.verify import VerificationConfig
+from pipeline.mapping.readers.colmap import read_colmap
+from pipeline.localization.verify import VerificationConfig
 from pixloc.geometry import Pose
 from pixloc.nets.registry import load_refiner, state_digest
 

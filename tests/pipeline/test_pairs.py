@@ -1,8 +1,8 @@
 import numpy as np
 import pytest
 
-from pipeline.pairs import PairsConfig, read_pairs, retrieval_pairs, spatial_pairs, write_pairs
-from pipeline.readers.strecha import read_strecha
+from pipeline.mapping.image_pairs import PairsConfig, read_pairs, retrieval_pairs, spatial_pairs, write_pairs
+from pipeline.mapping.readers.strecha import read_strecha
 
 
 def _ring(n: int, radius: float = 10.0):

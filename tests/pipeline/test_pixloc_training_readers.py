@@ -7,10 +7,10 @@ import pickle
 import numpy as np
 import pytest
 
-from pipeline.readers.colmap import read_colmap
-from pipeline.readers.pixloc_training import read_cmu_slice, read_info, read_megadepth
+from pipeline.mapping.readers.colmap import read_colmap
+from pipeline.mapping.readers.pixloc_training import read_cmu_slice, read_info, read_megadepth
 from pipeline.scene import SceneError
-from pipeline.training_data import PairConfig
+from pipeline.data.training_data import PairConfig
 from workflows.train import load_sources
 
 

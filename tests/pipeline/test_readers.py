@@ -5,19 +5,19 @@ import numpy as np
 import pytest
 import torch
 
-from pipeline.build import build_map
-from pipeline.depth import depth_camera, load_depth, to_camera_frame, densify, rgbd_scene
-from pipeline.pairs import PairsConfig
+from pipeline.mapping.build import build_map
+from pipeline.mapping.depth import depth_camera, load_depth, to_camera_frame, densify, rgbd_scene
+from pipeline.mapping.image_pairs import PairsConfig
 from pipeline.progress import Silent
-from pipeline.readers.colmap import (cached_model, images_fingerprint, legacy_fingerprint, read_colmap, run_sfm,
+from pipeline.mapping.readers.colmap import (cached_model, images_fingerprint, legacy_fingerprint, read_colmap, run_sfm,
                                      triangulate_known_poses)
-from pipeline.readers.kapture import read_kapture
-from pipeline.readers.rgbd import read_7scenes, read_pose_txt
-from pipeline.readers.strecha import read_strecha
-from pipeline.features import FeatureConfig
+from pipeline.mapping.readers.kapture import read_kapture
+from pipeline.mapping.readers.rgbd import read_7scenes, read_pose_txt
+from pipeline.mapping.readers.strecha import read_strecha
+from pipeline.mapping.features import FeatureConfig
 from pipeline.scene import CameraRecord, Scene, SceneError
-from pipeline.feature_groups import feature_key
-from pipeline.store import open_store
+from pipeline.store.feature_groups import feature_key
+from pipeline.store.layout import open_store
 
 
 def reprojection_errors(scene: Scene) -> np.ndarray:

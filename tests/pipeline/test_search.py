@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from pipeline.evaluate import pose_errors
-from pipeline.search import SearchConfig, perturbations, same_basin, screening_order
+from pipeline.localization.search import SearchConfig, perturbations, same_basin, screening_order
 
 
 def _pose(seed=0):

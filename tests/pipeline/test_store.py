@@ -5,13 +5,13 @@ import pytest
 import torch
 from torch.nn.functional import grid_sample
 
-from pipeline.build import build_map
+from pipeline.mapping.build import build_map
 from pipeline.models import network
-from pipeline.features import FeatureConfig
+from pipeline.mapping.features import FeatureConfig
 from pipeline.images import read_image, resize_max, to_tensor
 from pipeline.scene import CameraRecord, Scene, SceneError
-from pipeline.feature_groups import feature_key
-from pipeline.store import DONE, FAILED, StoreError, image_rows, open_store
+from pipeline.store.feature_groups import feature_key
+from pipeline.store.layout import DONE, FAILED, StoreError, image_rows, open_store
 from tests.pipeline.helpers import assert_same_store
 
 CONF = FeatureConfig(resize=512, image_scales=(4, 1))
@@ -146,7 +146,7 @@ def test_one_file_per_image_and_array(built):
 
 def test_int8_features_are_within_their_quantisation_step(built, maupertuis, tmp_path):
     """int8 codes with a float16 scale per row and level: within half a step of float16 storage."""
-    from pipeline.map_reader import MapReader
+    from pipeline.store.reader import MapReader
     conf8 = dataclasses.replace(CONF, dtype="int8")
     build_map(maupertuis, tmp_path / "int8.zarr", conf8)
     path, _ = built
@@ -171,8 +171,8 @@ def test_pca_storage_reconstructs_the_features_and_keeps_its_bases(built, mauper
     (bases fitted on the map's images, kept in the group), the 32-channel level as it is; readers
     reconstruct every channel, close to float16 storage (measured: median cosine 0.9994 and 0.982 at
     the two reduced levels of image scale 1), and the features take under 0.35 of float16."""
-    from pipeline.map_reader import MapReader
-    from pipeline.feature_groups import check_feature_group, stored_dims
+    from pipeline.store.reader import MapReader
+    from pipeline.store.feature_groups import check_feature_group, stored_dims
     conf = dataclasses.replace(CONF, dtype="int8", pca=48)
     assert feature_key(conf).endswith("_int8_pca48") and "pca" not in CONF.to_dict()
     path8 = tmp_path / "pca.zarr"
@@ -216,8 +216,8 @@ def test_adding_a_mapping_session_extracts_only_the_new_images(built, maupertuis
     """A map of 3 images, then the model extended with a 4th: the store keeps its rows, adds the new
     image, its observations and the points only it sees (the others matched by COLMAP id), and
     only the new image is extracted. An add interrupted before its commit leaves the old map."""
-    from pipeline import store as store_module
-    from pipeline.map_reader import MapReader
+    from pipeline.store import layout as store_module
+    from pipeline.store.reader import MapReader
     path = tmp_path / "map.zarr"
     first = _first_session(maupertuis, [0, 1, 2])
     assert [r.status for r in build_map(first, path, CONF)] == ["done"] * 3
@@ -260,7 +260,7 @@ def test_adding_a_mapping_session_extracts_only_the_new_images(built, maupertuis
 
 
 def test_reader_block_cache_is_bounded_and_counts_hits(built):
-    from pipeline.map_reader import MapReader
+    from pipeline.store.reader import MapReader
     path, _ = built
     reader = MapReader(path, CONF)
     obs = reader.observations([0, 1], 1)
@@ -277,8 +277,8 @@ def test_reader_block_cache_is_bounded_and_counts_hits(built):
 def test_a_finished_build_is_consolidated_for_fast_opening(built, maupertuis, tmp_path):
     """Per-image status and global arrays are copied into one chunk each when a build finishes
     (6,697 one-image chunks took 3.4 s each to read at open); a new build or an add undoes it."""
-    from pipeline.map_reader import MapReader
-    from pipeline.store import consolidated
+    from pipeline.store.reader import MapReader
+    from pipeline.store.layout import consolidated
     path, _ = built
     root = open_store(path)
     group = root[f"features/{feature_key(CONF)}"]
@@ -287,7 +287,7 @@ def test_a_finished_build_is_consolidated_for_fast_opening(built, maupertuis, tm
     assert reader.static and np.array_equal(reader.status, group["status"][:])
     np.testing.assert_array_equal(reader.global_descriptors, group["global"][:])
     partial = tmp_path / "partial.zarr"
-    from pipeline.build import extract_features, write_structure
+    from pipeline.mapping.build import extract_features, write_structure
     write_structure(maupertuis, partial, CONF)
     extract_features(partial, CONF, [0])  # a build under way (or killed): not consolidated
     assert not MapReader(partial, CONF).static and MapReader(partial, CONF).usable(0)

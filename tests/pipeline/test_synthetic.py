@@ -2,9 +2,9 @@ import numpy as np
 import pytest
 import torch
 
-from pipeline.depth import rgbd_scene
+from pipeline.mapping.depth import rgbd_scene
 from pipeline.scene import CameraRecord
-from pipeline.synthetic import CONDITIONS, SyntheticConfig, SyntheticScene, generate, read_synthetic
+from pipeline.data.synthetic import CONDITIONS, SyntheticConfig, SyntheticScene, generate, read_synthetic
 
 CAMERA = CameraRecord("PINHOLE", 320, 240, (250.0, 250.0, 160.0, 120.0))
 
@@ -93,7 +93,7 @@ def test_a_generated_city_has_blocks_streets_and_tagged_views(tmp_path):
     """A 2x2 city: references along every street facing each block side, tagged by block side;
     each reference sees mostly the facade of the block its tag names (its depth hits lie in
     that block's footprint), and the dataset reads back like the courtyard's."""
-    from pipeline.city import CityConfig, SyntheticCity, generate_city
+    from pipeline.data.city import CityConfig, SyntheticCity, generate_city
     conf = CityConfig(seed=1, blocks=(2, 2), spacing=8.0)
     city = SyntheticCity(conf)
     views = city.reference_views()

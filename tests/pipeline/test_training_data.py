@@ -3,7 +3,7 @@ import pytest
 import torch
 
 from pipeline.scene import CameraRecord
-from pipeline.training_data import PairConfig, PairDataset, covisible_pairs, synthetic_scene
+from pipeline.data.training_data import PairConfig, PairDataset, covisible_pairs, synthetic_scene
 from pixloc.geometry import pose_error
 
 CAMERA = CameraRecord("PINHOLE", 128, 96, (100.0, 100.0, 64.0, 48.0))

@@ -2,7 +2,7 @@ import pytest
 import torch
 
 from pipeline.scene import CameraRecord
-from pipeline.training_data import PairConfig, PairDataset, synthetic_scene
+from pipeline.data.training_data import PairConfig, PairDataset, synthetic_scene
 from pixloc.nets.registry import load_refiner
 from pixloc.training import TrainConfig, Trainer
 

@@ -9,10 +9,10 @@ from pathlib import Path
 
 import pytest
 
-from pipeline.features import FeatureConfig
-from pipeline.readers.colmap import read_colmap
-from pipeline.feature_groups import feature_key
-from pipeline.store import DONE, open_store
+from pipeline.mapping.features import FeatureConfig
+from pipeline.mapping.readers.colmap import read_colmap
+from pipeline.store.feature_groups import feature_key
+from pipeline.store.layout import DONE, open_store
 from tests.pipeline.helpers import assert_same_store
 from workflows.build_map import plan_build, run_dask, run_sync
 from workflows.process_cluster import DASK, ProcessCluster, wait_for
@@ -83,7 +83,7 @@ def test_interrupted_build_resumes_only_missing_images(scene, reference, tmp_pat
     script = (
         "import sys; sys.path.insert(0, sys.argv[1])\n"
         "from tests.workflows.test_build_map import CONF\n"
-        "from pipeline.readers.colmap import read_colmap\n"
+        "from pipeline.mapping.readers.colmap import read_colmap\n"
         "from workflows.build_map import plan_build, run_sync\n"
         "root = sys.argv[3]\n"
         "scene = read_colmap(root + '/reconstruction', root + '/images').repeated(4)\n"

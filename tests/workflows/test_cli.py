@@ -28,8 +28,8 @@ def _localize_job(*argv, tmp_path=None):
     """The job that ``pixloc localize ... ARGV`` runs (a store's default features)."""
     import argparse
 
-    from pipeline.features import FeatureConfig
-    from pipeline.shard import LocalizationJob
+    from pipeline.mapping.features import FeatureConfig
+    from pipeline.localization.shard import LocalizationJob
     from workflows.cli_localize import add_arguments, job_settings
     from workflows.options import build
     p = argparse.ArgumentParser()
@@ -77,7 +77,7 @@ def test_every_preset_works_with_every_prior(tmp_path):
     import dataclasses
 
     from workflows import presets
-    from pipeline.shard import PRIORS
+    from pipeline.localization.shard import PRIORS
     (tmp_path / "poses.txt").write_text("")
     (tmp_path / "logs.pkl").write_bytes(b"")
     for name in presets.available():
@@ -93,7 +93,7 @@ def test_every_preset_works_with_every_prior(tmp_path):
 def test_one_default_model_everywhere():
     import argparse
 
-    from pipeline.features import FeatureConfig
+    from pipeline.mapping.features import FeatureConfig
     from pixloc.nets.registry import DEFAULT_MODEL
     from workflows import presets
     from workflows.cli_build_map import FLAGS, add_arguments

@@ -45,7 +45,7 @@ def test_a_training_config_takes_each_default_from_its_dataclass_and_reads_back(
     TrainConfig's (lr 1e-4 against 1e-5)."""
     import yaml
 
-    from pipeline.training_data import PairConfig
+    from pipeline.data.training_data import PairConfig
     from pixloc.training import TrainConfig
     from workflows.train import TrainingRun
     run = TrainingRun.from_dict({"steps": 40, "ema": 0.9, "max_size": 256})

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from pipeline.evaluate import evaluate, pose_errors
-from pipeline.results import read_records
-from pipeline.synthetic import read_synthetic
+from pipeline.localization.results import read_records
+from pipeline.data.synthetic import read_synthetic
 from workflows.demo import DEMO_THRESHOLDS, run_demo
 
 
@@ -136,7 +136,7 @@ def test_the_scale_benchmarks_driver_processes_run_on_the_demo(demo, demo_dir, t
     kept in strings that no linter or import check saw): each prints its figures as JSON."""
     import json
 
-    from pipeline.features import FeatureConfig
+    from pipeline.mapping.features import FeatureConfig
     from workflows.benchmarks.drivers import command
     from workflows.cli_localize import store_feature_config
     store = demo_dir / "map.zarr"

@@ -1,7 +1,7 @@
 import pytest
 
 from pipeline.scene import CameraRecord
-from pipeline.training_data import PairConfig, PairDataset, synthetic_scene
+from pipeline.data.training_data import PairConfig, PairDataset, synthetic_scene
 from workflows.cli import main
 from workflows.evaluate_model import evaluate_models, markdown, paired, paired_markdown, sign_test
 

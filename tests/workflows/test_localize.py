@@ -13,15 +13,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.build import build_map
-from pipeline.depth import rgbd_scene
+from pipeline.mapping.build import build_map
+from pipeline.mapping.depth import rgbd_scene
 from pipeline.evaluate import INDOOR_THRESHOLDS, evaluate, pose_errors
-from pipeline.features import FeatureConfig
-from pipeline.localize import LocalizerConfig
-from pipeline.readers.rgbd import read_7scenes
-from pipeline.results import read_records, record_pose
-from pipeline.retrieval import RetrievalConfig
-from pipeline.shard import LocalizationJob
+from pipeline.mapping.features import FeatureConfig
+from pipeline.localization.refine import LocalizerConfig
+from pipeline.mapping.readers.rgbd import read_7scenes
+from pipeline.localization.results import read_records, record_pose
+from pipeline.localization.retrieval import RetrievalConfig
+from pipeline.localization.shard import LocalizationJob
 from tests.workflows.test_build_map import cluster  # noqa: F401  (fixture)
 from workflows.process_cluster import wait_for
 from workflows.localize import plan_localization, run_dask, run_sync
@@ -102,14 +102,14 @@ def test_outputs(seven_scenes, sync_records, tmp_path):
     assert abs(np.linalg.norm(q) - 1) < 1e-6 and q[0] >= 0
     assert without_timings(read_records(tmp_path / "records.jsonl")) == without_timings(sync_records)
     # benchmark names: 7-Scenes basenames repeat across sequences, so only parentdir/basename is refused nothing
-    from pipeline.results import pose_names_problem
+    from pipeline.localization.results import pose_names_problem
     assert "makes query names alike" in pose_names_problem([q.name for q in queries], "basename")
     assert pose_names_problem([q.name for q in queries], "camera") is None
     plan.pose_names = "camera"
     run_sync(plan)  # a finished run: merges again, with the extra file
     assert (tmp_path / "poses_camera.txt").read_text() == (tmp_path / "poses.txt").read_text()  # seq-XX/frame...
     # the same poses as a kapture folder (device_from_world), read back by the kapture reader
-    from pipeline.readers.kapture import read_kapture
+    from pipeline.mapping.readers.kapture import read_kapture
     back = {im.name: im for im in read_kapture(tmp_path / "kapture")}
     assert sorted(back) == sorted(q.name for q in queries)
     for r in sync_records:
@@ -235,7 +235,7 @@ def test_html_report(seven_scenes, tmp_path):
 def test_hloc_descriptors_and_refinement_mode(seven_scenes, sync_records, tmp_path):
     import h5py
 
-    from pipeline.map_reader import MapReader
+    from pipeline.store.reader import MapReader
     job, queries = seven_scenes
     reader = MapReader(job.store, FCONF)
     # An hloc-style global-features file: the map's descriptors, and each query as a copy of
@@ -263,9 +263,10 @@ def test_hloc_descriptors_and_refinement_mode(seven_scenes, sync_records, tmp_pa
 
 def test_shard_batches_queries_like_one_at_a_time(seven_scenes, sync_records):
     """A shard solves its queries as one LM batch per level; each result equals a solo run."""
-    from pipeline.localize import Localizer
-    from pipeline.map_reader import MapReader
-    from pipeline.models import localization_model, localize_queries
+    from pipeline.localization.refine import Localizer
+    from pipeline.store.reader import MapReader
+    from pipeline.localization.shard import localize_queries
+    from pipeline.models import localization_model
     job, queries = seven_scenes
     refiner, digest = localization_model(job.model)
     reader = MapReader(job.store, FCONF, digest)

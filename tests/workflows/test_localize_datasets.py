@@ -12,15 +12,15 @@ import json
 import numpy as np
 import pytest
 
-from pipeline.build import build_map
+from pipeline.mapping.build import build_map
 from pipeline.evaluate import evaluate, pose_errors
-from pipeline.features import FeatureConfig
-from pipeline.localize import LocalizerConfig
-from pipeline.readers.colmap import triangulate_known_poses
-from pipeline.readers.kapture import read_kapture
-from pipeline.readers.strecha import read_strecha
-from pipeline.retrieval import RetrievalConfig
-from pipeline.shard import LocalizationJob
+from pipeline.mapping.features import FeatureConfig
+from pipeline.localization.refine import LocalizerConfig
+from pipeline.mapping.readers.colmap import triangulate_known_poses
+from pipeline.mapping.readers.kapture import read_kapture
+from pipeline.mapping.readers.strecha import read_strecha
+from pipeline.localization.retrieval import RetrievalConfig
+from pipeline.localization.shard import LocalizationJob
 from workflows.localize import plan_localization, run_sync
 from workflows.sources import load_queries
 

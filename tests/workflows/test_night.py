@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 
 from pipeline.evaluate import pose_errors
-from pipeline.localize import LocalizerConfig
-from pipeline.results import record_pose
-from pipeline.retrieval import RetrievalConfig
-from pipeline.shard import LocalizationJob
+from pipeline.localization.refine import LocalizerConfig
+from pipeline.localization.results import record_pose
+from pipeline.localization.retrieval import RetrievalConfig
+from pipeline.localization.shard import LocalizationJob
 from workflows.benchmarks.sacre_coeur import MEDIAN_DISTANCE, night_reference, sacre_coeur
 from workflows.benchmarks.search import SACRE_COEUR_FEATURES
 from workflows.localize import plan_localization, run_sync

@@ -5,14 +5,14 @@ import dataclasses
 import numpy as np
 import pytest
 
-from pipeline.depth import rgbd_scene
+from pipeline.mapping.depth import rgbd_scene
 from pipeline.evaluate import pose_errors
-from pipeline.features import FeatureConfig
-from pipeline.localize import LocalizerConfig
-from pipeline.results import record_pose
-from pipeline.retrieval import RetrievalConfig
-from pipeline.shard import LocalizationJob
-from pipeline.synthetic import SyntheticConfig, ensure_generated, read_synthetic
+from pipeline.mapping.features import FeatureConfig
+from pipeline.localization.refine import LocalizerConfig
+from pipeline.localization.results import record_pose
+from pipeline.localization.retrieval import RetrievalConfig
+from pipeline.localization.shard import LocalizationJob
+from pipeline.data.synthetic import SyntheticConfig, ensure_generated, read_synthetic
 from workflows.build_map import plan_build, run_sync as build_sync
 from workflows.demo import DEMO_CAMERA, DEMO_SEED
 from workflows.localize import plan_localization, run_sync

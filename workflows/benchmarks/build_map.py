@@ -13,8 +13,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from pipeline.features import FeatureConfig
-from pipeline.readers.colmap import read_colmap
+from pipeline.mapping.features import FeatureConfig
+from pipeline.mapping.readers.colmap import read_colmap
 
 from .. import executor
 from ..build_map import plan_build, run_dask

@@ -48,10 +48,10 @@ def shard_files(out: Path) -> Dict[str, int]:
 
 def build_city(args, blocks: int, per_condition: int) -> Dict:
     """Render the city (cached), make its RGB-D scene, and build its store on a 2-worker cluster."""
-    from pipeline.city import CityConfig, generate_city
-    from pipeline.depth import rgbd_scene
-    from pipeline.features import FeatureConfig
-    from pipeline.synthetic import read_synthetic
+    from pipeline.data.city import CityConfig, generate_city
+    from pipeline.mapping.depth import rgbd_scene
+    from pipeline.mapping.features import FeatureConfig
+    from pipeline.data.synthetic import read_synthetic
     from ..build_map import plan_build, run_dask as build_dask
     root, store = args.work / f"s1-city-{blocks}x{blocks}", args.work / f"s1-city-{blocks}x{blocks}.zarr"
     t0 = time.perf_counter()
@@ -108,7 +108,7 @@ def s1(args) -> Dict:
     resume = msgs[0]["start"]
     after = shard_files(out)
     records = [json.loads(line) for line in (out / "records.jsonl").read_text().splitlines()]
-    from pipeline.synthetic import read_synthetic
+    from pipeline.data.synthetic import read_synthetic
     _, queries = read_synthetic(city["root"])
     names = sorted(q.name for q in queries)
     rewritten = [k for k, t in before.items() if after.get(k) != t]

@@ -31,9 +31,9 @@ def rss() -> int:
 
 def _job(store: str):
     """The benchmarks' localization job: 3 references, 30 LM iterations, retrieval within the area."""
-    from pipeline.localize import LocalizerConfig
-    from pipeline.retrieval import RetrievalConfig
-    from pipeline.shard import LocalizationJob
+    from pipeline.localization.refine import LocalizerConfig
+    from pipeline.localization.retrieval import RetrievalConfig
+    from pipeline.localization.shard import LocalizationJob
     from workflows.cli_localize import store_feature_config
     conf = store_feature_config(Path(store))
     return LocalizationJob(store, conf, conf.model, LocalizerConfig(num_dbs=3, num_iters=30),
@@ -43,14 +43,14 @@ def _job(store: str):
 def warm_up(job) -> None:
     """Load the network and open the map in this (worker) process: one-off costs of a worker's first
     task, which P3 leaves out so that it compares the steady-state rates of 1 and 2 workers."""
-    from pipeline.map_reader import open_reader
+    from pipeline.store.reader import open_reader
     from pipeline.models import localization_model
     _, digest = localization_model(job.model, job.device)
     open_reader(job.store, job.features, digest)
 
 
 def city(root: str, store: str, out: str, sched: str, limit: str, order: str, warm: str) -> None:
-    from pipeline.synthetic import read_synthetic
+    from pipeline.data.synthetic import read_synthetic
     from workflows.localize import plan_localization, run_dask, run_sync
     _, queries = read_synthetic(root)
     queries = sorted(queries, key=lambda q: q.name)[:int(limit) or None]
@@ -78,8 +78,8 @@ def city(root: str, store: str, out: str, sched: str, limit: str, order: str, wa
 
 
 def read(store: str, conf: str, queries: str, seed: str) -> None:
-    from pipeline.features import FeatureConfig
-    from pipeline.map_reader import MapReader
+    from pipeline.mapping.features import FeatureConfig
+    from pipeline.store.reader import MapReader
     settings = json.loads(conf)
     settings["image_scales"] = tuple(settings["image_scales"])
     before = rss()
@@ -106,7 +106,7 @@ def read(store: str, conf: str, queries: str, seed: str) -> None:
 
 def localize(root: str, store: str, out: str) -> None:
     from pipeline.evaluate import evaluate
-    from pipeline.synthetic import read_synthetic
+    from pipeline.data.synthetic import read_synthetic
     from workflows.localize import plan_localization, run_sync
     _, queries = read_synthetic(root)
     plan = plan_localization(_job(store), queries, Path(out), shard_size=8, overwrite=True)

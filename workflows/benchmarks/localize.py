@@ -18,14 +18,14 @@ import tempfile
 import time
 from pathlib import Path
 
-from pipeline.build import build_map
-from pipeline.features import FeatureConfig
-from pipeline.localize import LocalizerConfig
+from pipeline.mapping.build import build_map
+from pipeline.mapping.features import FeatureConfig
+from pipeline.localization.refine import LocalizerConfig
 from pipeline.queries import read_queries_with_intrinsics
 from pipeline.textfiles import read_pairs
-from pipeline.readers.colmap import read_colmap
-from pipeline.retrieval import RetrievalConfig
-from pipeline.shard import LocalizationJob
+from pipeline.mapping.readers.colmap import read_colmap
+from pipeline.localization.retrieval import RetrievalConfig
+from pipeline.localization.shard import LocalizationJob
 
 from .. import executor
 from ..localize import plan_localization, run_dask
@@ -57,8 +57,8 @@ def official_way_shard(job: LocalizationJob, queries, out_path, images_root: str
     """The official localizer's data flow: for every query, re-extract its references'
     features (into a private store), then localize from them. Extraction and sampling are
     the same code as ours; the private store adds a few ms of zarr I/O per image."""
-    from pipeline.results import write_records
-    from pipeline.shard import localize_shard
+    from pipeline.localization.results import write_records
+    from pipeline.localization.shard import localize_shard
     scene = read_colmap(Path(job.store).parent / "sfm", images_root)
     pairs = read_pairs(job.retrieval.pairs)
     records = []

@@ -55,16 +55,16 @@ def priors(queries, path: Path, seed: int = 0) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    from pipeline.build import build_map
-    from pipeline.depth import rgbd_scene
+    from pipeline.mapping.build import build_map
+    from pipeline.mapping.depth import rgbd_scene
     from pipeline.evaluate import pose_errors
-    from pipeline.features import FeatureConfig
-    from pipeline.localize import LocalizerConfig
-    from pipeline.readers.rgbd import read_7scenes
-    from pipeline.retrieval import RetrievalConfig
+    from pipeline.mapping.features import FeatureConfig
+    from pipeline.localization.refine import LocalizerConfig
+    from pipeline.mapping.readers.rgbd import read_7scenes
+    from pipeline.localization.retrieval import RetrievalConfig
     from pipeline.models import localization_model
-    from pipeline.shard import LocalizationJob
-    from pipeline.verify import VerificationConfig
+    from pipeline.localization.shard import LocalizationJob
+    from pipeline.localization.verify import VerificationConfig
     from workflows.localize import plan_localization, run_sync
     from workflows.presets import load
     from workflows.sources import load_queries

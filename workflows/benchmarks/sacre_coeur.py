@@ -17,9 +17,9 @@ from typing import Dict, List, Tuple
 import numpy as np
 
 from pipeline.exif import exif_camera
-from pipeline.features import FeatureConfig
+from pipeline.mapping.features import FeatureConfig
 from pipeline.queries import QueryRecord
-from pipeline.readers.colmap import read_colmap
+from pipeline.mapping.readers.colmap import read_colmap
 from pipeline.scene import CameraRecord, Scene
 
 from ..build_map import plan_build, run_sync as build_sync

@@ -1,7 +1,7 @@
 """Benchmarks of scale (docs/scaling.md): ``--parts S3`` (default), ``S2``, ``S4``, ``S5``, and ``S1`` and
 ``P3`` (``workflows/benchmarks/city_run.py``: a city end to end on a Dask cluster, killed and resumed).
 
-S2: generated cities (``pipeline.city.SyntheticCity``) of about 100, 500 and 2,000
+S2: generated cities (``pipeline.data.city.SyntheticCity``) of about 100, 500 and 2,000
 reference images (2x2, 4x4, 10x10 blocks), each built into a map (RGB-D frames, int8 features)
 and the same number of queries localized in a fresh process (retrieval restricted to the
 query's block side, as a GPS tag would): seconds per query and the process's peak RSS per map
@@ -38,7 +38,7 @@ from typing import Dict
 
 import numpy as np
 
-from pipeline.features import FeatureConfig, ImageFeatures
+from pipeline.mapping.features import FeatureConfig, ImageFeatures
 from pipeline.scene import CameraRecord, ImageRecord, Scene
 
 from .drivers import command
@@ -95,8 +95,8 @@ def synthetic_scene(num_images: int, num_points: int, num_obs: int, seed: int = 
 
 
 def build(store: Path, scene: Scene, conf: FeatureConfig, seed: int) -> Dict:
-    from pipeline.feature_groups import consolidate, init_features, write_image_features
-    from pipeline.store import create_store
+    from pipeline.store.feature_groups import consolidate, init_features, write_image_features
+    from pipeline.store.layout import create_store
     rng = np.random.default_rng(seed + 1)
     t0 = time.perf_counter()
     root = create_store(store, scene, overwrite=True)
@@ -128,9 +128,9 @@ def v2_figures(num_obs: np.ndarray, scales: int) -> Dict:
 
 def city_rows(args) -> list:
     """S2: per map size, the build and the localization of the same number of queries."""
-    from pipeline.depth import rgbd_scene
-    from pipeline.city import CityConfig, generate_city
-    from pipeline.synthetic import read_synthetic
+    from pipeline.mapping.depth import rgbd_scene
+    from pipeline.data.city import CityConfig, generate_city
+    from pipeline.data.synthetic import read_synthetic
     from ..build_map import plan_build, run_sync as build_sync
     rows = []
     for n in args.cities:
@@ -159,9 +159,9 @@ def add_rows(args) -> Dict:
     """S5: time to add the last 10 % of a city's references to a map of the rest, and to build all."""
     import shutil
 
-    from pipeline.depth import rgbd_scene
-    from pipeline.city import CityConfig, generate_city
-    from pipeline.synthetic import read_synthetic
+    from pipeline.mapping.depth import rgbd_scene
+    from pipeline.data.city import CityConfig, generate_city
+    from pipeline.data.synthetic import read_synthetic
     from ..build_map import plan_build, run_sync as build_sync
     root = args.work / "city-4x4"
     generate_city(root, CityConfig(seed=args.seed, blocks=(4, 4)), queries_per_condition=args.city_queries,
@@ -194,11 +194,11 @@ def triangulation_rows(args) -> list:
     matching of spatial pairs, triangulation, each timed."""
     import shutil
 
-    from pipeline.city import CityConfig, generate_city
-    from pipeline.pairs import PairsConfig, spatial_pairs
-    from pipeline.readers.colmap import triangulate_known_poses
+    from pipeline.data.city import CityConfig, generate_city
+    from pipeline.mapping.image_pairs import PairsConfig, spatial_pairs
+    from pipeline.mapping.readers.colmap import triangulate_known_poses
     from pipeline.regions import camera_centres
-    from pipeline.synthetic import read_synthetic
+    from pipeline.data.synthetic import read_synthetic
     root = args.work / f"s4-city-{args.s1_blocks}x{args.s1_blocks}"
     t0 = time.perf_counter()
     generate_city(root, CityConfig(seed=args.seed, blocks=(args.s1_blocks, args.s1_blocks), detail=0.3),
@@ -280,13 +280,13 @@ def store_at_scale(args: argparse.Namespace) -> int:
     print(f"S3: a store of {counts['images']} images, {counts['points']} points, {counts['observations']} "
           f"observations ({args.fraction:g} x Aachen v1.1), {args.dtype}, image scales {args.image_scales}, "
           f"PCA {args.pca or 'off'} -> {store}")
-    from pipeline.store import open_store
+    from pipeline.store.layout import open_store
     if args.reuse and store.exists():
         root = open_store(store)
         assert root.attrs["pixloc_map"]["num_images"] == counts["images"], "--reuse: another size"
         num_obs, gen_s, built = root["images/num_obs"][:], float("nan"), None
-        from pipeline.feature_groups import consolidate
-        from pipeline.store import consolidated
+        from pipeline.store.feature_groups import consolidate
+        from pipeline.store.layout import consolidated
         group = root[f"features/{next(iter(root['features'].group_keys()))}"]
         if not consolidated(group, root.attrs["pixloc_map"]):
             consolidate(open_store(store, mode="r+"), open_store(store, mode="r+")[group.path])

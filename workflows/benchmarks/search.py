@@ -21,10 +21,10 @@ from typing import Dict, List
 import numpy as np
 
 from pipeline.evaluate import evaluate, fmt
-from pipeline.features import FeatureConfig
-from pipeline.localize import LocalizerConfig
-from pipeline.retrieval import RetrievalConfig
-from pipeline.shard import LocalizationJob
+from pipeline.mapping.features import FeatureConfig
+from pipeline.localization.refine import LocalizerConfig
+from pipeline.localization.retrieval import RetrievalConfig
+from pipeline.localization.shard import LocalizationJob
 
 from pixloc.nets.registry import DEFAULT_MODEL
 
@@ -71,8 +71,8 @@ def _sources(args, fconf):
 
 
 def _virtual_gallery(shared: Path, work: Path, fconf):
-    from pipeline.readers.colmap import triangulate_known_poses
-    from pipeline.readers.kapture import read_kapture
+    from pipeline.mapping.readers.colmap import triangulate_known_poses
+    from pipeline.mapping.readers.kapture import read_kapture
     from workflows.sources import load_queries
     from .verification import store_complete
     root = shared / "data" / "virtual_gallery"

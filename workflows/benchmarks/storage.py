@@ -26,12 +26,12 @@ from typing import Dict, List
 import numpy as np
 
 from pipeline.evaluate import evaluate, fmt
-from pipeline.features import FeatureConfig
-from pipeline.localize import LocalizerConfig
-from pipeline.retrieval import RetrievalConfig
-from pipeline.shard import LocalizationJob
-from pipeline.feature_groups import feature_key
-from pipeline.store import open_store
+from pipeline.mapping.features import FeatureConfig
+from pipeline.localization.refine import LocalizerConfig
+from pipeline.localization.retrieval import RetrievalConfig
+from pipeline.localization.shard import LocalizationJob
+from pipeline.store.feature_groups import feature_key
+from pipeline.store.layout import open_store
 from pixloc.nets.registry import DEFAULT_MODEL
 
 from ..localize import plan_localization, run_sync
@@ -124,13 +124,13 @@ def oracle_rows(args) -> List[Dict]:
     """The official localization cases with each storage type: cases within the parity tolerance."""
     import torch
 
-    from pipeline.build import build_map
-    from pipeline.localize import Localizer
-    from pipeline.map_reader import MapReader
+    from pipeline.mapping.build import build_map
+    from pipeline.localization.refine import Localizer
+    from pipeline.store.reader import MapReader
     from pipeline.queries import read_queries_with_intrinsics
     from pipeline.textfiles import read_pairs
-    from pipeline.readers.colmap import read_colmap
-    from pipeline.verify import VerificationConfig
+    from pipeline.mapping.readers.colmap import read_colmap
+    from pipeline.localization.verify import VerificationConfig
     from pixloc.geometry import Pose
     from pixloc.nets.registry import load_refiner, state_digest
 

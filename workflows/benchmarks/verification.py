@@ -18,17 +18,17 @@ from typing import Dict, List, Optional
 
 import numpy as np
 
-from pipeline.depth import rgbd_scene
+from pipeline.mapping.depth import rgbd_scene
 from pipeline.evaluate import pose_errors
-from pipeline.features import FeatureConfig
-from pipeline.localize import LocalizerConfig
-from pipeline.readers.colmap import triangulate_known_poses
-from pipeline.readers.rgbd import read_7scenes
-from pipeline.readers.strecha import read_strecha
+from pipeline.mapping.features import FeatureConfig
+from pipeline.localization.refine import LocalizerConfig
+from pipeline.mapping.readers.colmap import triangulate_known_poses
+from pipeline.mapping.readers.rgbd import read_7scenes
+from pipeline.mapping.readers.strecha import read_strecha
 from pipeline.scene import rotmat_to_qvec
-from pipeline.retrieval import RetrievalConfig
-from pipeline.shard import LocalizationJob
-from pipeline.verify import VerificationConfig, verify
+from pipeline.localization.retrieval import RetrievalConfig
+from pipeline.localization.shard import LocalizationJob
+from pipeline.localization.verify import VerificationConfig, verify
 
 from ..build_map import plan_build, run_sync as build_sync
 from ..localize import plan_localization, run_sync
@@ -68,7 +68,7 @@ def strecha_maps(shared: Path, work: Path, folder: str, held_out: List[str], fco
 
 
 def store_complete(store: Path, fconf: FeatureConfig) -> bool:
-    from pipeline.build import pending_images
+    from pipeline.mapping.build import pending_images
     try:
         return store.exists() and not pending_images(store, fconf)
     except (OSError, ValueError, KeyError):
@@ -76,7 +76,7 @@ def store_complete(store: Path, fconf: FeatureConfig) -> bool:
 
 
 def demo_map(work: Path, fconf: FeatureConfig, stores: Optional[Path] = None):
-    from pipeline.synthetic import SyntheticConfig, ensure_generated, read_synthetic
+    from pipeline.data.synthetic import SyntheticConfig, ensure_generated, read_synthetic
 
     from ..demo import DEMO_CAMERA, DEMO_SEED
     root = work / "demo-scene"
@@ -198,9 +198,9 @@ def table(rows: List[Dict], thresholds: List[float]) -> str:
 def night(args) -> str:
     """The Sacre Coeur night photo against a map of the 10 day photos (the oracle's SfM model), from
     retrieval. It has no ground truth; its outcome under the default verification is reported."""
-    from pipeline.build import build_map
+    from pipeline.mapping.build import build_map
     from pipeline.queries import QueryRecord
-    from pipeline.readers.colmap import read_colmap
+    from pipeline.mapping.readers.colmap import read_colmap
     from pipeline.exif import exif_camera
     from pixloc.nets.registry import DEFAULT_MODEL
     root = args.shared / "data" / "sacre_coeur"

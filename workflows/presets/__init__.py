@@ -1,8 +1,8 @@
 """Dataset presets: the paper's settings per dataset, as YAML data (see the .yaml files here).
 
 A preset's keys are the fields of the jobs it sets, by the same names: ``localizer.num_iters``,
-``retrieval.k``, ``prior`` ... of ``pipeline.shard.LocalizationJob`` and ``features.resize`` ...
-of the map's ``pipeline.features.FeatureConfig``; a ``from_poses`` block overrides them in
+``retrieval.k``, ``prior`` ... of ``pipeline.localization.shard.LocalizationJob`` and ``features.resize`` ...
+of the map's ``pipeline.mapping.features.FeatureConfig``; a ``from_poses`` block overrides them in
 refinement mode; ``thresholds`` and ``pose_names`` set the outputs; ``description``, ``layout``
 and ``model_hint`` document it. Any other key is refused with the nearest valid name.
 """
@@ -12,7 +12,7 @@ from typing import Any, Dict, List, Optional
 
 import yaml
 
-from pipeline.shard import LocalizationJob
+from pipeline.localization.shard import LocalizationJob
 
 from ..options import check_keys, dotted, field_types
 

@@ -10,14 +10,14 @@ from pathlib import Path
 
 import pytest
 
-from pipeline.build import build_map
-from pipeline.depth import rgbd_scene
-from pipeline.features import FeatureConfig
-from pipeline.localize import LocalizerConfig
-from pipeline.readers.rgbd import read_7scenes
-from pipeline.retrieval import RetrievalConfig
-from pipeline.shard import LocalizationJob
-from pipeline.verify import VerificationConfig
+from pipeline.mapping.build import build_map
+from pipeline.mapping.depth import rgbd_scene
+from pipeline.mapping.features import FeatureConfig
+from pipeline.localization.refine import LocalizerConfig
+from pipeline.mapping.readers.rgbd import read_7scenes
+from pipeline.localization.retrieval import RetrievalConfig
+from pipeline.localization.shard import LocalizationJob
+from pipeline.localization.verify import VerificationConfig
 from workflows.sources import load_queries
 
 ROOT = Path(__file__).resolve().parents[3]
@@ -34,7 +34,7 @@ class Stairs:
     def copy(self, tmp_path, name="copy.zarr") -> LocalizationJob:
         """The job against a copy of the store (to damage)."""
         shutil.copytree(self.job.store, tmp_path / name)
-        from pipeline import map_reader
+        from pipeline.store import reader as map_reader
         map_reader.forget_readers()  # as a new process: no reader kept from another case
         return dataclasses.replace(self.job, store=str(tmp_path / name))
 

@@ -15,19 +15,19 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.build import build_map
-from pipeline.depth import rgbd_scene
+from pipeline.mapping.build import build_map
+from pipeline.mapping.depth import rgbd_scene
 from pipeline.evaluate import evaluate, to_json
-from pipeline.features import FeatureConfig
-from pipeline.localize import LocalizerConfig
-from pipeline.readers.hloc import parse_loc
-from pipeline.readers.rgbd import read_7scenes
-from pipeline.results import read_records
-from pipeline.retrieval import RetrievalConfig
-from pipeline.shard import LocalizationJob
-from pipeline.feature_groups import feature_key
-from pipeline.store import StoreError, open_store
-from pipeline.store_check import check_store
+from pipeline.mapping.features import FeatureConfig
+from pipeline.localization.refine import LocalizerConfig
+from pipeline.mapping.readers.hloc import parse_loc
+from pipeline.mapping.readers.rgbd import read_7scenes
+from pipeline.localization.results import read_records
+from pipeline.localization.retrieval import RetrievalConfig
+from pipeline.localization.shard import LocalizationJob
+from pipeline.store.feature_groups import feature_key
+from pipeline.store.layout import StoreError, open_store
+from pipeline.store.check import check_store
 from workflows.localize import OutputLocked, output_lock, plan_localization, run_sync
 from workflows.sources import load_queries
 
@@ -68,8 +68,8 @@ def test_truncated_query_jpeg_fails_that_query(stairs, tmp_path):
 def test_truncated_map_image_is_recorded_as_failed_and_the_map_built(shared, tmp_path):
     import shutil
 
-    from pipeline.readers.colmap import read_colmap
-    from pipeline.store import FAILED
+    from pipeline.mapping.readers.colmap import read_colmap
+    from pipeline.store.layout import FAILED
     root = shared / "data" / "maupertuis"
     shutil.copytree(root / "images", tmp_path / "images")
     scene = read_colmap(root / "reconstruction", tmp_path / "images")
@@ -144,7 +144,7 @@ def test_damaged_chunk_fails_the_queries_that_need_it(stairs, tmp_path, damage):
     else:
         data = data[: len(data) // 2]
     chunk.write_bytes(bytes(data))
-    from pipeline import map_reader
+    from pipeline.store import reader as map_reader
     map_reader.forget_readers()  # the damage happens between runs: a new process would not have read the block
     records = run_sync(plan_localization(dataclasses.replace(job, store=str(store)), queries[:1], tmp_path / "b"))
     assert not records[0]["success"]
@@ -223,7 +223,7 @@ def test_model_without_confidences_localizes_and_reports(shared, tmp_path):
 
 def test_one_query_error_does_not_fail_the_shard(stairs, tmp_path, monkeypatch):
     """Before: one uncaught error in Localizer.localize_batch left the whole shard without records."""
-    from pipeline import localize as loc
+    from pipeline.localization import refine as loc
     job, queries, _ = stairs
     real = loc.Localizer.predict
 
@@ -356,7 +356,7 @@ def test_two_model_files_with_one_name_never_share_features(tmp_path):
 def test_synthetic_dataset_is_regenerated_when_its_config_changes(tmp_path):
     """Before: a generated dataset was reused whatever its config."""
     from pipeline.scene import CameraRecord
-    from pipeline.synthetic import SyntheticConfig, ensure_generated, read_views
+    from pipeline.data.synthetic import SyntheticConfig, ensure_generated, read_views
     cam = CameraRecord("PINHOLE", 64, 48, (50.0, 50.0, 32.0, 24.0))
     ensure_generated(tmp_path, SyntheticConfig(seed=1), 2, 1, cam)
     stamp = (tmp_path / "cameras.json").stat().st_mtime_ns
@@ -406,10 +406,10 @@ def test_min_track_length_is_an_option_and_what_it_drops_is_counted(stairs, tmp_
 
 def test_hypotheses_keep_the_most_confident_refinement(stairs):
     """Before: the lowest mean cost won, over different sets of valid points."""
-    from pipeline.localize import Localizer
-    from pipeline.map_reader import MapReader
+    from pipeline.localization.refine import Localizer
+    from pipeline.store.reader import MapReader
     from pipeline.models import localization_model
-    from pipeline.shard import localize_queries, prepare_query
+    from pipeline.localization.shard import localize_queries, prepare_query
     job, queries, _ = stairs
     hjob = dataclasses.replace(job, prior="hypotheses", num_hypotheses=3)
     refiner, digest = localization_model(job.model)
@@ -428,10 +428,11 @@ def test_search_refines_the_top1_start_first_and_searches_only_where_it_is_not_v
     the search is exactly ``top1`` and screens nothing; where it is not (default verification: 7-Scenes
     from retrieval, ~46 deg off, is rejected), the search screens its starts and the top-1 refinement
     stays one of the candidates."""
-    from pipeline.localize import Localizer
-    from pipeline.map_reader import MapReader
-    from pipeline.models import localization_model, localize_queries
-    from pipeline.verify import VerificationConfig
+    from pipeline.localization.refine import Localizer
+    from pipeline.store.reader import MapReader
+    from pipeline.localization.shard import localize_queries
+    from pipeline.models import localization_model
+    from pipeline.localization.verify import VerificationConfig
     job, queries, _ = stairs
     refiner, digest = localization_model(job.model)
     reader = MapReader(job.store, FCONF, digest)

@@ -11,13 +11,13 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from pipeline.build import build_map
-from pipeline.feature_groups import feature_key
-from pipeline.features import FeatureConfig
+from pipeline.mapping.build import build_map
+from pipeline.store.feature_groups import feature_key
+from pipeline.mapping.features import FeatureConfig
 from pipeline.images import ImageReadError, read_image
-from pipeline.results import pose_name
+from pipeline.localization.results import pose_name
 from pipeline.scene import CameraRecord, ImageRecord
-from pipeline.store import open_store
+from pipeline.store.layout import open_store
 from workflows.localize import plan_localization, run_sync
 from workflows.sources import load_queries
 
@@ -49,7 +49,7 @@ def test_zero_byte_map_image_is_that_image_failure(shared, tmp_path):
     """Before: build-map stopped at that image on every rerun: the map could never be built."""
     import shutil
 
-    from pipeline.readers.colmap import read_colmap
+    from pipeline.mapping.readers.colmap import read_colmap
     root = shared / "data" / "maupertuis"
     shutil.copytree(root / "images", tmp_path / "images")
     scene = read_colmap(root / "reconstruction", tmp_path / "images")
@@ -117,7 +117,7 @@ def test_map_image_that_does_not_match_its_camera(shared, tmp_path, change):
     and another aspect ratio is that image's failure."""
     import shutil
 
-    from pipeline.readers.colmap import read_colmap
+    from pipeline.mapping.readers.colmap import read_colmap
     root = shared / "data" / "maupertuis"
     conf = FeatureConfig(resize=256, image_scales=(1,))
     shutil.copytree(root / "images", tmp_path / "images")

@@ -49,7 +49,7 @@ def test_interrupt_is_one_line(monkeypatch, capsys):
 
 def test_sfm_that_finds_no_initial_pair_says_what_to_try(shared, tmp_path):
     """Before: 'no good initial image pair' and nothing about what to change."""
-    from pipeline.readers.colmap import run_sfm
+    from pipeline.mapping.readers.colmap import run_sfm
     images = tmp_path / "images"
     images.mkdir()
     for path in (sorted((shared / "data" / "robotcar_daynight").glob("db*.jpg"))[0],
@@ -104,7 +104,7 @@ def test_report_counts_say_only_true_things():
 
 def test_a_rejection_never_reads_minus_zero_percent():
     """Before: reasons read 'the cost is -0.0% lower'."""
-    from pipeline.verify import VerificationConfig, verify
+    from pipeline.localization.verify import VerificationConfig, verify
     confidence, reason = verify({"contrast_3px": -0.0001, "valid": 0.9, "last_R": 0.0}, VerificationConfig())
     assert confidence < 0.5 and "-0.0%" not in reason and "the cost is no lower at the pose" in reason
 

@@ -14,10 +14,10 @@ from hypothesis import strategies as st
 
 from pipeline.images import ImageReadError, read_image_for
 from pipeline.queries import read_queries_with_intrinsics
-from pipeline.results import read_records
+from pipeline.localization.results import read_records
 from pipeline.scene import CameraRecord, ImageRecord, name_problem
-from pipeline.store import StoreError
-from pipeline.store_check import check_store
+from pipeline.store.layout import StoreError
+from pipeline.store.check import check_store
 from pipeline.textfiles import InputError, read_pairs, read_poses
 from workflows.localize import stored_job
 
@@ -211,7 +211,7 @@ def kapture_text(shared):
 @settings(max_examples=80, **SETTINGS)
 @given(data=st.data(), which=st.sampled_from(["sensors.txt", "trajectories.txt", "records_camera.txt", "rigs.txt"]))
 def test_kapture_files(kapture_text, data, which):
-    from pipeline.readers.kapture import read_kapture
+    from pipeline.mapping.readers.kapture import read_kapture
     root = Path(tempfile.mkdtemp())
     (root / "sensors").mkdir()
     for name, text in kapture_text.items():
@@ -225,7 +225,7 @@ def test_kapture_files(kapture_text, data, which):
 @settings(max_examples=60, **SETTINGS)
 @given(damaged("1 0 0\n0 1 0\n0 0 1\n0 0 0\n1 0 0\n0 1 0\n0 0 1\n0 0 0\n640 480\n"))
 def test_strecha_camera_file(data):
-    from pipeline.readers.strecha import read_strecha_camera
+    from pipeline.mapping.readers.strecha import read_strecha_camera
     path = _write(data, "0000.jpg.camera")
     _named_or_checked(lambda: [ImageRecord("0000.jpg", path, *read_strecha_camera(path))], path)
 
@@ -234,7 +234,7 @@ def test_strecha_camera_file(data):
 @given(damaged("9.9e-01 -1.3e-02 -1.5e-01 1.6e-01\n-3.7e-02 9.4e-01 -3.2e-01 8.9e-01\n"
                "1.5e-01 3.2e-01 9.3e-01 6.2e-01\n0 0 0 1\n"))
 def test_seven_scenes_pose_file(data):
-    from pipeline.readers.rgbd import read_7scenes
+    from pipeline.mapping.readers.rgbd import read_7scenes
     root = Path(tempfile.mkdtemp())
     (root / "seq-01").mkdir()
     (root / "seq-01" / "frame-000000.color.jpg").write_bytes(b"")  # the reader reads no pixels
@@ -246,7 +246,7 @@ def test_seven_scenes_pose_file(data):
 @settings(max_examples=60, **SETTINGS)
 @given(damaged("0.1 0.2 0.3 0 0 0 1\n-0.5 0.2 1.5 0.1 0.2 0.3 0.9\n"))
 def test_pose_txt_trajectory(data):
-    from pipeline.readers.rgbd import read_pose_txt
+    from pipeline.mapping.readers.rgbd import read_pose_txt
     root = Path(tempfile.mkdtemp())
     (root / "pose.txt").write_bytes(data)
     camera = CameraRecord("PINHOLE", 640, 480, (518.0, 519.0, 325.5, 253.5))

@@ -8,12 +8,12 @@ import dataclasses
 import numpy as np
 import pytest
 
-from pipeline.build import build_map
-from pipeline.depth import rgbd_scene
-from pipeline.feature_groups import feature_key
-from pipeline.readers.rgbd import read_7scenes
-from pipeline.results import read_records
-from pipeline.store import PENDING, StoreError, open_store, unconsolidate
+from pipeline.mapping.build import build_map
+from pipeline.mapping.depth import rgbd_scene
+from pipeline.store.feature_groups import feature_key
+from pipeline.mapping.readers.rgbd import read_7scenes
+from pipeline.localization.results import read_records
+from pipeline.store.layout import PENDING, StoreError, open_store, unconsolidate
 from pipeline.textfiles import InputError
 from workflows.cli_localize import ground_truth
 from workflows.localize import plan_localization, run_sync

@@ -1,16 +1,16 @@
 """Fault catalogue, class 2: stores that cannot lie. A file missing under an image marked done is
-that image's failure, named (``pipeline.store.missing_objects``, asked by the reader and by
+that image's failure, named (``pipeline.store.layout.missing_objects``, asked by the reader and by
 check-store), never fill values read as data; a store is compared with its scene by names; only a
 map store is overwritten; a build locks its store."""
 
 import pytest
 
-from pipeline.build import build_map, extract_features, write_structure
-from pipeline.depth import rgbd_scene
-from pipeline.feature_groups import feature_key
-from pipeline.readers.rgbd import read_7scenes
-from pipeline.store import StoreError, open_store
-from pipeline.store_check import check_store
+from pipeline.mapping.build import build_map, extract_features, write_structure
+from pipeline.mapping.depth import rgbd_scene
+from pipeline.store.feature_groups import feature_key
+from pipeline.mapping.readers.rgbd import read_7scenes
+from pipeline.store.layout import StoreError, open_store
+from pipeline.store.check import check_store
 from workflows.localize import plan_localization, run_sync, store_lock
 
 from .conftest import FCONF, pixloc
@@ -56,7 +56,7 @@ def test_one_image_observation_shard_deleted_fails_the_queries_that_use_it(stair
         f.unlink()
     report = check_store(job.store)
     assert not report.ok and ref in {n for b in report.bad for n in b.images}
-    from pipeline import map_reader
+    from pipeline.store import reader as map_reader
     map_reader.forget_readers()
     records = run_sync(plan_localization(stairs.unverified(job), stairs.queries[:2], tmp_path / "out"))
     using = [r for r in records if ref in r["references"]]

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from pipeline.results import read_records
+from pipeline.localization.results import read_records
 from pipeline.textfiles import InputError
 from workflows.localize import plan_localization, run_sync
 

@@ -1,5 +1,5 @@
 """Compression of the stored reference features: int8 codes with a scale per row and level, and
-principal components (PCA) per level. Pure numpy; ``pipeline.store`` writes them, ``MapReader``
+principal components (PCA) per level. Pure numpy; ``pipeline.store.layout`` writes them, ``MapReader``
 reads them back."""
 
 from typing import List, Tuple

@@ -12,10 +12,10 @@ import pycolmap
 
 from pixloc.nets.registry import DEFAULT_MODEL
 
-from ..images import file_sha256
-from ..pairs import PairsConfig, match
-from ..progress import Silent, database_rows, watching
-from ..scene import CameraRecord, ImageRecord, Scene, SceneError
+from pipeline.images import file_sha256
+from pipeline.mapping.image_pairs import PairsConfig, match
+from pipeline.progress import Silent, database_rows, watching
+from pipeline.scene import CameraRecord, ImageRecord, Scene, SceneError
 
 logger = logging.getLogger(__name__)
 

@@ -11,7 +11,7 @@ from typing import Dict, List, Tuple
 
 import numpy as np
 
-from ..scene import CameraRecord, ImageRecord, SceneError, qvec_to_rotmat
+from pipeline.scene import CameraRecord, ImageRecord, SceneError, qvec_to_rotmat
 
 
 def _rows(path: Path, min_fields: int, what: str) -> List[Tuple[str, List[str]]]:

@@ -25,8 +25,8 @@ from typing import Dict, List, Tuple
 
 import numpy as np
 
-from ..scene import CameraRecord, ImageRecord, Scene, SceneError
-from .safe_pickle import load_data_pickle
+from pipeline.scene import CameraRecord, ImageRecord, Scene, SceneError
+from pipeline.mapping.readers.safe_pickle import load_data_pickle
 
 # The two cameras of Extended CMU Seasons (official pixloc/pixlib/datasets/cmu.py).
 CMU_CAMERAS = {

@@ -13,16 +13,25 @@ from typing import Dict, List, Optional, Sequence
 import numpy as np
 import torch
 
-
-from .compression import fit_pca
-from .features import FeatureConfig, extract_image_features
-from .images import read_image, resize_max, to_tensor
-from .models import network
-from .runtime import restore_malloc_thresholds, torch_threads
-from .scene import Scene
-from .feature_groups import consolidate, feature_key, init_features, mark_failed, write_image_features
-from .store import (DONE, FAILED, PENDING, consolidated, create_store, image_records, open_store, read, store_index,
-                    unconsolidate)
+from pipeline.images import read_image, resize_max, to_tensor
+from pipeline.mapping.features import FeatureConfig, extract_image_features
+from pipeline.models import network
+from pipeline.runtime import restore_malloc_thresholds, torch_threads
+from pipeline.scene import Scene
+from pipeline.store.compression import fit_pca
+from pipeline.store.feature_groups import consolidate, feature_key, init_features, mark_failed, write_image_features
+from pipeline.store.layout import (
+    DONE,
+    FAILED,
+    PENDING,
+    consolidated,
+    create_store,
+    image_records,
+    open_store,
+    read,
+    store_index,
+    unconsolidate,
+)
 
 logger = logging.getLogger(__name__)
 REFUSED = "refused: "  # reason prefix of images that cannot be used at all (not retried)
@@ -157,7 +166,7 @@ def pending_images(store_path, conf: FeatureConfig) -> List[int]:
 
 def finish_build(store_path, conf: FeatureConfig) -> None:
     """After a build: consolidate the feature group's per-image arrays for fast opening
-    (``pipeline.feature_groups.consolidate``), unless they already are."""
+    (``pipeline.store.feature_groups.consolidate``), unless they already are."""
     root = open_store(store_path, mode="r+")
     group = root[f"features/{feature_key(conf)}"]
     if not consolidated(group, root.attrs["pixloc_map"]):

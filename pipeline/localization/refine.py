@@ -23,10 +23,10 @@ from pixloc.optim import FeaturemetricProblem, LevenbergMarquardt, alignment_con
 from pixloc.optim.cost import new_query_maps
 from pixloc.nets.unet import UNet
 
-from .images import ImageReadError, read_image_for, resize_max, to_tensor
-from .map_reader import MapReader, Observations, StoreReadError
-from .queries import QueryRecord
-from .verify import VerificationConfig, verify
+from pipeline.images import ImageReadError, read_image_for, resize_max, to_tensor
+from pipeline.store.reader import MapReader, Observations, StoreReadError
+from pipeline.queries import QueryRecord
+from pipeline.localization.verify import VerificationConfig, verify
 
 logger = logging.getLogger(__name__)
 # pixels at the finest level of the contrast that verification reads (pixloc.optim.evidence); the
@@ -42,7 +42,7 @@ class LocalizerConfig:
     num_iters: LM iterations per level. min_track_length, min_points: official filters
     (points seen by fewer images of the whole map than ``min_track_length`` are left out;
     fewer than ``min_points`` points fails the query). verification: when a refined pose is
-    accepted (``pipeline.verify``). points_per_cell: at a level whose query feature map has
+    accepted (``pipeline.localization.verify``). points_per_cell: at a level whose query feature map has
     fewer cells than points / ``points_per_cell``, LM runs on a seeded subset of
     max(``MIN_SUBSET``, points_per_cell x cells) of them (0: every point, as official PixLoc).
     Dense (RGB-D) maps put tens of thousands of points into the few hundred cells of the

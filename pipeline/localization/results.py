@@ -7,9 +7,9 @@ from typing import Dict, Iterable, List, Optional, Tuple
 
 import numpy as np
 
-from .localize import QueryResult
-from .scene import CameraRecord, rotmat_to_qvec
-from .textfiles import read_json_lines, write_atomic
+from pipeline.localization.refine import QueryResult
+from pipeline.scene import CameraRecord, rotmat_to_qvec
+from pipeline.textfiles import read_json_lines, write_atomic
 
 
 REJECTED = "rejected: "  # reason prefix of refinements that verification did not accept

@@ -1,4 +1,4 @@
-"""The per-model feature groups of a map store (``features/<key>/``, layout in ``pipeline.store``
+"""The per-model feature groups of a map store (``features/<key>/``, layout in ``pipeline.store.layout``
 and docs/map_store.md): their name, creation and checks, the writing of one image's rows, and the
 consolidated copies that readers open fast. A group's ``status`` is per image: pending, done or
 failed (with a reason)."""
@@ -10,10 +10,10 @@ from typing import Callable, Dict, List, Optional, Tuple
 import numpy as np
 import zarr
 
-from .compression import project, quantize_int8
-from .features import FeatureConfig, ImageFeatures
-from .images import file_sha256
-from .store import (DONE, FAILED, PENDING, StoreError, get_array, image_rows, new_array,
+from pipeline.store.compression import project, quantize_int8
+from pipeline.mapping.features import FeatureConfig, ImageFeatures
+from pipeline.images import file_sha256
+from pipeline.store.layout import (DONE, FAILED, PENDING, StoreError, get_array, image_rows, new_array,
                     new_rows_array, padded_rows, read)
 
 
@@ -98,7 +98,7 @@ def init_features(root: zarr.Group, conf: FeatureConfig, digest: str, dims: List
     if stored != list(dims):
         if pca is None:
             raise ValueError(f"Feature group {key!r} stores a PCA of the features: it is created with its bases "
-                             "(pipeline.build.write_structure fits them).")
+                             "(pipeline.mapping.build.write_structure fits them).")
         bases = pca()
     group = root.create_group(f"features/{key}")
     group.attrs.update(expected)

@@ -14,8 +14,8 @@ from typing import Dict, List, Optional
 
 import numpy as np
 
-from ..scene import SceneError, qvec_to_rotmat
-from .safe_pickle import load_data_pickle
+from pipeline.scene import SceneError, qvec_to_rotmat
+from pipeline.mapping.readers.safe_pickle import load_data_pickle
 
 # pycolmap data classes that newer hloc versions pickle in PnP_ret
 _PYCOLMAP = frozenset((m, n) for m in ("pycolmap", "pycolmap._core", "pycolmap.pycolmap")

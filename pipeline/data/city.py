@@ -1,5 +1,5 @@
 """A generated city for scale tests and benchmarks: a seeded grid of blocks with streets between
-them, rendered like the courtyard of ``pipeline.synthetic`` (same materials, lighting and
+them, rendered like the courtyard of ``pipeline.data.synthetic`` (same materials, lighting and
 conditions), with references along every street and area tags per block side."""
 
 from dataclasses import dataclass
@@ -8,8 +8,19 @@ from typing import List, Optional, Tuple
 
 import numpy as np
 
-from .scene import CameraRecord
-from .synthetic import BRICK, CONDITIONS, FOLIAGE, GROUND, PLASTER, POLE, TRUNK, SyntheticScene, box_mesh, look_at
+from pipeline.data.synthetic import (
+    BRICK,
+    CONDITIONS,
+    FOLIAGE,
+    GROUND,
+    PLASTER,
+    POLE,
+    TRUNK,
+    SyntheticScene,
+    box_mesh,
+    look_at,
+)
+from pipeline.scene import CameraRecord
 
 
 @dataclass(frozen=True)

@@ -1,14 +1,14 @@
 """Where a query's refinement starts: one function per prior, in ``PRIORS`` (the job's ``prior``
 and the command line's choices come from it), each ``(start: Start) -> Prepared``: the
-query's candidates (``pipeline.localize.Candidate``, several for ``hypotheses`` and
+query's candidates (``pipeline.localization.refine.Candidate``, several for ``hypotheses`` and
 ``search``), or its failure with the reason.
 
 - ``top1``: the pose of the best reference (official PixLoc retrieval default);
-- ``average``: the references' covisibility cluster averaged (``pipeline.pose_averaging``);
+- ``average``: the references' covisibility cluster averaged (``pipeline.localization.pose_averaging``);
 - ``hypotheses``: each of the top ``num_hypotheses`` reference poses, the most confident
   refinement wins;
 - ``search``: the top references' poses, the average pose and perturbations of each, screened
-  at the coarsest level (``pipeline.search``);
+  at the coarsest level (``pipeline.localization.search``);
 - ``poses``: refinement mode from another pipeline's poses file (``prior_poses``);
 - ``hloc``: refinement mode from hloc's logs (its PnP pose, the references with most inliers,
   optionally only the inlier points), as the paper's.
@@ -23,14 +23,14 @@ from typing import Any, Callable, Dict, List, Optional, Tuple, Union
 
 import numpy as np
 
-from .localize import Candidate, QueryResult
-from .map_reader import MapReader
-from .pose_averaging import covisibility_clusters, pose_approximation
-from .queries import QueryRecord
-from .readers.hloc import PnPLog, read_hloc_logs
-from .retrieval import Retrieved
-from .search import Hypotheses, hypotheses, median_depth
-from .textfiles import NameIndex, PoseTable, find_by_name, read_poses
+from pipeline.localization.refine import Candidate, QueryResult
+from pipeline.store.reader import MapReader
+from pipeline.localization.pose_averaging import covisibility_clusters, pose_approximation
+from pipeline.queries import QueryRecord
+from pipeline.mapping.readers.hloc import PnPLog, read_hloc_logs
+from pipeline.localization.retrieval import Retrieved
+from pipeline.localization.search import Hypotheses, hypotheses, median_depth
+from pipeline.textfiles import NameIndex, PoseTable, find_by_name, read_poses
 
 logger = logging.getLogger(__name__)
 
@@ -39,7 +39,7 @@ Prepared = Union[QueryResult, List[Candidate]]  # a Hypotheses is a list of cand
 
 @dataclass
 class Start:
-    """What a prior works from: the job (``pipeline.shard.LocalizationJob``: the prior's
+    """What a prior works from: the job (``pipeline.localization.shard.LocalizationJob``: the prior's
     settings), the map, the query with its decoded image and its cache, and its references
     (``references()``: retrieved when first asked, so that ``hloc`` runs no retrieval)."""
 

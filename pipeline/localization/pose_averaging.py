@@ -1,4 +1,4 @@
-"""Reference poses averaged into one prior (the ``average`` prior of ``pipeline.priors``), as
+"""Reference poses averaged into one prior (the ``average`` prior of ``pipeline.localization.priors``), as
 the paper's appendix and official ``do_pose_approximation``: keep the largest covisibility
 cluster of the top-k references, and average their poses with weights (cosine similarity)^8:
 centres linearly, rotations by quaternion averaging (Markley et al. 2007, "Averaging
@@ -9,7 +9,7 @@ from typing import Callable, List, Sequence
 
 import numpy as np
 
-from .scene import qvec_to_rotmat, rotmat_to_qvec
+from pipeline.scene import qvec_to_rotmat, rotmat_to_qvec
 
 
 def covisibility_clusters(dbs: Sequence[int], image_points: Callable[[int], np.ndarray]) -> List[List[int]]:

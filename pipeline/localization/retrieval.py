@@ -21,9 +21,9 @@ from typing import Callable, Dict, List, Optional
 
 import numpy as np
 
-from .map_reader import MapReader, by_name
-from .queries import QueryRecord
-from .textfiles import read_pairs
+from pipeline.store.reader import MapReader, by_name
+from pipeline.queries import QueryRecord
+from pipeline.textfiles import read_pairs
 
 logger = logging.getLogger(__name__)
 

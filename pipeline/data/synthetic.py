@@ -15,7 +15,7 @@ from typing import List, Tuple
 import numpy as np
 import torch
 
-from .scene import CameraRecord, ImageRecord
+from pipeline.scene import CameraRecord, ImageRecord
 
 logger = logging.getLogger(__name__)
 
@@ -199,7 +199,7 @@ def look_at(eye: np.ndarray, target: np.ndarray, up=(0.0, 0.0, 1.0)) -> np.ndarr
 
 
 def _load_texture(path) -> np.ndarray:
-    from .images import read_image
+    from pipeline.images import read_image
     return read_image(path).astype(np.float64) / 255.0
 
 
@@ -387,7 +387,7 @@ def read_views(root) -> List[ImageRecord]:
 
 def read_synthetic(root):
     """(mapping ImageRecords with depth, QueryRecords with ground truth) of a generated dataset."""
-    from .queries import QueryRecord
+    from pipeline.queries import QueryRecord
     views = read_views(root)
     mapping = [v for v in views if v.tags["split"] == "mapping"]
     queries = [QueryRecord(v.name, v.path, v.camera, dict(v.tags), v.cam_from_world)

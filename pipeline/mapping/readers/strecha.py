@@ -5,7 +5,7 @@ from typing import List
 
 import numpy as np
 
-from ..scene import CameraRecord, ImageRecord, SceneError
+from pipeline.scene import CameraRecord, ImageRecord, SceneError
 
 
 def read_strecha_camera(path) -> tuple:

@@ -14,9 +14,19 @@ from typing import Callable, Dict, List, Optional
 import numpy as np
 import zarr
 
-from .feature_groups import check_feature_group
-from .store import (DONE, FAILED, PENDING, StoreError, consolidated, image_row_arrays, missing_objects, open_store,
-                    read, unconsolidate)
+from pipeline.store.feature_groups import check_feature_group
+from pipeline.store.layout import (
+    DONE,
+    FAILED,
+    PENDING,
+    StoreError,
+    consolidated,
+    image_row_arrays,
+    missing_objects,
+    open_store,
+    read,
+    unconsolidate,
+)
 
 
 @dataclass

@@ -20,10 +20,10 @@ import torch
 from pixloc.geometry import Camera, Pose, lie
 from pixloc.refiner import PairBatch
 
-from .depth import rgbd_scene
-from .images import read_image, resize_max, to_tensor
-from .scene import CameraRecord, ImageRecord, Scene
-from .synthetic import SyntheticConfig, ensure_generated, read_views
+from pipeline.mapping.depth import rgbd_scene
+from pipeline.images import read_image, resize_max, to_tensor
+from pipeline.scene import CameraRecord, ImageRecord, Scene
+from pipeline.data.synthetic import SyntheticConfig, ensure_generated, read_views
 
 logger = logging.getLogger(__name__)
 

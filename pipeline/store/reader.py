@@ -10,12 +10,12 @@ from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
-from .compression import dequantize_int8, reconstruct
-from .features import FeatureConfig
-from .scene import CameraRecord
-from .feature_groups import check_feature_group, feature_key, pca_bases, stored_dims
-from .store import DONE, FAILED, StoreError, StoreReadError, consolidated, missing_objects, open_store
-from .store import read as store_read
+from pipeline.store.compression import dequantize_int8, reconstruct
+from pipeline.mapping.features import FeatureConfig
+from pipeline.scene import CameraRecord
+from pipeline.store.feature_groups import check_feature_group, feature_key, pca_bases, stored_dims
+from pipeline.store.layout import DONE, FAILED, StoreError, StoreReadError, consolidated, missing_objects, open_store
+from pipeline.store.layout import read as store_read
 
 logger = logging.getLogger(__name__)
 

@@ -9,7 +9,7 @@ the reference's median point depth), runs only the coarsest level for all of the
 batch, keeps the best few per query (the lowest coarse cost among the starts that keep the
 points in view), and refines those through every level. All hypotheses of a query use the same
 references, hence the same points and features, so their coarse costs and their verification
-confidences (the sharpness of the cost, ``pipeline.verify``; it picks the winner) compare like
+confidences (the sharpness of the cost, ``pipeline.localization.verify``; it picks the winner) compare like
 with like.
 """
 
@@ -19,8 +19,8 @@ from typing import List, Tuple
 
 import numpy as np
 
-from .localize import Localizer, QueryResult
-from .map_reader import MapReader
+from pipeline.localization.refine import Localizer, QueryResult
+from pipeline.store.reader import MapReader
 
 
 RANKS = ("cost", "confidence")
@@ -153,7 +153,7 @@ def screening_order(results: List[QueryResult], conf: SearchConfig, skip=()) -> 
 
 
 class Hypotheses(list):
-    """The candidates of one query's search (``pipeline.localize.Candidate``, each labelled by its
+    """The candidates of one query's search (``pipeline.localization.refine.Candidate``, each labelled by its
     ``origin``); after the screening, also the top-1 start's pose (the prior a rejected search
     reports) and how many were screened; ``always``: the starts refined whatever the screening
     ranks them; ``depth``: the top reference's median point depth (the scale of the scene);

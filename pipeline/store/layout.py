@@ -31,7 +31,7 @@ Every chunk is checksummed (zstd, then a CRC-32C codec, and a CRC-32C of each sh
 index): a flipped byte or a truncated file is an error naming its array, never silent
 garbage. ``open_store`` checks the layout (every array present, shapes that agree
 with the attributes) before anything is read. The feature groups (``features/<key>/``) are
-named, created, checked and written by ``pipeline.feature_groups``.
+named, created, checked and written by ``pipeline.store.feature_groups``.
 """
 
 import json
@@ -42,7 +42,7 @@ import numpy as np
 import zarr
 from zarr.codecs import Crc32cCodec, ZstdCodec
 
-from .scene import CameraRecord, ImageRecord, Scene
+from pipeline.scene import CameraRecord, ImageRecord, Scene
 
 VERSION = 3
 PENDING, DONE, FAILED = 0, 1, 2
@@ -309,7 +309,7 @@ def image_row_arrays(root: zarr.Group, group: Optional[zarr.Group] = None) -> Li
 
 def unconsolidate(group: zarr.Group) -> None:
     """Readers of feature ``group`` go back to its per-image arrays (a build or an add is about to
-    change them; ``pipeline.feature_groups.consolidate`` makes the copies again)."""
+    change them; ``pipeline.store.feature_groups.consolidate`` makes the copies again)."""
     if group.attrs.get("consolidated"):
         group.attrs["consolidated"] = False
 

@@ -23,8 +23,8 @@ from typing import Callable, List, Optional, Sequence, Tuple
 
 import numpy as np
 
-from .progress import Silent, database_rows, watching
-from .regions import camera_centres
+from pipeline.progress import Silent, database_rows, watching
+from pipeline.regions import camera_centres
 
 logger = logging.getLogger(__name__)
 
@@ -140,9 +140,9 @@ def image_descriptors(paths: Sequence[Path], model: str, resize: int = 320) -> n
     """GeM global descriptors of the network's coarsest features at a small size (for ``retrieval``)."""
     import torch
 
-    from .models import network
-    from .features import global_descriptor
-    from .images import read_image, resize_max, to_tensor
+    from pipeline.models import network
+    from pipeline.mapping.features import global_descriptor
+    from pipeline.images import read_image, resize_max, to_tensor
     net, _ = network(model)
     out = []
     with torch.inference_mode():

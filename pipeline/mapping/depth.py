@@ -10,8 +10,8 @@ from typing import List, Optional, Tuple
 import numpy as np
 import torch
 
-from .images import read_depth
-from .scene import ImageRecord, Scene, SceneError
+from pipeline.images import read_depth
+from pipeline.scene import ImageRecord, Scene, SceneError
 
 logger = logging.getLogger(__name__)
 

@@ -19,8 +19,8 @@ from pixloc.interpolation import Interpolator
 from pixloc.nets.registry import DEFAULT_MODEL
 from pixloc.nets.unet import UNet
 
-from .images import read_image_for, resize_max, to_tensor
-from .scene import ImageRecord
+from pipeline.images import read_image_for, resize_max, to_tensor
+from pipeline.scene import ImageRecord
 
 logger = logging.getLogger(__name__)
 

@@ -9,7 +9,7 @@ import pickle
 from pathlib import Path
 from typing import Any, FrozenSet, Tuple
 
-from ..scene import SceneError
+from pipeline.scene import SceneError
 
 _NUMPY = frozenset({
     ("numpy.core.multiarray", "_reconstruct"), ("numpy._core.multiarray", "_reconstruct"),

@@ -15,19 +15,19 @@ from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
-from .features import FeatureConfig, global_descriptor
-from .images import ImageReadError, read_image_for
-from .localize import Localizer, LocalizerConfig, QueryResult
-from .map_reader import MapReader, open_reader
-from .models import localization_model
-from .priors import PRIORS as PRIOR_FUNCTIONS, Prepared, Start, failure, poses_file
-from .queries import QueryRecord
-from .results import read_records, result_to_record, write_records
-from .retrieval import RETRIEVERS, RetrievalConfig, pairs_file, retrieve
-from .search import Hypotheses, SearchConfig, rank_results, screen, solve, top1_first
-from .runtime import restore_malloc_thresholds, torch_threads
-from .store import StoreError
-from .textfiles import InputError, write_atomic
+from pipeline.mapping.features import FeatureConfig, global_descriptor
+from pipeline.images import ImageReadError, read_image_for
+from pipeline.localization.refine import Localizer, LocalizerConfig, QueryResult
+from pipeline.store.reader import MapReader, open_reader
+from pipeline.models import localization_model
+from pipeline.localization.priors import PRIORS as PRIOR_FUNCTIONS, Prepared, Start, failure, poses_file
+from pipeline.queries import QueryRecord
+from pipeline.localization.results import read_records, result_to_record, write_records
+from pipeline.localization.retrieval import RETRIEVERS, RetrievalConfig, pairs_file, retrieve
+from pipeline.localization.search import Hypotheses, SearchConfig, rank_results, screen, solve, top1_first
+from pipeline.runtime import restore_malloc_thresholds, torch_threads
+from pipeline.store.layout import StoreError
+from pipeline.textfiles import InputError, write_atomic
 
 logger = logging.getLogger(__name__)
 
@@ -41,7 +41,7 @@ class LocalizationJob:
     highest verification confidence wins), or ``search`` (the top references' poses, the
     ``average`` pose, and perturbations of each, screened at the coarsest level; the top-1 and
     average poses and the ``search.keep`` best others refined, the most confident wins:
-    ``pipeline.search``), or ``poses`` (refinement mode: the poses of
+    ``pipeline.localization.search``), or ``poses`` (refinement mode: the poses of
     another pipeline, file ``prior_poses`` in the visuallocalization.net format), or
     ``hloc`` (refinement mode as the paper's: the PnP poses of an hloc ``_logs.pkl``,
     file ``hloc_logs``; its references reranked by PnP inliers, those with more than
@@ -151,8 +151,8 @@ def describer(reader: MapReader, localizer: Localizer, rgb: Optional[np.ndarray]
 
 
 def prepare_query(job: LocalizationJob, reader: MapReader, localizer: Localizer, query: QueryRecord) -> Prepared:
-    """Retrieval and prior of one query (``pipeline.retrieval``, ``pipeline.priors``): a failure
-    (QueryResult), or its candidates."""
+    """Retrieval and prior of one query (``pipeline.localization.retrieval`` and ``priors``): a
+    failure (QueryResult), or its candidates."""
     if query.error:
         return failure(query, query.error)
     reason = query.camera.check()
@@ -173,11 +173,11 @@ def localize_queries(job: LocalizationJob, reader: MapReader, localizer: Localiz
     """Localize ``queries`` together: one LM batch per level and group of compatible queries.
 
     For ``hypotheses``, each query keeps the hypothesis whose refined pose has the highest
-    verification confidence (the sharpness of the cost there, ``pipeline.verify``), ties broken
+    verification confidence (the sharpness of the cost there, ``pipeline.localization.verify``), ties broken
     by the confidence-weighted inlier fraction. All hypotheses of a query use the same points
     and features, so this compares like with like, which the final costs (means over different
     sets of valid points) do not. ``search`` screens its hypotheses at the coarsest level first
-    (``pipeline.search.screen``)."""
+    (``pipeline.localization.search.screen``)."""
     prepared, own = [], {}  # own: each query's seconds before the LM (image, retrieval, prior)
     for q in queries:
         t0 = time.perf_counter()

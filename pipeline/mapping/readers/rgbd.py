@@ -6,7 +6,7 @@ from typing import List, Optional, Sequence
 
 import numpy as np
 
-from ..scene import CameraRecord, ImageRecord, SceneError, qvec_to_rotmat
+from pipeline.scene import CameraRecord, ImageRecord, SceneError, qvec_to_rotmat
 
 # 7-Scenes practice: colour treated as focal 525, principal point (320, 240);
 # the depth sensor (focal 585) is not registered to colour.
