@@ -105,6 +105,16 @@ def read_header(path) -> Optional[ImageHeader]:
     return ImageHeader(int(width), int(height), orientation if 1 <= orientation <= 8 else 1)
 
 
+
+def image_size(path) -> Tuple[int, int]:
+    """(width, height) of an image as ``read_image`` decodes it (EXIF orientation applied), from
+    its header where PIL reads it, else by decoding it."""
+    header = read_header(path)
+    if header is not None:
+        return header.oriented_size
+    height, width = read_image(path).shape[:2]
+    return width, height
+
 def _decode_checked(data: bytes, flags: int) -> Tuple[Optional[np.ndarray], str]:
     """cv2.imdecode with the decoder's messages on the C stderr captured: (image, messages).
     An exception of the decoder (cv2.error, memory) is returned as a None image and its words."""

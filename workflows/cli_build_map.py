@@ -13,7 +13,7 @@ from . import executor, presets
 from .build_map import pending_batches, plan_build, prepare_structure, run_dask, run_sync
 from .localize import store_lock
 from .options import Flag, add_flags, build, given
-from .sources import KINDS, MapSource, describe_source, load_scene
+from .sources import KINDS, POSED_FORMATS, MapSource, describe_source, load_scene
 
 logger = logging.getLogger(__name__)
 
@@ -36,9 +36,12 @@ FLAGS = {
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("kind", choices=KINDS, help="what the map is built from")
-    p.add_argument("path", type=Path, help="COLMAP model folder, image folder, Strecha/kapture/7-Scenes root")
+    p.add_argument("path", type=Path, help="colmap: the model folder; sfm: the image folder; " + "; ".join(
+        f"{kind}: {what}" for kind, what in POSED_FORMATS.items()) + "; 7scenes: the dataset root; posetxt: the folder "
+        "of color/, depth/, pose.txt")
     p.add_argument("--store", type=Path, required=True, help="output map store (a .zarr folder)")
-    p.add_argument("--images", type=Path, help="image folder of a COLMAP model (default: PATH/../images)")
+    p.add_argument("--images", type=Path, help="image folder of a COLMAP model (default: PATH/../images), a Bundler "
+                   "bundle or an OpenSfM reconstruction")
     p.add_argument("--sequences", type=int, nargs="+", default=[], help="7-Scenes sequences of the map")
     p.add_argument("--rgbd-points", choices=["tsdf", "frames"], default="tsdf",
                    help="RGB-D sources: map points from a TSDF fusion of the depth maps, or from each frame's depth")
@@ -76,8 +79,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 # sources whose map is reconstructed first (SfM, or triangulation from known poses)
-RECONSTRUCTED = {"sfm": "SIFT, matching and SfM", "strecha": "SIFT, matching and triangulation from the known poses",
-                 "kapture": "SIFT, matching and triangulation from the known poses"}
+RECONSTRUCTED = {"sfm": "SIFT, matching and SfM",
+                 **{kind: "SIFT, matching and triangulation from the known poses" for kind in POSED_FORMATS}}
 
 
 def main(args: argparse.Namespace) -> int:

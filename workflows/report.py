@@ -30,6 +30,7 @@ from .report_figures import (error_curves, example_figure, natural_key, query_er
                              threshold_tradeoff, top_view, tradeoff_figure)
 
 METRIC_SOURCES = ("synthetic", "strecha", "7scenes", "posetxt", "kapture")  # map sources in metres
+SFM_SOURCES = ("colmap", "sfm", "llff", "bundler", "opensfm")  # poses of an SfM model: scale unknown
 OUTCOME_ORDER = {"failed": 0, "rejected": 1, "refined": 2}
 MAX_CONDITIONS = 8  # conditions of a family given examples
 
@@ -38,7 +39,7 @@ def map_units(source: Dict) -> str:
     """'m' for map sources with a metric scale, 'SfM units' for SfM models (scale unknown),
     'scene units' for stores that do not record their source (built through the library)."""
     kind = source.get("kind")
-    return "m" if kind in METRIC_SOURCES else "SfM units" if kind in ("colmap", "sfm") else "scene units"
+    return "m" if kind in METRIC_SOURCES else "SfM units" if kind in SFM_SOURCES else "scene units"
 
 
 def tag_families(summary: Dict, group_by=None) -> List[Tuple[str, List[str]]]:

@@ -13,13 +13,26 @@ from pipeline.progress import Silent
 from pipeline.queries import QueryRecord, read_queries_with_intrinsics
 from pipeline.scene import name_problem
 from pipeline.mapping.readers.colmap import image_names, read_colmap, run_sfm, triangulate_known_poses
+from pipeline.mapping.readers.bundler import read_bundler
 from pipeline.mapping.readers.kapture import read_kapture
+from pipeline.mapping.readers.llff import read_llff
+from pipeline.mapping.readers.middlebury import read_middlebury
+from pipeline.mapping.readers.opensfm import read_opensfm
 from pipeline.images import read_image
 from pipeline.mapping.readers.rgbd import read_7scenes, read_pose_txt
 from pipeline.mapping.readers.strecha import read_strecha
 from pipeline.scene import CameraRecord, Scene
 
-KINDS = ("colmap", "sfm", "strecha", "kapture", "7scenes", "posetxt")
+# posed images in other formats, triangulated from their poses: kind -> what PATH is
+POSED_FORMATS = {
+    "strecha": "a Strecha scene folder (images/, gt_dense_cameras/)",
+    "kapture": "a kapture folder (sensors/)",
+    "llff": "an LLFF scene folder (poses_bounds.npy, images/)",
+    "middlebury": "a Middlebury folder (NAME_par.txt beside its images)",
+    "bundler": "a Bundler bundle.out (images: --images, default the folder above the bundle's, or list.txt)",
+    "opensfm": "an OpenSfM reconstruction.json (images: --images, default images/ beside it)",
+}
+KINDS = ("colmap", "sfm", *POSED_FORMATS, "7scenes", "posetxt")
 
 
 @dataclass(frozen=True)
@@ -27,8 +40,8 @@ class MapSource:
     """Where a map comes from.
 
     kind: ``colmap`` (model folder ``path`` + ``images``), ``sfm`` (reconstruct
-    the images in ``path`` with pycolmap), ``strecha`` / ``kapture`` (known
-    poses: SIFT + triangulation), ``7scenes`` (RGB-D frames of ``sequences``),
+    the images in ``path`` with pycolmap), one of ``POSED_FORMATS`` (known poses
+    in that format: SIFT + triangulation), ``7scenes`` (RGB-D frames of ``sequences``),
     ``posetxt`` (``color/``, ``depth/``, ``pose.txt``; needs ``intrinsics`` =
     (fx, fy, cx, cy) in COLMAP convention, ``depth_scale`` and ``depth_ext``).
     rgbd_points: ``tsdf`` or ``frames``. densify: move SfM points onto depth.
@@ -56,7 +69,7 @@ class MapSource:
 
 # the MapSource fields each kind reads (the plan shows those, not depth settings for Strecha)
 SOURCE_FIELDS = {"colmap": ("path", "images", "densify", "hold_out"), "sfm": ("path", "densify", "hold_out"),
-                 "strecha": ("path", "densify", "hold_out"), "kapture": ("path", "densify", "hold_out"),
+                 **{kind: ("path", "images", "densify", "hold_out") for kind in POSED_FORMATS},
                  "7scenes": ("path", "sequences", "rgbd_points", "hold_out"),
                  "posetxt": ("path", "intrinsics", "depth_scale", "depth_ext", "rgbd_points", "hold_out")}
 
@@ -71,6 +84,26 @@ def describe_source(source: dict) -> str:
         if key != "path" and value not in (None, [], (), False):
             parts.append(f"{key.replace('_', ' ')} {value}")
     return " ".join(parts[:2]) if len(parts) == 2 else f"{parts[0]} {parts[1]} ({', '.join(parts[2:])})"
+
+
+def posed_images(kind: str, path: Path, images: Optional[Path] = None) -> Tuple[List, Path]:
+    """The posed images of a ``POSED_FORMATS`` source, and the folder their names are relative to."""
+    path = Path(path)
+    if kind == "strecha":
+        return read_strecha(path), path / "images"
+    if kind == "kapture":
+        return read_kapture(path), path / "sensors" / "records_data"
+    if kind == "llff":
+        return read_llff(path), path / "images"
+    if kind == "middlebury":
+        return read_middlebury(path), path
+    if kind == "bundler":
+        root = Path(images) if images else path.parent.parent
+        return read_bundler(path, root), root
+    if kind == "opensfm":
+        root = Path(images) if images else path.parent / "images"
+        return read_opensfm(path, root), root
+    raise ValueError(f"Unknown posed format {kind!r}; known: {', '.join(POSED_FORMATS)}.")
 
 
 def kept(names: Sequence[str], hold_out: Sequence[str]) -> List[bool]:
@@ -99,12 +132,10 @@ def load_scene(source: MapSource, work_dir: Path, pairs: PairsConfig = PairsConf
         names = image_names(path)
         scene = run_sfm(path, work_dir / "sfm", [n for n, k in zip(names, kept(names, source.hold_out)) if k],
                         pairs=pairs, progress=progress)
-    elif source.kind == "strecha":
-        scene = triangulate_known_poses(posed(read_strecha(path)), path / "images", work_dir / "triangulation",
-                                        pairs=pairs, progress=progress)
-    elif source.kind == "kapture":
-        scene = triangulate_known_poses(posed(read_kapture(path)), path / "sensors" / "records_data",
-                                        work_dir / "triangulation", pairs=pairs, progress=progress)
+    elif source.kind in POSED_FORMATS:
+        images, image_root = posed_images(source.kind, path, source.images)
+        scene = triangulate_known_poses(posed(images), image_root, work_dir / "triangulation", pairs=pairs,
+                                        progress=progress)
     elif source.kind == "7scenes":
         if not source.sequences:
             raise ValueError("A 7scenes source needs --sequences (e.g. 2 3, the official training split).")
@@ -124,7 +155,7 @@ def load_scene(source: MapSource, work_dir: Path, pairs: PairsConfig = PairsConf
     return densify(scene) if source.densify else scene
 
 
-QUERY_KINDS = ("list", "7scenes", "kapture", "strecha", "colmap", "synthetic")
+QUERY_KINDS = ("list", "7scenes", *POSED_FORMATS, "colmap", "synthetic")
 
 
 def _as_query(image, tags=None) -> QueryRecord:
@@ -150,10 +181,8 @@ def load_queries(kind: str, path: Path, images: Optional[Path] = None, sequences
         if not sequences:
             raise ValueError("7scenes queries need --query-sequences (official test split: 1 4).")
         queries = [_as_query(im) for im in read_7scenes(path, sequences)]
-    elif kind == "kapture":
-        queries = [_as_query(im) for im in read_kapture(path)]
-    elif kind == "strecha":
-        queries = [_as_query(im) for im in read_strecha(path)]
+    elif kind in POSED_FORMATS:
+        queries = [_as_query(im) for im in posed_images(kind, path, images)[0]]
     elif kind == "colmap":
         queries = [_as_query(im) for im in read_colmap(path, images or path.parent / "images").images]
     elif kind == "synthetic":  # a generated scene (the demo's outputs/demo/scene), with ground truth

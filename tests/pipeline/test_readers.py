@@ -175,3 +175,77 @@ def test_bad_sources_are_named(tmp_path, shared):
     empty = Scene([], np.zeros((0, 3)), [], [], np.zeros((0, 2)))
     with pytest.raises(SceneError, match="no images"):
         empty.check()
+
+
+def _triangulated(images, image_root, work):
+    """The images' SIFT matches triangulated with the poses read (outliers kept up to 50 px, so that
+    a wrong axis convention shows as large errors and points behind the cameras), and for each
+    observation its reprojection error and whether the point is in front of the camera."""
+    scene = triangulate_known_poses(images, image_root, work, max_reprojection_error=50.0)
+    errors, front = [], []
+    for i, im in enumerate(scene.images):
+        sel = scene.obs_image == i
+        p_cam = im.pose(torch.float64).transform(torch.from_numpy(scene.points[scene.obs_point[sel]]))
+        front.append((p_cam[:, 2] > 0).numpy())
+        p2d, _ = im.camera.to_pixloc(torch.float64).cam2image(p_cam)
+        errors.append(np.linalg.norm(p2d.numpy() + 0.5 - scene.obs_xy[sel], axis=1))
+    return scene, np.concatenate(errors), np.concatenate(front)
+
+
+def test_middlebury_poses_triangulate_below_a_pixel(shared, tmp_path):
+    from pipeline.mapping.readers.middlebury import read_middlebury
+    root = shared / "data" / "middlebury" / "templeRing"
+    images = read_middlebury(root)
+    assert len(images) == 19 and images[0].camera.model == "PINHOLE"  # 47 views listed, 19 images present
+    scene, errors, front = _triangulated(images[:6], root, tmp_path)
+    assert len(scene.points) > 500 and np.median(errors) < 0.5 and front.mean() > 0.99
+
+
+def test_bundler_poses_reproject_the_bundles_own_points_and_triangulate(shared, tmp_path):
+    """Bundler's camera looks down -z with y up, and its image points are centred, y up."""
+    from pipeline.mapping.readers.bundler import image_list, read_bundler
+    root = shared / "data" / "bundler_kermit"
+    bundle = root / "results.example" / "bundle.out"
+    images = read_bundler(bundle, root)
+    assert len(images) == 9 and images[0].camera.model == "RADIAL"  # 2 of the 11 cameras have f = 0: not posed
+    by_camera = {k: im for im in images for k, name in enumerate(image_list(root)) if name == im.name}
+    # the bundle's points, projected with the poses and cameras read, land on its observations
+    lines = [line.split() for line in bundle.read_text().splitlines()[2 + 5 * 11:]]
+    gaps = []
+    for k in range(0, len(lines) - 2, 3):
+        xyz = torch.tensor([[float(v) for v in lines[k]]], dtype=torch.float64)
+        views = lines[k + 2]
+        for j in range(int(views[0])):
+            cam, x, y = int(views[1 + 4 * j]), float(views[3 + 4 * j]), float(views[4 + 4 * j])
+            im = by_camera[cam]
+            p2d, _ = im.camera.to_pixloc(torch.float64).cam2image(im.pose(torch.float64).transform(xyz))
+            gaps.append(np.linalg.norm(p2d[0].numpy() + 0.5 - (x + im.camera.width / 2, im.camera.height / 2 - y)))
+    assert len(gaps) > 1500 and np.median(gaps) < 1.0
+    scene, errors, front = _triangulated(images[:6], root, tmp_path)
+    assert len(scene.points) > 300 and np.median(errors) < 0.5 and front.mean() > 0.99
+
+
+def test_llff_poses_are_the_colmap_models_and_triangulate(shared, tmp_path):
+    """LLFF stores COLMAP's poses with its axes as (down, right, back): read back, they are the
+    binary COLMAP model's to 1e-5 deg."""
+    from pipeline.mapping.readers.llff import read_llff
+    root = shared / "data" / "beer_capture"
+    images = {im.name: im for im in read_llff(root)}
+    model = read_colmap(root / "sparse" / "0", root / "images")
+    assert len(images) == len(model.images) == 71
+    for im in model.images:
+        R = images[im.name].cam_from_world[:, :3] @ im.cam_from_world[:, :3].T
+        assert np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))) < 1e-5
+        assert np.allclose(images[im.name].cam_from_world, im.cam_from_world, atol=1e-6)
+    scene, errors, front = _triangulated([images[n] for n in sorted(images)[:6]], root / "images", tmp_path)
+    assert len(scene.points) > 300 and np.median(errors) < 1.5 and front.mean() > 0.99
+
+
+def test_opensfm_poses_triangulate_within_two_pixels(shared, tmp_path):
+    """Axis-angle rotations world to camera; focal as a fraction of the larger side (3264 px)."""
+    from pipeline.mapping.readers.opensfm import read_opensfm
+    root = shared / "data" / "opensfm_berlin"
+    images = read_opensfm(root / "reconstruction_example.json", root / "images")
+    assert [im.name for im in images] == ["01.jpg", "02.jpg", "03.jpg"] and images[0].camera.model == "RADIAL"
+    scene, errors, front = _triangulated(images, root / "images", tmp_path)
+    assert len(scene.points) > 500 and np.median(errors) < 2.0 and front.mean() > 0.99

@@ -21,3 +21,19 @@ def test_a_held_out_image_is_not_in_the_map_and_the_source_records_it(shared, tm
     assert len(held.obs_point) == len(full.obs_point) - int((full.obs_image == mine).sum()) > 0
     assert source.to_dict()["hold_out"] == ["03.jpg"] and "hold_out" not in MapSource("sfm", root).to_dict()
     assert describe_source(source.to_dict()).endswith("hold out ['03.jpg'])")
+
+
+def test_every_posed_format_is_a_map_source_and_a_query_source(shared):
+    """Each format's images come with their poses as ground truth, for a held-out split."""
+    import numpy as np
+
+    from workflows.sources import KINDS, POSED_FORMATS, QUERY_KINDS, load_queries
+    assert set(POSED_FORMATS) <= set(KINDS) and set(POSED_FORMATS) <= set(QUERY_KINDS)
+    data = shared / "data"
+    cases = {"llff": (data / "beer_capture", None, 71), "middlebury": (data / "middlebury" / "dino", None, 48),
+             "bundler": (data / "bundler_kermit" / "results.example" / "bundle.out", None, 9),
+             "opensfm": (data / "opensfm_berlin" / "reconstruction_example.json", None, 3)}
+    for kind, (path, images, count) in cases.items():
+        queries = load_queries(kind, path, images)
+        assert len(queries) == count, kind
+        assert all(q.cam_from_world_gt is not None and np.isfinite(q.cam_from_world_gt).all() for q in queries)

@@ -1,0 +1,43 @@
+"""LLFF ``poses_bounds.npy`` (Mildenhall et al. 2019, the NeRF datasets): per image 17 numbers,
+a 3 x 5 matrix [R | t | (h, w, f)] camera-to-world, row by row, then the near and far depths. R's
+columns are the camera's down, right and backward axes; in COLMAP's terms (right, down, forward):
+columns 1, 0 and minus 2. The images are those of ``images/`` in name order, one per row; h, w and
+f are in pixels of the images the poses were made for (rescaled to the files' size)."""
+
+from pathlib import Path
+from typing import List
+
+import numpy as np
+
+from pipeline.images import image_size
+from pipeline.scene import CameraRecord, ImageRecord, SceneError
+
+
+def read_llff(root, tags=None) -> List[ImageRecord]:
+    """Posed images of an LLFF scene folder (``poses_bounds.npy`` and ``images/``)."""
+    root = Path(root)
+    path = root / "poses_bounds.npy"
+    try:
+        data = np.load(path, allow_pickle=False)
+    except (OSError, ValueError) as e:
+        raise SceneError(f"{path}: not an LLFF poses_bounds.npy ({e}).") from None
+    if data.ndim != 2 or data.shape[1] != 17 or not np.isfinite(data).all():
+        raise SceneError(f"{path}: expected N x 17 finite numbers (3 x 5 pose, near, far), got {data.shape}.")
+    names = sorted(p.name for p in (root / "images").iterdir() if p.suffix.lower() in {".jpg", ".jpeg", ".png"})
+    if len(names) != len(data):
+        raise SceneError(f"{path}: {len(data)} poses for {len(names)} images in {root / 'images'}.")
+    images = []
+    for name, row in zip(names, data):
+        m = row[:15].reshape(3, 5)
+        c2w = np.stack([m[:, 1], m[:, 0], -m[:, 2]], 1)  # (down, right, back) -> (right, down, forward)
+        h, w, f = m[:, 4]
+        file = root / "images" / name
+        width, height = image_size(file)
+        s = width / w
+        if abs(height / h - s) > 1e-3 * s:
+            raise SceneError(f"{path}: image {name} is {width}x{height}, not of the aspect of the poses' {w:g}x{h:g}.")
+        R = c2w.T
+        camera = CameraRecord("SIMPLE_PINHOLE", width, height, (float(f * s), width / 2, height / 2))
+        images.append(ImageRecord(name, file, camera, np.concatenate([R, (-R @ m[:, 3])[:, None]], 1),
+                                  dict(tags or {})))
+    return images
