@@ -30,7 +30,7 @@ from .report_figures import (error_curves, example_figure, natural_key, query_er
                              threshold_tradeoff, top_view, tradeoff_figure)
 
 METRIC_SOURCES = ("synthetic", "strecha", "7scenes", "posetxt", "kapture")  # map sources in metres
-SFM_SOURCES = ("colmap", "sfm", "llff", "bundler", "opensfm")  # poses of an SfM model: scale unknown
+SFM_SOURCES = ("colmap", "sfm", "llff", "bundler", "opensfm", "transforms")  # poses of an SfM model: scale unknown
 OUTCOME_ORDER = {"failed": 0, "rejected": 1, "refined": 2}
 MAX_CONDITIONS = 8  # conditions of a family given examples
 

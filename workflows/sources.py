@@ -21,6 +21,7 @@ from pipeline.mapping.readers.opensfm import read_opensfm
 from pipeline.images import read_image
 from pipeline.mapping.readers.rgbd import read_7scenes, read_pose_txt
 from pipeline.mapping.readers.strecha import read_strecha
+from pipeline.mapping.readers.transforms import read_transforms
 from pipeline.scene import CameraRecord, Scene
 
 # posed images in other formats, triangulated from their poses: kind -> what PATH is
@@ -31,6 +32,7 @@ POSED_FORMATS = {
     "middlebury": "a Middlebury folder (NAME_par.txt beside its images)",
     "bundler": "a Bundler bundle.out (images: --images, default the folder above the bundle's, or list.txt)",
     "opensfm": "an OpenSfM reconstruction.json (images: --images, default images/ beside it)",
+    "transforms": "an instant-ngp / nerfstudio transforms.json (images relative to it)",
 }
 KINDS = ("colmap", "sfm", *POSED_FORMATS, "7scenes", "posetxt")
 
@@ -103,6 +105,8 @@ def posed_images(kind: str, path: Path, images: Optional[Path] = None) -> Tuple[
     if kind == "opensfm":
         root = Path(images) if images else path.parent / "images"
         return read_opensfm(path, root), root
+    if kind == "transforms":
+        return read_transforms(path), path.parent
     raise ValueError(f"Unknown posed format {kind!r}; known: {', '.join(POSED_FORMATS)}.")
 
 

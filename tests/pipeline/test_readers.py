@@ -249,3 +249,29 @@ def test_opensfm_poses_triangulate_within_two_pixels(shared, tmp_path):
     assert [im.name for im in images] == ["01.jpg", "02.jpg", "03.jpg"] and images[0].camera.model == "RADIAL"
     scene, errors, front = _triangulated(images, root / "images", tmp_path)
     assert len(scene.points) > 500 and np.median(errors) < 2.0 and front.mean() > 0.99
+
+
+def test_transforms_json_of_known_poses_reads_back_and_triangulates(shared, tmp_path):
+    """No shared scene comes as a transforms.json: the Strecha fountain's cameras written in its
+    OpenGL convention (as nerfstudio's colmap2nerf does) read back to the same poses, and
+    triangulate (an axis error would show as tens of pixels)."""
+    from pipeline.mapping.readers.transforms import read_transforms
+    root = shared / "data" / "strecha" / "fountain-P11"
+    strecha = read_strecha(root)[:5]
+    frames = []
+    for im in strecha:
+        R, t = im.cam_from_world[:, :3], im.cam_from_world[:, 3]
+        c2w = np.eye(4)
+        c2w[:3, :3], c2w[:3, 3] = R.T @ np.diag([1.0, -1.0, -1.0]), -R.T @ t
+        fx, fy, cx, cy = im.camera.params
+        frames.append({"file_path": f"images/{im.name[:-4]}", "transform_matrix": c2w.tolist(), "fl_x": fx,
+                       "fl_y": fy, "cx": cx, "cy": cy, "w": im.camera.width, "h": im.camera.height})
+    (tmp_path / "scene").mkdir()
+    (tmp_path / "scene" / "images").symlink_to(root / "images")
+    (tmp_path / "scene" / "transforms.json").write_text(json.dumps({"frames": frames}))
+    images = read_transforms(tmp_path / "scene" / "transforms.json")
+    assert [im.name for im in images] == [f"images/{im.name}" for im in strecha]  # the extension found
+    for a, b in zip(images, strecha):
+        assert np.allclose(a.cam_from_world, b.cam_from_world, atol=1e-9) and a.camera == b.camera
+    scene, errors, front = _triangulated(images, tmp_path / "scene", tmp_path / "work")
+    assert len(scene.points) > 1000 and np.median(errors) < 1.0 and front.mean() > 0.99
