@@ -39,7 +39,10 @@ FLAGS = {
     "--descriptors": Flag("retrieval.descriptors", "hloc HDF5 global descriptors for retrieval (e.g. NetVLAD)",
                           file=True),
     "--prior": Flag("prior", "pose prior; search: many starts around the top references, screened at the coarsest "
-                    "level; hloc: refinement mode from an hloc _logs.pkl (its PnP poses and inliers)", PRIORS),
+                    "level; sift: SIFT matches to the references and PnP (the search where PnP fails); hloc: "
+                    "refinement mode from an hloc _logs.pkl (its PnP poses and inliers)", PRIORS),
+    "--sift-min-inliers": Flag("sift.min_inliers", "with --prior sift: PnP inliers a pose needs"),
+    "--sift-max-size": Flag("sift.max_size", "with --prior sift: longer image side of SIFT extraction"),
     "--prior-poses": Flag("prior_poses", "refinement mode: poses file of another pipeline", file=True),
     "--hloc-logs": Flag("hloc_logs", "refinement mode: hloc localization logs (_logs.pkl); the store must be built "
                         "from the SfM model hloc localized against", file=True),

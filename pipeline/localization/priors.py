@@ -11,14 +11,16 @@ query's candidates (``pipeline.localization.refine.Candidate``, several for ``hy
   at the coarsest level (``pipeline.localization.search``);
 - ``poses``: refinement mode from another pipeline's poses file (``prior_poses``);
 - ``hloc``: refinement mode from hloc's logs (its PnP pose, the references with most inliers,
-  optionally only the inlier points), as the paper's.
+  optionally only the inlier points), as the paper's;
+- ``sift``: SIFT matches to the references, PnP (``pipeline.localization.sift``); where PnP
+  finds too few inliers, the ``search`` prior.
 
 A new prior is a function here and its line in ``PRIORS``.
 """
 
 import functools
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Callable, Dict, List, Optional, Tuple, Union
 
 import numpy as np
@@ -29,6 +31,7 @@ from pipeline.localization.pose_averaging import covisibility_clusters, pose_app
 from pipeline.queries import QueryRecord
 from pipeline.mapping.readers.hloc import PnPLog, read_hloc_logs
 from pipeline.localization.retrieval import Retrieved
+from pipeline.localization.sift import sift_pnp
 from pipeline.localization.search import Hypotheses, hypotheses, median_depth
 from pipeline.textfiles import NameIndex, PoseTable, find_by_name, read_poses
 
@@ -167,6 +170,20 @@ def hloc(s: Start) -> Prepared:
     return [s.candidate([images[i] for i in ranked], prior, "hloc PnP pose", selected)]
 
 
+def sift(s: Start) -> Prepared:
+    """The SIFT + PnP pose, refined; the search prior where PnP fails. Each query's notes say which."""
+    r = s.references()
+    if not r.dbs:
+        return failure(s.query, NO_MATCH)
+    dbs = r.dbs[:s.job.localizer.num_dbs]
+    found = sift_pnp(s.reader, dbs, s.rgb, s.query.camera, s.job.sift)
+    if found.pose is not None:
+        query = replace(s.query, notes=s.query.notes + (found.describe(),))
+        return [Candidate(query, list(dbs), found.pose, s.rgb, s.cache, None, "SIFT PnP pose")]
+    note = f"{found.describe()}: fewer than {s.job.sift.min_inliers} inliers, the search prior instead"
+    return search(replace(s, query=replace(s.query, notes=s.query.notes + (note,))))
+
+
 PRIORS: Dict[str, Callable[[Start], Prepared]] = {
     "top1": top1, "average": average, "hypotheses": reference_hypotheses, "search": search,
-    "poses": other_pipeline, "hloc": hloc}
+    "poses": other_pipeline, "hloc": hloc, "sift": sift}

@@ -24,6 +24,7 @@ from pipeline.localization.priors import PRIORS as PRIOR_FUNCTIONS, Prepared, St
 from pipeline.queries import QueryRecord
 from pipeline.localization.results import read_records, result_to_record, write_records
 from pipeline.localization.retrieval import RETRIEVERS, RetrievalConfig, pairs_file, retrieve
+from pipeline.localization.sift import SiftConfig
 from pipeline.localization.search import Hypotheses, SearchConfig, rank_results, screen, solve, top1_first
 from pipeline.runtime import restore_malloc_thresholds, torch_threads
 from pipeline.store.layout import StoreError
@@ -70,13 +71,16 @@ class LocalizationJob:
     min_inliers: int = 10
     scales: Optional[Tuple[int, ...]] = None
     search: SearchConfig = SearchConfig()
+    sift: SiftConfig = SiftConfig()
 
     def to_dict(self) -> Dict:
-        """The job as recorded in job.json (and compared by reruns); the search settings only
-        with the prior that reads them."""
+        """The job as recorded in job.json (and compared by reruns); the search and SIFT settings
+        only with the priors that read them (``sift`` falls back to the search)."""
         d = asdict(self)
-        if self.prior != "search":
+        if self.prior not in ("search", "sift"):
             del d["search"]
+        if self.prior != "sift":
+            del d["sift"]
         return d
 
     def validate(self) -> None:
@@ -96,6 +100,7 @@ class LocalizationJob:
         if self.num_hypotheses < 1 or self.localizer.num_dbs < 1 or self.retrieval.k < 1:
             raise ValueError("num_hypotheses, num_dbs and retrieval k must be at least 1.")
         self.search.validate()
+        self.sift.validate()
         needed = {"poses": ("prior_poses", "--prior poses needs --prior-poses FILE"),
                   "hloc": ("hloc_logs", "--prior hloc needs --hloc-logs FILE (hloc's <results>_logs.pkl)")}
         files = []
@@ -187,9 +192,13 @@ def localize_queries(job: LocalizationJob, reader: MapReader, localizer: Localiz
             logger.warning("Query %s failed: %s", q.name, e)
             prepared.append(failure(q, f"{type(e).__name__}: {e}"))
         own[q.name] = time.perf_counter() - t0
-    if job.prior == "search":
+    searches = [k for k, p in enumerate(prepared) if isinstance(p, Hypotheses)]
+    if searches:  # the search prior, or the sift prior's fallback where PnP failed
         t0 = time.perf_counter()
-        prepared = screen(localizer, reader, top1_first(localizer, prepared, job.search), job.search)
+        screened = screen(localizer, reader, top1_first(localizer, [prepared[k] for k in searches], job.search),
+                          job.search)
+        for k, p in zip(searches, screened):
+            prepared[k] = p
         share = (time.perf_counter() - t0) / max(len(queries), 1)  # the screening runs as batches
         own = {name: t + share for name, t in own.items()}
     results = []

@@ -83,6 +83,7 @@ class MapReader:
         self.xyz = read(root, "points/xyz")
         self.track_length = read(root, "points/track_length")
         self._obs_point = root["observations/point"]
+        self._root, self._paths = root, None
         self.image_source_id = read(root, "images/source_id")
         self.point_source_id = read(root, "points/source_id")
         self.global_descriptors = read(self.group, "global_all" if self.static else "global")
@@ -127,6 +128,24 @@ class MapReader:
     def image_points(self, i: int) -> np.ndarray:
         """The points observed by image i, in row order (read on demand and cached)."""
         return self._points(int(i))
+
+    def image_xy(self, i: int) -> np.ndarray:
+        """Where image i observes its points (N, 2), COLMAP pixel coordinates, in row order (NaN
+        where the source has none: RGB-D maps)."""
+        s = slice(int(self.row_start[i]), int(self.row_start[i] + self.num_obs[i]))
+        array = self._root["observations/xy"]
+        self._check_present(i, [array])
+        try:
+            return np.asarray(array[s], np.float64)
+        except Exception as e:  # noqa: BLE001
+            raise StoreReadError(f"map store {self.path}: array observations/xy cannot be read for reference "
+                                 f"image {self.names[i]}: {type(e).__name__}: {e}") from None
+
+    def image_path(self, i: int) -> Path:
+        """Image i's file, as recorded at build time."""
+        if self._paths is None:
+            self._paths = [Path(str(p)) for p in self._read(self._root, "images/path")]
+        return self._paths[i]
 
     def refresh(self) -> None:
         """Re-read which images are usable (a build may have finished more since); nothing to do

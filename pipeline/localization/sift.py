@@ -1,0 +1,150 @@
+"""A classical pose that PixLoc refines: SIFT features of the query matched to those of its
+retrieved references, the matched reference keypoints that lie on the map's observations give
+2D-3D correspondences, and pycolmap's absolute pose (LO-RANSAC, then refinement, the query's
+camera) gives the pose. The PixLoc paper positions the method as the refiner of such poses.
+
+Reference features are extracted from the map's images when a query first needs them and kept
+for the process (``reference_sift``); the map stores none of them. A pose needs ``min_inliers``
+PnP inliers; where PnP fails, ``pipeline.localization.priors`` falls back to the search prior.
+"""
+
+import functools
+import warnings
+from dataclasses import dataclass
+from typing import Dict, List, Optional, Tuple
+
+import numpy as np
+
+from pipeline.images import read_image
+from pipeline.scene import CameraRecord
+from pipeline.store.reader import MapReader
+
+
+@dataclass(frozen=True)
+class SiftConfig:
+    """max_size: longer image side for extraction (pixels); max_features: per image; ratio:
+    Lowe's ratio test of mutual nearest neighbours; max_gap: pixels between a matched reference
+    keypoint and the map observation it stands for; max_error: RANSAC inlier threshold (pixels);
+    min_inliers: PnP inliers a pose needs."""
+
+    max_size: int = 1600
+    max_features: int = 4096
+    ratio: float = 0.85
+    max_gap: float = 2.0
+    max_error: float = 8.0
+    min_inliers: int = 20
+
+    def validate(self) -> None:
+        if self.max_size < 64 or self.max_features < 8 or not 0 < self.ratio <= 1 or self.min_inliers < 4:
+            raise ValueError(f"SIFT settings out of range: {self}.")
+
+
+@dataclass
+class PnPResult:
+    """The pose (cam_from_world, 3 x 4) or None, and the evidence: correspondences, inliers,
+    matches per reference."""
+
+    pose: Optional[np.ndarray]
+    correspondences: int
+    inliers: int
+    matches: List[int]
+
+    def describe(self) -> str:
+        return (f"SIFT PnP: {self.inliers} inliers of {self.correspondences} 2D-3D matches "
+                f"(matches per reference {self.matches})")
+
+
+def extract(rgb: np.ndarray, conf: SiftConfig) -> Tuple[np.ndarray, np.ndarray]:
+    """Keypoints (N, 2) in COLMAP pixel coordinates of ``rgb`` and L2-normalised descriptors (N, 128)."""
+    import cv2
+    import pycolmap
+
+    gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
+    scale = min(1.0, conf.max_size / max(gray.shape))
+    if scale < 1:
+        gray = cv2.resize(gray, (round(gray.shape[1] * scale), round(gray.shape[0] * scale)),
+                          interpolation=cv2.INTER_AREA)
+    options = pycolmap.FeatureExtractionOptions()
+    options.sift.max_num_features = conf.max_features
+    options.num_threads = 1
+    with warnings.catch_warnings():  # pycolmap 4 deprecates Sift for FeatureExtractor, whose keypoints are
+        warnings.simplefilter("ignore", DeprecationWarning)  # Python objects, one per keypoint: kept for arrays
+        keypoints, descriptors = pycolmap.Sift(options, pycolmap.Device.cpu).extract(np.ascontiguousarray(gray))
+    xy = np.asarray(keypoints[:, :2], np.float64) / scale
+    d = np.asarray(descriptors, np.float32)
+    return xy, d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+
+
+@functools.lru_cache(maxsize=256)
+def reference_sift(path: str, width: int, height: int, conf: SiftConfig) -> Tuple[np.ndarray, np.ndarray]:
+    """A map image's SIFT, in the pixel coordinates of its camera (width x height), once per process."""
+    rgb = read_image(path)
+    xy, d = extract(rgb, conf)
+    return xy * np.array([width / rgb.shape[1], height / rgb.shape[0]]), d
+
+
+def mutual_matches(a: np.ndarray, b: np.ndarray, ratio: float) -> np.ndarray:
+    """(K, 2) indices of mutual nearest neighbours between descriptor sets that pass the ratio test."""
+    if len(a) < 2 or len(b) < 2:
+        return np.zeros((0, 2), np.int64)
+    sim = a @ b.T
+    order = np.argsort(-sim, axis=1)[:, :2]
+    best, second = order[:, 0], order[:, 1]
+    dist = np.sqrt(np.maximum(2 - 2 * sim[np.arange(len(a)), best], 0))
+    dist2 = np.sqrt(np.maximum(2 - 2 * sim[np.arange(len(a)), second], 0))
+    back = np.argmax(sim, axis=0)
+    keep = (back[best] == np.arange(len(a))) & (dist < ratio * dist2)
+    return np.stack([np.flatnonzero(keep), best[keep]], 1)
+
+
+def nearest_within(query: np.ndarray, points: np.ndarray, gap: float) -> np.ndarray:
+    """For each query position, the index of the nearest of ``points`` within ``gap`` pixels, else -1."""
+    out = np.full(len(query), -1, np.int64)
+    if len(points) == 0 or len(query) == 0:
+        return out
+    for start in range(0, len(query), 1024):
+        q = query[start:start + 1024]
+        d = ((q[:, None, :] - points[None, :, :]) ** 2).sum(-1)
+        j = np.argmin(d, axis=1)
+        ok = d[np.arange(len(q)), j] <= gap ** 2
+        out[start:start + len(q)][ok] = j[ok]
+    return out
+
+
+def sift_pnp(reader: MapReader, dbs: List[int], rgb: np.ndarray, camera: CameraRecord,
+             conf: SiftConfig) -> PnPResult:
+    """The query's pose from SIFT matches to the references ``dbs`` that land on map observations."""
+    import pycolmap
+
+    q_xy, q_desc = extract(rgb, conf)
+    point_of: Dict[int, int] = {}  # query keypoint -> map point (the first reference's wins)
+    per_ref = []
+    for i in dbs:
+        ref_camera = reader.cameras[i]
+        r_xy, r_desc = reference_sift(str(reader.image_path(i)), ref_camera.width, ref_camera.height, conf)
+        pairs = mutual_matches(q_desc, r_desc, conf.ratio)
+        obs_xy, obs_point = reader.image_xy(i), reader.image_points(i)
+        valid = np.isfinite(obs_xy).all(1) & (obs_point >= 0)
+        rows = np.flatnonzero(valid)
+        hit = nearest_within(r_xy[pairs[:, 1]], obs_xy[rows], conf.max_gap) if len(pairs) else np.zeros(0, int)
+        found = 0
+        for (k, _), h in zip(pairs, hit):
+            if h >= 0 and k not in point_of:
+                point_of[int(k)] = int(obs_point[rows[h]])
+                found += 1
+        per_ref.append(found)
+    keys = sorted(point_of)
+    if len(keys) < max(conf.min_inliers, 4):
+        return PnPResult(None, len(keys), 0, per_ref)
+    p2d = q_xy[keys]
+    p3d = reader.xyz[[point_of[k] for k in keys]]
+    cam = pycolmap.Camera(model=camera.model, width=camera.width, height=camera.height, params=list(camera.params))
+    options = pycolmap.AbsolutePoseEstimationOptions()
+    options.ransac.max_error = conf.max_error
+    options.ransac.random_seed = 0
+    found = pycolmap.estimate_and_refine_absolute_pose(p2d, p3d, cam, options)
+    if found is None:
+        return PnPResult(None, len(keys), 0, per_ref)
+    inliers = int(found["num_inliers"])
+    pose = np.asarray(found["cam_from_world"].matrix(), np.float64)
+    return PnPResult(pose if inliers >= conf.min_inliers else None, len(keys), inliers, per_ref)
