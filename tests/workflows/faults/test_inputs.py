@@ -197,3 +197,64 @@ def test_camera_pose_names_never_start_with_a_slash():
     assert pose_name("a.jpg", "camera") == "a.jpg"
     assert pose_name("seq-01/a.jpg", "camera") == "seq-01/a.jpg"
     assert pose_name("x/seq-01/a.jpg", "camera") == "seq-01/a.jpg"
+
+
+@pytest.mark.parametrize("case", ["par_line", "par_number", "bundle_short", "bundle_images", "llff_shape",
+                                  "llff_count", "opensfm_json", "transforms_matrix", "transforms_image"])
+def test_a_damaged_posed_format_names_its_file_and_what_is_wrong(shared, tmp_path, case):
+    """The map formats' readers (LLFF, Middlebury, Bundler, OpenSfM, transforms.json) refuse a damaged
+    file with a SceneError that names it (and the line, where there are lines), never a raw error."""
+    import json
+
+    from pipeline.mapping.readers.bundler import read_bundler
+    from pipeline.mapping.readers.llff import read_llff
+    from pipeline.mapping.readers.middlebury import read_middlebury
+    from pipeline.mapping.readers.opensfm import read_opensfm
+    from pipeline.mapping.readers.transforms import read_transforms
+    from pipeline.scene import SceneError
+    data = shared / "data"
+    if case.startswith("par"):
+        src = data / "middlebury" / "templeRing"
+        for f in src.iterdir():
+            (tmp_path / f.name).symlink_to(f)
+        par = tmp_path / "templeR_par.txt"
+        par.unlink()
+        lines = (src / "templeR_par.txt").read_text().splitlines()
+        lines[3] = lines[3].rsplit(" ", 1)[0] if case == "par_line" else lines[3].replace("1520.4", "x1520")
+        par.write_text("\n".join(lines))
+        with pytest.raises(SceneError, match=rf"{par}:4: " + ("expected an image name and 21 numbers"
+                                                             if case == "par_line" else "a value is not a number")):
+            read_middlebury(tmp_path)
+    elif case.startswith("bundle"):
+        bundle = tmp_path / "bundle.out"
+        text = (data / "bundler_kermit" / "results.example" / "bundle.out").read_text().splitlines()
+        bundle.write_text("\n".join(text[:9]) if case == "bundle_short" else "\n".join(text))
+        images = data / "bundler_kermit" if case == "bundle_short" else tmp_path
+        match = "camera 1 is cut short" if case == "bundle_short" else "11 cameras but 1 images"
+        if case == "bundle_images":
+            (tmp_path / "one.jpg").write_bytes((data / "bundler_kermit" / "kermit000.jpg").read_bytes())
+        with pytest.raises(SceneError, match=rf"{bundle}.*{match}"):
+            read_bundler(bundle, images)
+    elif case.startswith("llff"):
+        (tmp_path / "images").mkdir()
+        for name in sorted((data / "beer_capture" / "images").iterdir())[:3]:
+            (tmp_path / "images" / name.name).symlink_to(name)
+        poses = np.load(data / "beer_capture" / "poses_bounds.npy")
+        np.save(tmp_path / "poses_bounds.npy", poses[:3, :15] if case == "llff_shape" else poses[:4])
+        with pytest.raises(SceneError, match=rf"{tmp_path / 'poses_bounds.npy'}: " +
+                           (r"expected N x 17" if case == "llff_shape" else r"4 poses for 3 images")):
+            read_llff(tmp_path)
+    elif case == "opensfm_json":
+        path = tmp_path / "reconstruction.json"
+        path.write_text((data / "opensfm_berlin" / "reconstruction_example.json").read_text()[:5000])
+        with pytest.raises(SceneError, match=rf"{path}: not an OpenSfM reconstruction"):
+            read_opensfm(path, data / "opensfm_berlin" / "images")
+    else:
+        path = tmp_path / "transforms.json"
+        frame = {"file_path": "missing.jpg" if case == "transforms_image" else "a.jpg",
+                 "transform_matrix": [[1, 0, 0, 0]] * 3, "fl_x": 500, "w": 640, "h": 480}
+        (tmp_path / "a.jpg").write_bytes((data / "bundler_kermit" / "kermit000.jpg").read_bytes())
+        path.write_text(json.dumps({"frames": [frame]}))
+        what = "transform_matrix is not a finite 4x4" if case == "transforms_matrix" else "image .* does not exist"
+        with pytest.raises(SceneError, match=rf"{path}: frame 0: {what}"):
+            read_transforms(path)
