@@ -148,6 +148,15 @@ def cached_model(work_dir: Path, marker: str, model: str, fingerprint: dict,
     return None
 
 
+def fresh_database(work_dir: Path, marker: str) -> Path:
+    """An empty COLMAP database for a new reconstruction in ``work_dir``, with the marker of the
+    finished one removed first (a crash after this leaves no model that looks finished)."""
+    (work_dir / marker).unlink(missing_ok=True)
+    database = work_dir / "database.db"
+    database.unlink(missing_ok=True)
+    return database
+
+
 def _finish(rec: pycolmap.Reconstruction, work_dir: Path, marker: str, model: str,
             fingerprint: dict) -> pycolmap.Reconstruction:
     """Write the model and then its marker (a crash in between leaves no marker); return it as
@@ -178,10 +187,7 @@ def run_sfm(image_dir, work_dir, names: Optional[Sequence[str]] = None, tags=Non
     rec = cached_model(work_dir, "sfm.json", "model", fingerprint, image_dir)
     if rec is not None:
         return scene_from_reconstruction(rec, image_dir, tags)
-    (work_dir / "sfm.json").unlink(missing_ok=True)
-    database = work_dir / "database.db"
-    if database.exists():
-        database.unlink()
+    database = fresh_database(work_dir, "sfm.json")
     _extract_and_match(database, image_dir, names, pairs, progress=progress)
     options = pycolmap.IncrementalPipelineOptions()
     options.random_seed = 0
@@ -231,10 +237,7 @@ def triangulate_known_poses(images: List[ImageRecord], image_root, work_dir, *,
     rec = cached_model(work_dir, "triangulation.json", "model", fingerprint, image_root)
     if rec is not None:
         return _known_pose_scene(rec, image_root, by_name)
-    (work_dir / "triangulation.json").unlink(missing_ok=True)
-    database = work_dir / "database.db"
-    if database.exists():
-        database.unlink()
+    database = fresh_database(work_dir, "triangulation.json")
     stages = {} if timings is None else timings
     _extract_and_match(database, image_root, names, pairs, [im.camera for im in images],
                        [im.cam_from_world for im in images], stages, progress)
