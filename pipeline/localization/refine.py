@@ -18,7 +18,7 @@ import numpy as np
 import torch
 from torch.nn.functional import normalize
 
-from pixloc.geometry import Camera, Pose
+from pixloc.geometry import Camera, Pose, pose_error
 from pixloc.optim import FeaturemetricProblem, LevenbergMarquardt, alignment_contrast, alignment_evidence
 from pixloc.optim.cost import new_query_maps
 from pixloc.nets.unet import UNet
@@ -390,6 +390,5 @@ def evidence_summary(per_level: List[Dict], at_prior: Dict[str, float], contrast
 
 def _relative_motion(a: np.ndarray, b: np.ndarray, scale: float) -> Tuple[float, float]:
     """Camera-centre distance over ``scale`` and rotation angle (degrees) between two poses."""
-    ca, cb = -a[:, :3].T @ a[:, 3], -b[:, :3].T @ b[:, 3]
-    cos = (np.trace(a[:, :3] @ b[:, :3].T) - 1) / 2
-    return float(np.linalg.norm(ca - cb) / scale), float(np.degrees(np.arccos(np.clip(cos, -1, 1))))
+    dR, dt = pose_error(Pose.from_matrix(a), Pose.from_matrix(b))  # the one pose difference (pixloc.geometry)
+    return float(dt) / scale, float(dR)

@@ -19,6 +19,8 @@ from typing import List, Tuple
 
 import numpy as np
 
+from pixloc.geometry import Pose, pose_error
+
 from pipeline.localization.refine import Localizer, QueryResult
 from pipeline.store.reader import MapReader
 
@@ -136,10 +138,8 @@ def hypotheses(reader: MapReader, dbs: List[int], conf: SearchConfig, average=No
 def same_basin(a: np.ndarray, b: np.ndarray, depth: float, conf: SearchConfig) -> bool:
     """Whether two coarse poses (cam_from_world) lie within ``conf.merge_t`` x ``depth`` (camera
     centres) and ``conf.merge_R`` degrees of each other."""
-    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
-    ca, cb = -a[:, :3].T @ a[:, 3], -b[:, :3].T @ b[:, 3]
-    cos = np.clip((np.trace(a[:, :3] @ b[:, :3].T) - 1) / 2, -1, 1)
-    return bool(np.linalg.norm(ca - cb) <= conf.merge_t * depth and np.degrees(np.arccos(cos)) <= conf.merge_R)
+    dR, dt = pose_error(Pose.from_matrix(a), Pose.from_matrix(b))  # the one pose difference (pixloc.geometry)
+    return bool(float(dt) <= conf.merge_t * depth and float(dR) <= conf.merge_R)
 
 
 def screening_order(results: List[QueryResult], conf: SearchConfig, skip=()) -> List[int]:
