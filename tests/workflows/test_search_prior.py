@@ -40,3 +40,21 @@ def test_search_brings_in_a_night_query_that_top1_leaves_out(tmp_path):
     assert search["success"] and ts <= 0.25 and Rs <= 2.0
     assert np.allclose(search["prior"], top1["prior"])  # a search records the top-1 start as its prior
     assert "starting poses screened" in search["notes"][-1]
+
+
+def test_the_sift_peer_row_reports_the_pnp_pose_or_none():
+    """`benchmark search --priors sift` adds the SIFT + PnP peer from the same runs: the PnP pose
+    (the record's prior) where PnP found one, no pose where the search took over; no time of its own."""
+    from workflows.benchmarks.search import pnp_only, table
+    found = {"name": "a", "success": True, "prior": [[1.0]], "refined": [[2.0]],
+             "notes": ["SIFT PnP: 685 inliers of 700 2D-3D matches (matches per reference [621])"]}
+    fallback = {"name": "b", "success": True, "prior": [[3.0]], "refined": [[4.0]],
+                "notes": ["SIFT PnP: 3 inliers of 9 2D-3D matches (...): fewer than 20 inliers, the search prior "
+                          "instead"]}
+    assert pnp_only(found)["prior"] == [[1.0]] and not pnp_only(found)["success"]
+    assert pnp_only(fallback)["prior"] is None
+    rows = [{"scene": "s", "prior": p, "n": 2, "prior_t": 0.1, "prior_R": 1.0, "recall@0.05m,1deg": 0.5,
+             "s_per_query": t} for p, t in (("top1", 2.0), ("sift", 3.0), ("sift-pnp", None))]
+    text = table(rows)
+    assert "| s | sift | 2 | 0.10 m, 1.0 deg | 50 % | 3.00 | 1.50 |" in text
+    assert "| s | sift-pnp | 2 | 0.10 m, 1.0 deg | 50 % | - | - |" in text and "nan" not in text

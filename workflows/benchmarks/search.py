@@ -8,7 +8,9 @@ reference), recall at (5 cm, 1 deg), (25 cm, 2 deg), (1 m, 5 deg), and wall time
 process (one thread), with its ratio to ``top1``. Runs are kept in ``--work``: a rerun reprints.
 ``--priors ... truth`` adds a refinement from each query's ground-truth pose (``--prior poses``),
 scored on the refined pose whether verified or not: what the model reaches on that map from a
-perfect start, the most that any prior can give.
+perfect start, the most that any prior can give. ``sift`` adds the SIFT + PnP prior refined by
+PixLoc, and beside it the row ``sift-pnp``: the SIFT + PnP peer alone (its pose where PnP found one,
+no pose elsewhere), from the same runs.
 """
 
 import argparse
@@ -48,8 +50,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="maps and runs (default: the verification benchmark's folder, whose maps it reuses)")
     p.add_argument("--scenes", nargs="+", default=list(SCENES), choices=SCENES, help="scenes to run")
     p.add_argument("--priors", nargs="+", default=["top1", "average", "hypotheses", "search"],
-                   choices=["top1", "average", "hypotheses", "search", "truth"],
-                   help="truth: refine from the ground-truth pose (prior poses), the most any prior can reach")
+                   choices=["top1", "average", "hypotheses", "search", "sift", "truth"],
+                   help="truth: refine from the ground-truth pose (prior poses), the most any prior can reach; "
+                        "sift: SIFT + PnP refined, with the peer SIFT + PnP alone as the row sift-pnp")
 
 
 def _sources(args, fconf):
@@ -120,14 +123,24 @@ def main(args: argparse.Namespace) -> int:
                     records = [dict(r, success=r["refined"] is not None) for r in records]
                 per_prior[prior]["records"] += records
                 per_prior[prior]["time"] += float((out / "wall_s.txt").read_text())
+                if prior == "sift":  # the peer: the PnP pose alone, where PnP found one
+                    peer = per_prior.setdefault("sift-pnp", {"records": [], "time": None})
+                    peer["records"] += [pnp_only(r) for r in records]  # its time is within sift's, not apart
         for prior, v in per_prior.items():
             s = evaluate(v["records"], gt, THRESHOLDS)["all"]
             rows.append({"scene": key, "prior": prior, "n": s["refined"]["count"],
                          "prior_t": s["prior"]["median_t"], "prior_R": s["prior"]["median_R"],
                          **{k: s["refined"][k] for k in s["refined"] if k.startswith("recall@")},
-                         "s_per_query": v["time"] / max(len(v["records"]), 1)})
+                         "s_per_query": None if v["time"] is None else v["time"] / max(len(v["records"]), 1)})
     print(table(rows))
     return 0
+
+
+def pnp_only(record: Dict) -> Dict:
+    """A sift record as the SIFT + PnP peer reports it: its PnP pose (the record's prior) where PnP
+    found one, else no pose."""
+    pnp = any(n.startswith("SIFT PnP: ") and "the search prior instead" not in n for n in record.get("notes", []))
+    return dict(record, success=False, prior=record["prior"] if pnp else None)
 
 
 def table(rows: List[Dict]) -> str:
@@ -137,10 +150,10 @@ def table(rows: List[Dict]) -> str:
              + " | ---: | ---: |"]
     top1 = {r["scene"]: r["s_per_query"] for r in rows if r["prior"] == "top1"}
     for r in rows:
-        ratio = r["s_per_query"] / top1[r["scene"]] if top1.get(r["scene"]) else None
+        ratio = r["s_per_query"] / top1[r["scene"]] if top1.get(r["scene"]) and r["s_per_query"] else None
         lines.append(f"| {r['scene']} | {r['prior']} | {r['n']} | {fmt(r['prior_t'], '.2f')} m, "
                      f"{fmt(r['prior_R'], '.1f')} deg | "
                      + " | ".join(f"{fmt(100 * r[k] if r[k] is not None else None, '.0f')} %" for k in keys)
-                     + f" | {r['s_per_query']:.2f} | {fmt(ratio, '.2f')} |")
+                     + f" | {fmt(r['s_per_query'], '.2f')} | {fmt(ratio, '.2f')} |")
     return "\n".join(lines)
 
