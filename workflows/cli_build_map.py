@@ -69,7 +69,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--work-dir", type=Path, help="SfM/triangulation files (default: the store's path with .work "
                    "for its suffix: "
                    "map.work for map.zarr)")
-    p.add_argument("--scheduler", help="address of an existing Dask scheduler (default: a local cluster)")
+    p.add_argument("--scheduler", help="an existing Dask scheduler: its address (tcp://host:8786) or the file "
+                   "that 'dask scheduler "
+                   "--scheduler-file' wrote (default: a local cluster; docs/cluster.md)")
     p.add_argument("--workers", type=int, default=2, help="worker processes of the local cluster")
     p.add_argument("--sync", action="store_true", help="run in this process, without Dask")
     p.add_argument("--overwrite", action="store_true", help="rebuild a store that holds another map or features")

@@ -107,7 +107,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "descriptors that stage runs the network once more per query), list (query order), or "
                         f"auto (default: region from {REGION_MIN_QUERIES} queries with --pairs or --descriptors, "
                         "else list)")
-    p.add_argument("--scheduler", help="address of an existing Dask scheduler")
+    p.add_argument("--scheduler", help="an existing Dask scheduler: its address (tcp://host:8786) or the file "
+                   "that 'dask scheduler "
+                   "--scheduler-file' wrote (default: a local cluster; docs/cluster.md)")
     p.add_argument("--workers", type=int, default=2, help="worker processes of the local cluster (default 2)")
     p.add_argument("--sync", action="store_true", help="run in this process, without Dask")
     p.add_argument("--keep-failures", action="store_true",

@@ -9,6 +9,7 @@ tuples; nothing here knows about maps or queries.
 import contextlib
 import logging
 import uuid
+from pathlib import Path
 from typing import Callable, Dict, Iterator, List, Optional, Sequence
 
 logger = logging.getLogger(__name__)
@@ -23,13 +24,15 @@ def task_resources(device: str) -> Optional[Dict[str, float]]:
 @contextlib.contextmanager
 def dask_client(scheduler: Optional[str] = None, workers: int = 2, device: str = "cpu",
                 dashboard: bool = True) -> Iterator:
-    """A client of ``scheduler``, or of a local cluster of ``workers`` processes (one thread each)
+    """A client of ``scheduler`` (an address, or a scheduler file that ``dask scheduler
+    --scheduler-file`` wrote), or of a local cluster of ``workers`` processes (one thread each)
     whose workers declare the resources that tasks on ``device`` ask for (a local cluster that
     did not would leave GPU tasks waiting for ever)."""
     from distributed import Client, LocalCluster
     resources = task_resources(device)
     if scheduler:
-        with Client(scheduler) as client:
+        is_file = scheduler.endswith(".json") and Path(scheduler).is_file()
+        with (Client(scheduler_file=scheduler, timeout=60) if is_file else Client(scheduler)) as client:
             check_resources(client, resources)
             yield client
         return
