@@ -16,7 +16,7 @@ import tempfile
 import threading
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Optional, Tuple
+from typing import List, Optional, Tuple
 
 import cv2
 import numpy as np
@@ -104,6 +104,15 @@ def read_header(path) -> Optional[ImageHeader]:
         raise ImageReadError(f"image file {path} declares an empty image ({width}x{height})")
     return ImageHeader(int(width), int(height), orientation if 1 <= orientation <= 8 else 1)
 
+
+
+PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png")  # the files a folder of photos holds (any case)
+
+
+def image_files(folder) -> List[str]:
+    """The names of the JPEG and PNG files directly in ``folder``, sorted: the images of a folder
+    that SfM reconstructs and that posed formats list in name order (LLFF, Bundler)."""
+    return sorted(p.name for p in Path(folder).iterdir() if p.suffix.lower() in PHOTO_SUFFIXES)
 
 
 def image_size(path) -> Tuple[int, int]:

@@ -12,13 +12,13 @@ from pipeline.mapping.image_pairs import PairsConfig
 from pipeline.progress import Silent
 from pipeline.queries import QueryRecord, read_queries_with_intrinsics
 from pipeline.scene import name_problem
-from pipeline.mapping.readers.colmap import image_names, read_colmap, run_sfm, triangulate_known_poses
+from pipeline.mapping.readers.colmap import read_colmap, run_sfm, triangulate_known_poses
 from pipeline.mapping.readers.bundler import read_bundler
 from pipeline.mapping.readers.kapture import read_kapture
 from pipeline.mapping.readers.llff import read_llff
 from pipeline.mapping.readers.middlebury import read_middlebury
 from pipeline.mapping.readers.opensfm import read_opensfm
-from pipeline.images import read_image
+from pipeline.images import image_files, read_image
 from pipeline.mapping.readers.rgbd import read_7scenes, read_pose_txt
 from pipeline.mapping.readers.strecha import read_strecha
 from pipeline.mapping.readers.transforms import read_transforms
@@ -133,7 +133,7 @@ def load_scene(source: MapSource, work_dir: Path, pairs: PairsConfig = PairsConf
     if source.kind == "colmap":
         scene = read_colmap(path, source.images or path.parent / "images")
     elif source.kind == "sfm":
-        names = image_names(path)
+        names = image_files(path)
         scene = run_sfm(path, work_dir / "sfm", [n for n, k in zip(names, kept(names, source.hold_out)) if k],
                         pairs=pairs, progress=progress)
     elif source.kind in POSED_FORMATS:

@@ -31,7 +31,7 @@ from pipeline.localization.pose_averaging import covisibility_clusters, pose_app
 from pipeline.queries import QueryRecord
 from pipeline.mapping.readers.hloc import PnPLog, read_hloc_logs
 from pipeline.localization.retrieval import Retrieved
-from pipeline.localization.sift import sift_pnp
+from pipeline.localization.sift import FALLBACK, sift_pnp
 from pipeline.localization.search import Hypotheses, hypotheses, median_depth
 from pipeline.textfiles import NameIndex, PoseTable, find_by_name, read_poses
 
@@ -177,11 +177,11 @@ def sift(s: Start) -> Prepared:
         return failure(s.query, NO_MATCH)
     dbs = r.dbs[:s.job.localizer.num_dbs]
     found = sift_pnp(s.reader, dbs, s.rgb, s.query.camera, s.job.sift)
-    if found.pose is not None:
-        query = replace(s.query, notes=s.query.notes + (found.describe(),))
-        return [Candidate(query, list(dbs), found.pose, s.rgb, s.cache, None, "SIFT PnP pose")]
-    note = f"{found.describe()}: fewer than {s.job.sift.min_inliers} inliers, the search prior instead"
-    return search(replace(s, query=replace(s.query, notes=s.query.notes + (note,))))
+    if found.pose is None:
+        note = f"{found.describe()}: fewer than {s.job.sift.min_inliers} inliers, {FALLBACK}"
+        return search(replace(s, query=replace(s.query, notes=s.query.notes + (note,))))
+    noted = replace(s, query=replace(s.query, notes=s.query.notes + (found.describe(),)))
+    return [noted.candidate(dbs, found.pose, "SIFT PnP pose")]
 
 
 PRIORS: Dict[str, Callable[[Start], Prepared]] = {

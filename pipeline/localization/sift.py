@@ -50,8 +50,18 @@ class PnPResult:
     matches: List[int]
 
     def describe(self) -> str:
-        return (f"SIFT PnP: {self.inliers} inliers of {self.correspondences} 2D-3D matches "
+        """The note a query's record carries (ending in ``FALLBACK`` where the search took over)."""
+        return (f"{NOTE}{self.inliers} inliers of {self.correspondences} 2D-3D matches "
                 f"(matches per reference {self.matches})")
+
+
+NOTE = "SIFT PnP: "  # how a record's note starts that says what SIFT + PnP found
+FALLBACK = "the search prior instead"  # ... and how it ends where PnP failed
+
+
+def pnp_pose_found(notes) -> bool:
+    """Whether a record's notes say that its prior is a SIFT + PnP pose."""
+    return any(n.startswith(NOTE) and not n.endswith(FALLBACK) for n in notes)
 
 
 def extract(rgb: np.ndarray, conf: SiftConfig) -> Tuple[np.ndarray, np.ndarray]:

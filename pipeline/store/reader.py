@@ -94,6 +94,7 @@ class MapReader:
         self._cache_limits = (cache_images, cache_bytes)
         self._cached_bytes = 0
         self._points = functools.lru_cache(maxsize=4 * cache_images)(self._read_points)
+        self._xy = functools.lru_cache(maxsize=cache_images)(self._read_xy)  # the sift prior's, per reference
 
     def _leave_out_lost(self) -> None:
         """Descriptors are unit vectors: a done image's zero one is a missing chunk read as fill
@@ -131,7 +132,10 @@ class MapReader:
 
     def image_xy(self, i: int) -> np.ndarray:
         """Where image i observes its points (N, 2), COLMAP pixel coordinates, in row order (NaN
-        where the source has none: RGB-D maps)."""
+        where the source has none: RGB-D maps); read on demand and cached, as ``image_points``."""
+        return self._xy(int(i))
+
+    def _read_xy(self, i: int) -> np.ndarray:
         s = slice(int(self.row_start[i]), int(self.row_start[i] + self.num_obs[i]))
         array = self._root["observations/xy"]
         self._check_present(i, [array])

@@ -27,6 +27,7 @@ from pipeline.mapping.features import FeatureConfig
 from pipeline.localization.refine import LocalizerConfig
 from pipeline.localization.retrieval import RetrievalConfig
 from pipeline.localization.shard import LocalizationJob
+from pipeline.localization.sift import pnp_pose_found
 
 from pixloc.nets.registry import DEFAULT_MODEL
 
@@ -139,8 +140,7 @@ def main(args: argparse.Namespace) -> int:
 def pnp_only(record: Dict) -> Dict:
     """A sift record as the SIFT + PnP peer reports it: its PnP pose (the record's prior) where PnP
     found one, else no pose."""
-    pnp = any(n.startswith("SIFT PnP: ") and "the search prior instead" not in n for n in record.get("notes", []))
-    return dict(record, success=False, prior=record["prior"] if pnp else None)
+    return dict(record, success=False, prior=record["prior"] if pnp_pose_found(record.get("notes", [])) else None)
 
 
 def table(rows: List[Dict]) -> str:

@@ -10,7 +10,7 @@ from typing import List, Optional, Sequence
 
 import numpy as np
 
-from pipeline.images import image_size
+from pipeline.images import image_files, image_size
 from pipeline.scene import CameraRecord, ImageRecord, SceneError
 
 FLIP = np.diag([1.0, -1.0, -1.0])  # Bundler's camera axes (x right, y up, z back) to COLMAP's
@@ -20,7 +20,7 @@ def image_list(root: Path, list_file: Optional[Path] = None) -> List[str]:
     """The names of the bundle's cameras, in order."""
     if list_file is not None and Path(list_file).is_file():
         return [line.split()[0] for line in Path(list_file).read_text().splitlines() if line.strip()]
-    return sorted(p.name for p in Path(root).iterdir() if p.suffix.lower() in {".jpg", ".jpeg", ".png"})
+    return image_files(root)
 
 
 def read_bundler(bundle, image_root, names: Optional[Sequence[str]] = None, tags=None) -> List[ImageRecord]:

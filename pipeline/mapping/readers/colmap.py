@@ -12,7 +12,7 @@ import pycolmap
 
 from pixloc.nets.registry import DEFAULT_MODEL
 
-from pipeline.images import file_sha256
+from pipeline.images import file_sha256, image_files
 from pipeline.mapping.image_pairs import PairsConfig, match
 from pipeline.progress import Silent, database_rows, watching
 from pipeline.scene import CameraRecord, ImageRecord, Scene, SceneError
@@ -167,11 +167,6 @@ def _finish(rec: pycolmap.Reconstruction, work_dir: Path, marker: str, model: st
     return pycolmap.Reconstruction(str(work_dir / model))
 
 
-def image_names(image_dir: Path) -> List[str]:
-    """The JPEG and PNG files directly in ``image_dir``, sorted: the images SfM reconstructs."""
-    return sorted(p.name for p in Path(image_dir).iterdir() if p.suffix.lower() in {".jpg", ".jpeg", ".png"})
-
-
 def run_sfm(image_dir, work_dir, names: Optional[Sequence[str]] = None, tags=None,
             pairs: PairsConfig = PairsConfig(), progress: Callable = Silent) -> Scene:
     """Structure-from-motion with pycolmap (SIFT, matching of ``pairs``, incremental mapping);
@@ -182,7 +177,7 @@ def run_sfm(image_dir, work_dir, names: Optional[Sequence[str]] = None, tags=Non
     """
     image_dir, work_dir = Path(image_dir), Path(work_dir)
     work_dir.mkdir(parents=True, exist_ok=True)
-    names = image_names(image_dir) if names is None else list(names)
+    names = image_files(image_dir) if names is None else list(names)
     fingerprint = images_fingerprint(image_dir, names, kind="sfm", **_pairs_fingerprint(pairs, len(names), False))
     rec = cached_model(work_dir, "sfm.json", "model", fingerprint, image_dir)
     if rec is not None:

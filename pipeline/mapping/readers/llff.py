@@ -9,7 +9,7 @@ from typing import List
 
 import numpy as np
 
-from pipeline.images import image_size
+from pipeline.images import image_files, image_size
 from pipeline.scene import CameraRecord, ImageRecord, SceneError
 
 
@@ -23,7 +23,7 @@ def read_llff(root, tags=None) -> List[ImageRecord]:
         raise SceneError(f"{path}: not an LLFF poses_bounds.npy ({e}).") from None
     if data.ndim != 2 or data.shape[1] != 17 or not np.isfinite(data).all():
         raise SceneError(f"{path}: expected N x 17 finite numbers (3 x 5 pose, near, far), got {data.shape}.")
-    names = sorted(p.name for p in (root / "images").iterdir() if p.suffix.lower() in {".jpg", ".jpeg", ".png"})
+    names = image_files(root / "images")
     if len(names) != len(data):
         raise SceneError(f"{path}: {len(data)} poses for {len(names)} images in {root / 'images'}.")
     images = []

@@ -11,11 +11,10 @@ from typing import List
 
 import numpy as np
 
-from pipeline.images import image_size
+from pipeline.images import PHOTO_SUFFIXES, image_size
 from pipeline.scene import CameraRecord, ImageRecord, SceneError
 
 FLIP = np.diag([1.0, -1.0, -1.0])  # OpenGL camera axes to COLMAP's
-IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".JPG", ".JPEG", ".PNG")
 
 
 def _camera(values: dict, path: Path, where: str) -> CameraRecord:
@@ -51,7 +50,7 @@ def read_transforms(path, tags=None) -> List[ImageRecord]:
         name = str(frame.get("file_path", "")).removeprefix("./")
         file = root / name
         if not file.is_file():
-            found = [root / (name + s) for s in IMAGE_SUFFIXES if (root / (name + s)).is_file()]
+            found = [root / (name + x) for s in PHOTO_SUFFIXES for x in (s, s.upper()) if (root / (name + x)).is_file()]
             if not found:
                 raise SceneError(f"{where}: image {file} does not exist.")
             file = found[0]
