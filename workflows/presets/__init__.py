@@ -22,8 +22,7 @@ INPUTS = {"store", "model", "device", "prior_poses", "hloc_logs", "retrieval.met
           "retrieval.descriptors", "features"}
 DOCUMENTATION = {"description", "layout", "model_hint"}
 OUTPUTS = {"thresholds", "pose_names"}
-SETTINGS = {k for k in field_types(LocalizationJob) if k not in INPUTS and not k.startswith("features.")} | \
-    {k for k in field_types(LocalizationJob) if k.startswith("features.") and k != "features.model"}
+SETTINGS = {k for k in field_types(LocalizationJob) if k not in INPUTS and k != "features.model"}
 # every key a preset may hold (also under ``from_poses``: the settings)
 PRESET_KEYS = SETTINGS | DOCUMENTATION | OUTPUTS | {f"from_poses.{k}" for k in SETTINGS}
 
