@@ -244,7 +244,10 @@ def triangulate_known_poses(images: List[ImageRecord], image_root, work_dir, *,
             new = pycolmap.Image(name=image.name, camera_id=image.camera_id, image_id=image.image_id)
             rec.add_image_with_trivial_frame(new, pycolmap.Rigid3d(by_name[image.name].cam_from_world))
     with progress(1, "triangulation", "model") as counter:
-        rec = pycolmap.triangulate_points(rec, database, image_root, work_dir / "triangulated")
+        options = pycolmap.IncrementalPipelineOptions()
+        # COLMAP leaves out tracks seen by two images only; a map of two images has no others
+        options.triangulation.ignore_two_view_tracks = len(images) > 2
+        rec = pycolmap.triangulate_points(rec, database, image_root, work_dir / "triangulated", options=options)
         counter.update()
     for pid, point in list(rec.points3D.items()):
         if point.track.length() < min_track_length or point.error > max_reprojection_error:
