@@ -126,9 +126,12 @@ class ImageRecord:
     """A reference image: its file, camera and cam_from_world pose ((3, 4) [R | t], float64).
 
     tags: condition tags (day/night, season, sequence...). depth: an optional
-    depth map file, the factor that turns its values into scene units, and
-    the camera of the depth map when it is not registered to the image
-    (same pose, other intrinsics: 7-Scenes).
+    depth map file, the factor that turns its values into scene units, the
+    camera of the depth map when it is not registered to the image (other
+    intrinsics: 7-Scenes) and ``color_from_depth``, the rigid transform (3, 4)
+    from the depth sensor's frame to the image's where the two sensors are apart
+    (None: depth is taken at the image's pose). ``cam_from_world`` is always the
+    image's own pose: the one projected with, estimated and evaluated.
     """
 
     name: str
@@ -140,6 +143,7 @@ class ImageRecord:
     depth_scale: float = 1.0
     depth_camera: Optional[CameraRecord] = None
     source_id: int = -1  # the image's id in its source model (COLMAP image_id), -1 if none
+    color_from_depth: Optional[np.ndarray] = None
 
     def check(self) -> Optional[str]:
         reason = name_problem(self.name) or self.camera.check()
@@ -155,6 +159,15 @@ class ImageRecord:
 
     def pose(self, dtype=torch.float32) -> Pose:
         return Pose.from_matrix(self.cam_from_world, dtype)
+
+    def depth_from_world(self) -> np.ndarray:
+        """The depth sensor's pose (3, 4): back-projection, fusion and depth tests use it."""
+        T = np.asarray(self.cam_from_world, np.float64)
+        if self.color_from_depth is None:
+            return T
+        C = np.asarray(self.color_from_depth, np.float64)
+        R = C[:, :3].T  # depth_from_color
+        return np.concatenate([R @ T[:, :3], (R @ (T[:, 3] - C[:, 3]))[:, None]], 1)
 
 
 @dataclass

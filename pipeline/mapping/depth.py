@@ -26,25 +26,24 @@ def load_depth(image: ImageRecord) -> np.ndarray:
     return read_depth(image.depth_path, image.depth_scale)
 
 
-def _to_world(image: ImageRecord, p_cam: np.ndarray) -> np.ndarray:
-    T = np.asarray(image.cam_from_world)
+def _to_world(T: np.ndarray, p_cam: np.ndarray) -> np.ndarray:
     return (p_cam - T[:, 3]) @ T[:, :3]
 
 
-def to_camera_frame(image: ImageRecord, p_world: np.ndarray) -> np.ndarray:
-    T = np.asarray(image.cam_from_world)
+def _to_frame(T: np.ndarray, p_world: np.ndarray) -> np.ndarray:
     return p_world @ T[:, :3].T + T[:, 3]
 
 
 def backproject(image: ImageRecord, depth: np.ndarray, stride: int = 1) -> np.ndarray:
-    """World points (K, 3) of the valid depth pixels on a grid of ``stride`` pixels."""
+    """World points (K, 3) of the valid depth pixels on a grid of ``stride`` pixels (from the
+    depth sensor's pose)."""
     cam = depth_camera(image)
     v, u = np.mgrid[0:depth.shape[0]:stride, 0:depth.shape[1]:stride]
     d = depth[v, u]
     keep = d > 0
     p2d = torch.from_numpy(np.stack([u[keep], v[keep]], -1).astype(np.float64))
     rays = cam.image2cam(p2d).numpy()
-    return _to_world(image, rays * d[keep][:, None])
+    return _to_world(image.depth_from_world(), rays * d[keep][:, None])
 
 
 def frame_points(images: List[ImageRecord], stride: int = 16) -> np.ndarray:
@@ -86,7 +85,7 @@ def tsdf_points(images: List[ImageRecord], voxel: float = 0.02, truncation: floa
             o3d.geometry.Image(color), o3d.geometry.Image(depth), depth_scale=1.0, depth_trunc=max_depth,
             convert_rgb_to_intensity=False)
         extrinsic = np.eye(4)
-        extrinsic[:3] = np.asarray(im.cam_from_world)
+        extrinsic[:3] = im.depth_from_world()
         volume.integrate(rgbd, intrinsic, extrinsic)
     cloud = volume.extract_point_cloud().voxel_down_sample(length / resolution)
     return np.asarray(cloud.points, dtype=np.float64)
@@ -96,22 +95,24 @@ def observe(points: np.ndarray, images: List[ImageRecord], depths: Optional[List
             tolerance: float = 0.03) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Observations of ``points`` in ``images`` by projection and a depth test.
 
-    A point is observed where it projects inside the image and its depth
-    agrees with the depth map (nearest pixel) within ``tolerance`` times the
-    depth. Returns (point index, image index, xy in COLMAP pixel coordinates).
+    A point is observed where it projects inside the image and its depth in the
+    depth sensor agrees with the depth map (nearest pixel) within ``tolerance``
+    times the depth. Returns (point index, image index, xy in COLMAP pixel
+    coordinates).
     """
     obs_point, obs_image, obs_xy = [], [], []
     for i, im in enumerate(images):
         depth = depths[i] if depths is not None else load_depth(im)
-        p_cam = torch.from_numpy(to_camera_frame(im, points))
-        p2d_d, valid_d = depth_camera(im).cam2image(p_cam)
+        p_depth = torch.from_numpy(_to_frame(im.depth_from_world(), points))
+        p2d_d, valid_d = depth_camera(im).cam2image(p_depth)
         uv = np.round(p2d_d.numpy()).astype(np.int64)
         inside = valid_d.numpy() & (uv[:, 0] >= 0) & (uv[:, 1] >= 0) & \
             (uv[:, 0] < depth.shape[1]) & (uv[:, 1] < depth.shape[0])
         d = np.zeros(len(points))
         d[inside] = depth[uv[inside, 1], uv[inside, 0]]
-        z = p_cam[:, 2].numpy()
+        z = p_depth[:, 2].numpy()
         visible = inside & (d > 0) & (np.abs(z - d) < tolerance * d)
+        p_cam = torch.from_numpy(_to_frame(np.asarray(im.cam_from_world, np.float64), points))
         p2d, valid = im.camera.to_pixloc(torch.float64).cam2image(p_cam)
         keep = visible & valid.numpy()
         idx = np.flatnonzero(keep)
@@ -147,7 +148,13 @@ def rgbd_scene(images: List[ImageRecord], method: str = "tsdf", min_track_length
 
 def densify(scene: Scene, min_depth: float = 1e-3) -> Scene:
     """Move each SfM point to the back-projection of its first observation at the
-    bilinearly interpolated depth of that image (points without valid depth stay)."""
+    bilinearly interpolated depth of that image (points without valid depth stay).
+    The depth must be taken at the image's pose (no ``color_from_depth``): a ray of
+    the image then meets the depth map at one pixel."""
+    apart = [im.name for im in scene.images if im.color_from_depth is not None]
+    if apart:
+        raise SceneError(f"Densification needs depth taken at the image's pose; {len(apart)} images have their "
+                         f"depth sensor apart (e.g. {apart[0]}): build from the RGB-D frames instead.")
     points = scene.points.copy()
     moved = np.zeros(len(points), dtype=bool)
     order = np.argsort(scene.obs_point, kind="stable")
@@ -170,7 +177,7 @@ def densify(scene: Scene, min_depth: float = 1e-3) -> Scene:
         d = (corners[0] * (1 - fx) * (1 - fy) + corners[1] * fx * (1 - fy)
              + corners[2] * (1 - fx) * fy + corners[3] * fx * fy)
         ok &= (corners > min_depth).all(0)  # no interpolation across holes
-        points[scene.obs_point[sel[ok]]] = _to_world(im, rays[ok] * d[ok][:, None])
+        points[scene.obs_point[sel[ok]]] = _to_world(np.asarray(im.cam_from_world), rays[ok] * d[ok][:, None])
         moved[scene.obs_point[sel[ok]]] = True
     logger.info("Densification moved %d of %d points.", int(moved.sum()), len(points))
     return Scene(scene.images, points, scene.obs_point, scene.obs_image, scene.obs_xy, scene.point_ids)
