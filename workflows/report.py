@@ -23,7 +23,7 @@ from pipeline.evaluate import DEFAULT_THRESHOLDS, evaluate, fmt, shown_families
 from pipeline.mapping.features import FeatureConfig
 from pipeline.store.reader import MapReader
 from pipeline.queries import QueryRecord
-from pipeline.localization.results import outcome, read_records, reason_groups
+from pipeline.localization.results import outcome, read_records, reason_groups, stages_text
 from pipeline.textfiles import write_atomic
 
 from .report_figures import (error_curves, example_figure, natural_key, query_errors, refinement_confidence,
@@ -65,7 +65,7 @@ def _tags_text(tags: Dict) -> str:
     return ", ".join(f"{k}={v}" for k, v in sorted(tags.items()))
 
 
-TEXT_COLUMNS = ("query", "tags", "outcome", "reason", "references")
+TEXT_COLUMNS = ("query", "tags", "outcome", "reason", "stages", "references")
 
 
 def _inputs_digest(output: Path, num_examples: int, thresholds, gt: Dict, units: Optional[str]) -> str:
@@ -114,8 +114,8 @@ def query_table(records: List[Dict], errors: Dict[str, Dict], thresholds, units:
     rows = sorted(records, key=lambda r: (OUTCOME_ORDER[outcome(r)], -_score(errors[r["name"]], thresholds)
                                           if errors[r["name"]]["t"] is not None else float("-inf"), r["name"]))
     cols = ["query", "tags", "outcome", f"error t ({units})", "error R (deg)", f"refined t ({units})",
-            "refined R (deg)", f"prior t ({units})", "prior R (deg)", "confidence", "reason", "references", "points",
-            "iterations", "time (s)"]
+            "refined R (deg)", f"prior t ({units})", "prior R (deg)", "confidence", "reason", "stages", "references",
+            "points", "iterations", "time (s)"]
     out = ["<table id='queries' class='sortable'><thead><tr>"
            + "".join(f"<th data-type='{'text' if c in TEXT_COLUMNS else 'num'}'>{html.escape(c)}</th>" for c in cols)
            + "</tr></thead><tbody>"]
@@ -130,6 +130,7 @@ def query_table(records: List[Dict], errors: Dict[str, Dict], thresholds, units:
             + num(e["refined_t"], ".3f") + num(e["refined_R"], ".2f") + num(e["prior_t"], ".3f")
             + num(e["prior_R"], ".2f") + num(refinement_confidence(r), ".2f")
             + f"<td class='text'>{html.escape(r['reason'])}</td>"
+            f"<td class='text'>{html.escape(stages_text(r))}</td>"
             f"<td class='text refs'>{html.escape(_references_text(r['references']))}</td>"
             + num(r.get("num_points"), "d") + num(r.get("iterations"), "d")
             + num(r.get("timings", {}).get("total"), ".2f") + "</tr>")

@@ -62,10 +62,16 @@ def record_pose(rec: Dict) -> Optional[np.ndarray]:
     return None if T is None else np.asarray(T, np.float64)
 
 
+def stages_text(rec: Dict) -> str:
+    """What each stage before the refinement did, as its notes say (e.g. the SIFT prior's PnP
+    inliers, or that the search took over): where a failure began."""
+    return " | ".join(rec.get("notes") or [])
+
+
 def write_failed(records: Iterable[Dict], path) -> int:
-    """``name<TAB>outcome<TAB>reason`` per query without a verified pose (their line in poses.txt,
-    if any, is the prior); returns the count."""
-    lines = [f"{r['name']}\t{outcome(r)}\t{r['reason']}" for r in records if not r["success"]]
+    """``name<TAB>outcome<TAB>reason<TAB>stages`` per query without a verified pose (their line in
+    poses.txt, if any, is the prior; stages: ``stages_text``); returns the count."""
+    lines = [f"{r['name']}\t{outcome(r)}\t{r['reason']}\t{stages_text(r)}" for r in records if not r["success"]]
     write_atomic(path, "".join(line + "\n" for line in lines))
     return len(lines)
 

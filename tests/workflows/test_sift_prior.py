@@ -45,3 +45,23 @@ def test_sift_brings_in_queries_that_top1_and_search_miss(temple):
     scale = 0.01  # the temple is about 0.1 scene units across: 1 % of the viewing distance, 1 deg
     assert all(R > 2.0 for _, R in errors["top1"] + errors["search"])
     assert all(t < scale and R < 1.0 for t, R in errors["sift"])
+
+
+def test_failed_txt_and_the_report_say_that_pnp_failed_and_the_search_took_over(temple):
+    """Where PnP finds too few inliers, the sift prior hands the query to the search; a query
+    without a verified pose then says, in failed.txt and the report, which stage failed first."""
+    from pipeline.localization.sift import FALLBACK, NOTE, SiftConfig
+    from pipeline.localization.verify import VerificationConfig
+    from workflows.report import make_report
+    job, queries, work = temple
+    strict = dataclasses.replace(job.localizer, verification=VerificationConfig(min_confidence=1.01))
+    job = dataclasses.replace(job, prior="sift", sift=SiftConfig(min_inliers=100_000), localizer=strict)
+    run_sync(plan_localization(job, queries, work / "no-pnp"))
+    lines = [line.split("\t") for line in (work / "no-pnp" / "failed.txt").read_text().splitlines()]
+    assert sorted(line[0] for line in lines) == sorted(HELD_OUT) and all(len(line) == 4 for line in lines)
+    for name, outcome, reason, stages in lines:
+        first, *rest = stages.split(" | ")
+        assert outcome == "rejected" and first.startswith(NOTE) and first.endswith(FALLBACK)
+        assert rest and rest[-1].startswith("search: ")
+    page = make_report(work / "no-pnp", queries, num_examples=1).read_text()
+    assert "<th data-type='text'>stages</th>" in page and page.count(FALLBACK) >= len(HELD_OUT)
