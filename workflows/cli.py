@@ -85,6 +85,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     bench = sub.add_parser("benchmark", help="run a benchmark and print figures against its baseline")
     bench_sub = bench.add_subparsers(dest="benchmark", metavar="NAME", required=True)
+    from .benchmarks import accuracy as bench_accuracy
     from .benchmarks import build_map as bench_build_map
     from .benchmarks import lm as bench_lm
     from .benchmarks import localize as bench_localize
@@ -103,7 +104,9 @@ def build_parser() -> argparse.ArgumentParser:
             ("search", bench_search, "recall and time of the search prior against top1, average, hypotheses"),
             ("scale", bench_scale,
              "S1-S5, P3: an Aachen-size store, cities built and localized at size, adding a session"),
-            ("storage", bench_storage, "bytes per observation and recall of int8 against float16 feature storage")]:
+            ("storage", bench_storage, "bytes per observation and recall of int8 against float16 feature storage"),
+            ("accuracy", bench_accuracy,
+             "recall, precision and time per prior on every posed real scene, against SIFT + PnP")]:
         p = bench_sub.add_parser(name, help=text)
         module.add_arguments(p)
         p.set_defaults(func=module.main)

@@ -121,6 +121,16 @@ def kept(names: Sequence[str], hold_out: Sequence[str]) -> List[bool]:
     return [n not in held for n in names]
 
 
+def pose_txt_images(source: MapSource) -> List:
+    """The RGB-D frames of a ``posetxt`` source, with its intrinsics and depth settings."""
+    if len(source.intrinsics) != 4:
+        raise ValueError("A posetxt source needs --intrinsics FX FY CX CY (COLMAP convention).")
+    path = Path(source.path)
+    width, height = read_image(next((path / "color").iterdir())).shape[1::-1]
+    camera = CameraRecord("PINHOLE", width, height, tuple(source.intrinsics))
+    return read_pose_txt(path, camera, source.depth_scale, source.depth_ext)
+
+
 def load_scene(source: MapSource, work_dir: Path, pairs: PairsConfig = PairsConfig(),
                progress: Callable = Silent) -> Scene:
     """The Scene of ``source`` without its held-out images; SfM and triangulation write their
@@ -145,12 +155,7 @@ def load_scene(source: MapSource, work_dir: Path, pairs: PairsConfig = PairsConf
             raise ValueError("A 7scenes source needs --sequences (e.g. 2 3, the official training split).")
         scene = rgbd_scene(posed(read_7scenes(path, source.sequences)), method=source.rgbd_points)
     elif source.kind == "posetxt":
-        if len(source.intrinsics) != 4:
-            raise ValueError("A posetxt source needs --intrinsics FX FY CX CY (COLMAP convention).")
-        width, height = read_image(next((path / "color").iterdir())).shape[1::-1]
-        camera = CameraRecord("PINHOLE", width, height, tuple(source.intrinsics))
-        images = read_pose_txt(path, camera, source.depth_scale, source.depth_ext)
-        scene = rgbd_scene(posed(images), method=source.rgbd_points)
+        scene = rgbd_scene(posed(pose_txt_images(source)), method=source.rgbd_points)
     else:
         raise ValueError(f"Unknown map source {source.kind!r}; known: {', '.join(KINDS)}.")
     if source.kind == "colmap" and source.hold_out:
@@ -162,7 +167,8 @@ def load_scene(source: MapSource, work_dir: Path, pairs: PairsConfig = PairsConf
 QUERY_KINDS = ("list", "7scenes", *POSED_FORMATS, "colmap", "synthetic")
 
 
-def _as_query(image, tags=None) -> QueryRecord:
+def as_query(image, tags=None) -> QueryRecord:
+    """A posed image as a query: its pose is the ground truth."""
     return QueryRecord(image.name, image.path, image.camera, {**image.tags, **dict(tags or {})},
                        np.asarray(image.cam_from_world))
 
@@ -184,11 +190,11 @@ def load_queries(kind: str, path: Path, images: Optional[Path] = None, sequences
     elif kind == "7scenes":
         if not sequences:
             raise ValueError("7scenes queries need --query-sequences (official test split: 1 4).")
-        queries = [_as_query(im) for im in read_7scenes(path, sequences)]
+        queries = [as_query(im) for im in read_7scenes(path, sequences)]
     elif kind in POSED_FORMATS:
-        queries = [_as_query(im) for im in posed_images(kind, path, images)[0]]
+        queries = [as_query(im) for im in posed_images(kind, path, images)[0]]
     elif kind == "colmap":
-        queries = [_as_query(im) for im in read_colmap(path, images or path.parent / "images").images]
+        queries = [as_query(im) for im in read_colmap(path, images or path.parent / "images").images]
     elif kind == "synthetic":  # a generated scene (the demo's outputs/demo/scene), with ground truth
         from pipeline.data.synthetic import read_synthetic
         queries = read_synthetic(path)[1]

@@ -225,10 +225,12 @@ def localize_queries(job: LocalizationJob, reader: MapReader, localizer: Localiz
 
 
 def _add_time(result: QueryResult, candidates: List[QueryResult], own: Dict[str, float]) -> None:
-    """The query's time: before the LM (``own``), plus every refined start's (``timings['total']``
-    of each candidate: its reference features, network pass and share of the batched LM)."""
+    """The query's time: before the LM (``timings['prior']``: its image, retrieval and prior, from
+    ``own``), plus every refined start's (``timings['total']`` of each candidate: its reference
+    features, network pass and share of the batched LM)."""
     refined = sum(c.timings.get("total", 0.0) for c in candidates)
-    result.timings["total"] = own.get(result.name, 0.0) + refined
+    result.timings["prior"] = own.get(result.name, 0.0)
+    result.timings["total"] = result.timings["prior"] + refined
 
 
 def retrieve_queries(job: LocalizationJob, queries: List[QueryRecord], out_path) -> Dict[str, Dict]:

@@ -18,7 +18,7 @@ import dataclasses
 import os
 import time
 from pathlib import Path
-from typing import Dict, List
+from typing import Dict, List, Tuple
 
 import numpy as np
 
@@ -69,12 +69,12 @@ def _sources(args, fconf):
             yield key, sacre_coeur(args.shared, args.work, SACRE_COEUR_FEATURES, night=key == "sacre_coeur_night",
                                    day=key == "sacre_coeur")
         elif key == "virtual_gallery":
-            yield key, list(_virtual_gallery(args.shared, args.work, fconf))
+            yield key, list(virtual_gallery_map(args.shared, args.work, fconf))
         else:
             raise ValueError(f"Unknown scene {key!r}: use {', '.join(SCENES)}.")
 
 
-def _virtual_gallery(shared: Path, work: Path, fconf):
+def virtual_gallery_map(shared: Path, work: Path, fconf):
     from pipeline.mapping.readers.colmap import triangulate_known_poses
     from pipeline.mapping.readers.kapture import read_kapture
     from workflows.sources import load_queries
@@ -96,43 +96,54 @@ def _truth_file(queries, out: Path) -> Path:
     return path
 
 
-def main(args: argparse.Namespace) -> int:
+def localize_priors(parts, priors: List[str], runs: Path, lconf: LocalizerConfig, retrieval: RetrievalConfig
+                    ) -> Tuple[Dict[str, Dict], Dict[str, np.ndarray]]:
+    """Every (name, store, queries) part of a scene localized with each prior (runs kept in
+    ``runs/NAME/PRIOR``: a rerun reads them back). Returns {prior: {"records", "time"}} (``time``:
+    the runs' wall seconds; with ``sift`` also the peer ``sift-pnp``, its time that of the sift
+    runs' stages before the LM) and the queries' ground truth."""
     from workflows.cli_localize import store_feature_config
+    per_prior: Dict[str, Dict] = {p: {"records": [], "time": 0.0} for p in priors}
+    gt = {}
+    for name, store, queries in parts:
+        conf = store_feature_config(store)
+        gt.update({q.name: q.cam_from_world_gt for q in queries})
+        base = LocalizationJob(str(store), conf, conf.model, lconf, retrieval)
+        for prior in priors:
+            out = runs / name.replace("/", "-") / prior
+            job = dataclasses.replace(base, prior=prior)
+            if prior == "truth":
+                job = dataclasses.replace(base, prior="poses", prior_poses=str(_truth_file(queries, out)))
+            plan = plan_localization(job, queries, out, shard_size=8)
+            t0 = time.perf_counter()
+            records = run_sync(plan)
+            elapsed = time.perf_counter() - t0
+            if plan.todo:  # timed now; a rerun reads the time of the run that made them
+                (out / "wall_s.txt").write_text(f"{elapsed:.3f}\n")
+            if prior == "truth":  # the refined pose itself, verified or not (a rejected one keeps the truth)
+                records = [dict(r, success=r["refined"] is not None) for r in records]
+            per_prior[prior]["records"] += records
+            per_prior[prior]["time"] += float((out / "wall_s.txt").read_text())
+            if prior == "sift":  # the peer: the PnP pose alone, where PnP found one
+                peer = per_prior.setdefault("sift-pnp", {"records": [], "time": 0.0})
+                peer["records"] += [pnp_only(r) for r in records]
+                peer["time"] += sum(r.get("timings", {}).get("prior", 0.0) for r in records)
+    return per_prior, gt
+
+
+def main(args: argparse.Namespace) -> int:
     fconf = FeatureConfig(model=DEFAULT_MODEL, resize=512, image_scales=(1,))
     lconf = LocalizerConfig(num_dbs=3, num_iters=50)
     rows: List[Dict] = []
     for key, parts in _sources(args, fconf):
-        per_prior: Dict[str, Dict] = {p: {"records": [], "time": 0.0} for p in args.priors}
-        gt = {}
-        for name, store, queries in parts:
-            conf = store_feature_config(store)
-            gt.update({q.name: q.cam_from_world_gt for q in queries})
-            base = LocalizationJob(str(store), conf, conf.model, lconf,
-                                   RetrievalConfig(k=5, same_tag="area" if key == "demo" else None))
-            for prior in args.priors:
-                out = args.work / "search-runs" / name.replace("/", "-") / prior
-                job = dataclasses.replace(base, prior=prior)
-                if prior == "truth":
-                    job = dataclasses.replace(base, prior="poses", prior_poses=str(_truth_file(queries, out)))
-                plan = plan_localization(job, queries, out, shard_size=8)
-                t0 = time.perf_counter()
-                records = run_sync(plan)
-                elapsed = time.perf_counter() - t0
-                if plan.todo:  # timed now; a rerun reads the time of the run that made them
-                    (out / "wall_s.txt").write_text(f"{elapsed:.3f}\n")
-                if prior == "truth":  # the refined pose itself, verified or not (a rejected one keeps the truth)
-                    records = [dict(r, success=r["refined"] is not None) for r in records]
-                per_prior[prior]["records"] += records
-                per_prior[prior]["time"] += float((out / "wall_s.txt").read_text())
-                if prior == "sift":  # the peer: the PnP pose alone, where PnP found one
-                    peer = per_prior.setdefault("sift-pnp", {"records": [], "time": None})
-                    peer["records"] += [pnp_only(r) for r in records]  # its time is within sift's, not apart
+        per_prior, gt = localize_priors(parts, args.priors, args.work / "search-runs", lconf,
+                                        RetrievalConfig(k=5, same_tag="area" if key == "demo" else None))
         for prior, v in per_prior.items():
             s = evaluate(v["records"], gt, THRESHOLDS)["all"]
             rows.append({"scene": key, "prior": prior, "n": s["refined"]["count"],
                          "prior_t": s["prior"]["median_t"], "prior_R": s["prior"]["median_R"],
                          **{k: s["refined"][k] for k in s["refined"] if k.startswith("recall@")},
-                         "s_per_query": None if v["time"] is None else v["time"] / max(len(v["records"]), 1)})
+                         "s_per_query": v["time"] / max(len(v["records"]), 1)})
     print(table(rows))
     return 0
 
