@@ -94,6 +94,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scenes", nargs="+", default=list(SCENES), choices=SCENES, help="scenes to run")
     p.add_argument("--priors", nargs="+", default=list(PRIORS), choices=PRIORS,
                    help="priors (sift adds the peer row sift-pnp; top1 the row reference, its start unrefined)")
+    p.add_argument("--resize", type=int, default=512,
+                   help="longer image side of the maps' and queries' features (7-Scenes: 320, Sacre Coeur: "
+                        "1024 with image scales 4 1, as in the other benchmarks, whatever this says)")
     p.add_argument("--limit", type=int, default=0,
                    help="at most this many queries per scene and fold (a quick look; runs kept apart)")
 
@@ -125,15 +128,16 @@ def split_parts(key: str, split: Split, shared: Path, work: Path, fconf: Feature
     source, images, model = _posed(key, split, shared, work)
     for fold in range(split.folds):
         held = held_out([im.name for im in images], split.every, fold)
-        store = work / f"{key}-{fold}.zarr"
+        name = f"{key}-{fold + 1}of{split.every}"  # another split is another map, never a finished one reused
+        store = work / f"{name}.zarr"
         if not store_complete(store, fconf):
             if model is not None:
                 scene = model.subset([i for i, im in enumerate(model.images) if im.name not in set(held)])
             else:
-                scene = load_scene(dataclasses.replace(source, hold_out=tuple(held)), work / f"{key}-{fold}.work")
+                scene = load_scene(dataclasses.replace(source, hold_out=tuple(held)), work / f"{name}.work")
             build_sync(plan_build(scene, store, fconf))
         queries = [as_query(im) for im in images if im.name in set(held)]
-        yield f"{key}-{fold}", store, queries[:limit or None]
+        yield name, store, queries[:limit or None]
 
 
 def scene_parts(key: str, args, fconf: FeatureConfig) -> List[Tuple[str, Path, List]]:
@@ -241,13 +245,14 @@ def goals(rows: List[Dict]) -> List[str]:
     accepted = sum(r["accepted"] for r in rows if r["scene"] != "all" and r["accepted"] is not None)
     wrong = [f"{r['scene']}/{r['prior']}: {w}" for r in rows if r["scene"] != "all" and r["wrong"] for w in r["wrong"]]
     if accepted:
+        named = ", ".join(wrong[:5]) + (f" and {len(wrong) - 5} more" if len(wrong) > 5 else "")
         out.append(f"precision of success {1 - len(wrong) / accepted:.3f} ({len(wrong)} wrong of {accepted} "
-                   f"accepted; goal >= 0.97){': ' + ', '.join(wrong) if wrong else ''}")
+                   f"accepted; goal >= 0.97){': ' + named if wrong else ''}")
     return out
 
 
 def main(args: argparse.Namespace) -> int:
-    fconf = FeatureConfig(model=DEFAULT_MODEL, resize=512, image_scales=(1,))
+    fconf = FeatureConfig(model=DEFAULT_MODEL, resize=args.resize, image_scales=(1,))
     lconf = LocalizerConfig(num_dbs=3, num_iters=50)
     args.work.mkdir(parents=True, exist_ok=True)
     runs = args.work / ("runs" if not args.limit else f"runs-limit{args.limit}")
