@@ -17,7 +17,7 @@ from .geometry import Camera, Pose
 from .losses import scaled_barron
 from .optim import FeaturemetricProblem, LevenbergMarquardt
 
-if TYPE_CHECKING:  # importing pixloc.nets here would be circular (nets.checkpoint builds refiners)
+if TYPE_CHECKING:  # importing pixloc.nets here would be circular (nets.registry builds refiners)
     from .nets.unet import UNet
 
 

@@ -1,7 +1,7 @@
 import pytest
 import torch
 
-from pixloc.nets.checkpoint import CheckpointError
+from pixloc.nets.registry import CheckpointError
 from pixloc.nets.registry import (available_models, load_refiner, model_info, save_model, shipped_model_path,
                                   state_digest)
 
