@@ -3,19 +3,20 @@ retrieved references, the matched reference keypoints that lie on the map's obse
 2D-3D correspondences, and pycolmap's absolute pose (LO-RANSAC, then refinement, the query's
 camera) gives the pose. The PixLoc paper positions the method as the refiner of such poses.
 
-Reference features are extracted from the map's images when a query first needs them and kept
-for the process (``reference_sift``); the map stores none of them. A pose needs ``min_inliers``
+Reference descriptors come from the map where it stores them (``build-map --sift``: one per
+observation), else from the map's images when a query first needs them, kept for the process
+(``reference_sift``). A pose needs ``min_inliers``
 PnP inliers; where PnP fails, ``pipeline.localization.priors`` falls back to the search prior.
 """
 
 import functools
-import warnings
 from dataclasses import dataclass
 from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
 from pipeline.images import read_image
+from pipeline.keypoints import MAX_FEATURES, MAX_GAP, extract_sift, from_uint8, nearest_within
 from pipeline.scene import CameraRecord
 from pipeline.store.reader import MapReader
 
@@ -28,9 +29,9 @@ class SiftConfig:
     min_inliers: PnP inliers a pose needs."""
 
     max_size: int = 1600
-    max_features: int = 4096
+    max_features: int = MAX_FEATURES
     ratio: float = 0.85
-    max_gap: float = 2.0
+    max_gap: float = MAX_GAP
     max_error: float = 8.0
     min_inliers: int = 20
 
@@ -66,23 +67,7 @@ def pnp_pose_found(notes) -> bool:
 
 def extract(rgb: np.ndarray, conf: SiftConfig) -> Tuple[np.ndarray, np.ndarray]:
     """Keypoints (N, 2) in COLMAP pixel coordinates of ``rgb`` and L2-normalised descriptors (N, 128)."""
-    import cv2
-    import pycolmap
-
-    gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
-    scale = min(1.0, conf.max_size / max(gray.shape))
-    if scale < 1:
-        gray = cv2.resize(gray, (round(gray.shape[1] * scale), round(gray.shape[0] * scale)),
-                          interpolation=cv2.INTER_AREA)
-    options = pycolmap.FeatureExtractionOptions()
-    options.sift.max_num_features = conf.max_features
-    options.num_threads = 1
-    with warnings.catch_warnings():  # pycolmap 4 deprecates Sift for FeatureExtractor, whose keypoints are
-        warnings.simplefilter("ignore", DeprecationWarning)  # Python objects, one per keypoint: kept for arrays
-        keypoints, descriptors = pycolmap.Sift(options, pycolmap.Device.cpu).extract(np.ascontiguousarray(gray))
-    xy = np.asarray(keypoints[:, :2], np.float64) / scale
-    d = np.asarray(descriptors, np.float32)
-    return xy, d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+    return extract_sift(rgb, conf.max_size, conf.max_features)
 
 
 @functools.lru_cache(maxsize=256)
@@ -107,18 +92,24 @@ def mutual_matches(a: np.ndarray, b: np.ndarray, ratio: float) -> np.ndarray:
     return np.stack([np.flatnonzero(keep), best[keep]], 1)
 
 
-def nearest_within(query: np.ndarray, points: np.ndarray, gap: float) -> np.ndarray:
-    """For each query position, the index of the nearest of ``points`` within ``gap`` pixels, else -1."""
-    out = np.full(len(query), -1, np.int64)
-    if len(points) == 0 or len(query) == 0:
-        return out
-    for start in range(0, len(query), 1024):
-        q = query[start:start + 1024]
-        d = ((q[:, None, :] - points[None, :, :]) ** 2).sum(-1)
-        j = np.argmin(d, axis=1)
-        ok = d[np.arange(len(q)), j] <= gap ** 2
-        out[start:start + len(q)][ok] = j[ok]
-    return out
+def reference_matches(reader: MapReader, i: int, q_desc: np.ndarray, conf: SiftConfig) -> np.ndarray:
+    """(K, 2): query keypoint, map point, for the query's SIFT matches to reference i that land on
+    its observations. Where the map stores descriptors (``build-map --sift``: one per observation),
+    the query is matched to those; else to the reference image's SIFT (``reference_sift``), and a
+    matched keypoint stands for the observation within ``max_gap`` pixels of it."""
+    obs_point = reader.image_points(i)
+    stored = reader.sift_descriptors(i)
+    if stored is not None:
+        rows = np.flatnonzero(stored.any(1) & (obs_point >= 0))
+        pairs = mutual_matches(q_desc, from_uint8(stored[rows]), conf.ratio)
+        return np.stack([pairs[:, 0], obs_point[rows[pairs[:, 1]]]], 1)
+    camera = reader.cameras[i]
+    r_xy, r_desc = reference_sift(str(reader.image_path(i)), camera.width, camera.height, conf)
+    pairs = mutual_matches(q_desc, r_desc, conf.ratio)
+    obs_xy = reader.image_xy(i)
+    rows = np.flatnonzero(np.isfinite(obs_xy).all(1) & (obs_point >= 0))
+    hit = nearest_within(r_xy[pairs[:, 1]], obs_xy[rows], conf.max_gap) if len(pairs) else np.zeros(0, np.int64)
+    return np.stack([pairs[hit >= 0, 0], obs_point[rows[hit[hit >= 0]]]], 1).astype(np.int64)
 
 
 def sift_pnp(reader: MapReader, dbs: List[int], rgb: np.ndarray, camera: CameraRecord,
@@ -130,17 +121,10 @@ def sift_pnp(reader: MapReader, dbs: List[int], rgb: np.ndarray, camera: CameraR
     point_of: Dict[int, int] = {}  # query keypoint -> map point (the first reference's wins)
     per_ref = []
     for i in dbs:
-        ref_camera = reader.cameras[i]
-        r_xy, r_desc = reference_sift(str(reader.image_path(i)), ref_camera.width, ref_camera.height, conf)
-        pairs = mutual_matches(q_desc, r_desc, conf.ratio)
-        obs_xy, obs_point = reader.image_xy(i), reader.image_points(i)
-        valid = np.isfinite(obs_xy).all(1) & (obs_point >= 0)
-        rows = np.flatnonzero(valid)
-        hit = nearest_within(r_xy[pairs[:, 1]], obs_xy[rows], conf.max_gap) if len(pairs) else np.zeros(0, int)
         found = 0
-        for (k, _), h in zip(pairs, hit):
-            if h >= 0 and k not in point_of:
-                point_of[int(k)] = int(obs_point[rows[h]])
+        for k, point in reference_matches(reader, i, q_desc, conf):
+            if k not in point_of:
+                point_of[int(k)] = int(point)
                 found += 1
         per_ref.append(found)
     keys = sorted(point_of)

@@ -10,7 +10,7 @@ when it projects inside the image and inside the interpolation margin.
 
 import logging
 from dataclasses import asdict, dataclass
-from typing import Dict, List, Tuple
+from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 import torch
@@ -20,6 +20,7 @@ from pixloc.nets.registry import DEFAULT_MODEL
 from pixloc.nets.unet import UNet
 
 from pipeline.images import read_image_for, resize_max, to_tensor
+from pipeline.keypoints import MAX_FEATURES, MAX_GAP, extract_sift, observation_descriptors
 from pipeline.scene import ImageRecord
 
 logger = logging.getLogger(__name__)
@@ -49,6 +50,10 @@ class FeatureConfig:
         sample of its images when the feature group is created, stored with it); readers
         reconstruct the full channels. With int8, two image scales fit in about 300 bytes per
         observation (docs/map_store.md).
+    sift: 0 (default) stores no local features; N > 0 also stores, per observation, the SIFT
+        descriptor (extracted at a longer side of N pixels, 4,096 per image) of the keypoint
+        within 2 pixels of it, for the ``sift`` prior (128 bytes per observation; zeros where no
+        keypoint is near).
     """
 
     model: str = DEFAULT_MODEL
@@ -58,6 +63,7 @@ class FeatureConfig:
     dtype: str = "float16"
     descriptor: str = "gem"
     pca: int = 0
+    sift: int = 0
 
     def __post_init__(self):
         if self.dtype not in DTYPES:
@@ -66,12 +72,15 @@ class FeatureConfig:
             raise ValueError(f"Unknown global descriptor {self.descriptor!r}; known: {', '.join(DESCRIPTORS)}.")
         if self.pca < 0:
             raise ValueError(f"pca must be 0 (off) or a number of components, not {self.pca}.")
+        if self.sift and self.sift < 64:
+            raise ValueError(f"sift must be 0 (off) or a longer image side of at least 64 pixels, not {self.sift}.")
 
     def to_dict(self) -> Dict:
         d = asdict(self)
         d["image_scales"] = list(self.image_scales)
-        if not self.pca:  # stores made before the option have no such key
-            del d["pca"]
+        for key in ("pca", "sift"):  # stores made before these options have no such keys
+            if not d[key]:
+                del d[key]
         return d
 
     def stored_dims(self, dims: List[int]) -> List[int]:
@@ -86,6 +95,7 @@ class ImageFeatures:
 
     samples: Dict[Tuple[int, int], Tuple[np.ndarray, np.ndarray, np.ndarray]]
     global_descriptor: np.ndarray
+    sift: Optional[np.ndarray] = None  # (K, 128) uint8 per observation, with FeatureConfig.sift
 
 
 def gem(features: torch.Tensor, p: float = 3.0) -> torch.Tensor:
@@ -134,5 +144,12 @@ def extract_image_features(net: UNet, conf: FeatureConfig, image: ImageRecord, p
                                    (inside & visible.to(inside.device)).cpu().numpy())
         if image_scale == 1 or k == len(conf.image_scales) - 1:
             descriptor = global_descriptor(pred["features"][-1][0], conf.descriptor).cpu().numpy()
-    return ImageFeatures(samples, descriptor)
+    sift = None
+    if conf.sift:  # the observations where the image's camera sees them, COLMAP pixels
+        xy, d = extract_sift(rgb, conf.sift, MAX_FEATURES)
+        xy *= np.array([image.camera.width / rgb.shape[1], image.camera.height / rgb.shape[0]])
+        p2d, visible = image.camera.to_pixloc(torch.float64).cam2image(p3d_cam)
+        observed = np.where(visible.numpy()[:, None], p2d.numpy() + 0.5, np.nan)
+        sift = observation_descriptors(xy, d, observed, MAX_GAP)
+    return ImageFeatures(samples, descriptor, sift)
 

@@ -13,6 +13,7 @@ import zarr
 from pipeline.store.compression import project, quantize_int8
 from pipeline.mapping.features import FeatureConfig, ImageFeatures
 from pipeline.images import file_sha256
+from pipeline.keypoints import DESCRIPTOR_DIM
 from pipeline.store.layout import (DONE, FAILED, PENDING, StoreError, get_array, image_rows, new_array,
                     new_rows_array, padded_rows, read)
 
@@ -35,6 +36,8 @@ def check_feature_group(group: zarr.Group, meta: Dict, path) -> None:
             if kept < d:
                 expected[f"s{k}/pca_mean_{level}"] = (d,)
                 expected[f"s{k}/pca_basis_{level}"] = (d, kept)
+    if group.attrs["config"].get("sift"):
+        expected["sift"] = (R, DESCRIPTOR_DIM)
     for name, shape in expected.items():
         array = get_array(group, name, path)
         if tuple(array.shape[1:]) != shape[1:] or array.shape[0] < shape[0] or (
@@ -64,7 +67,8 @@ def feature_key(conf: FeatureConfig) -> str:
     dtype = "" if conf.dtype == "float16" else f"_{conf.dtype}"
     descriptor = "" if conf.descriptor == "gem" else f"_{conf.descriptor}"
     pca = f"_pca{conf.pca}" if conf.pca else ""
-    return f"{name}_r{conf.resize}_s{scales}_p{conf.pad}{dtype}{descriptor}{pca}"
+    sift = f"_sift{conf.sift}" if conf.sift else ""
+    return f"{name}_r{conf.resize}_s{scales}_p{conf.pad}{dtype}{descriptor}{pca}{sift}"
 
 
 def descriptor_dim(kind: str, channels: int) -> int:
@@ -121,6 +125,8 @@ def init_features(root: zarr.Group, conf: FeatureConfig, digest: str, dims: List
         new_rows_array(group, f"s{k}/confidences", R, L, "float16" if conf.dtype == "int8" else conf.dtype, meta,
                     fill_value=0)
         new_rows_array(group, f"s{k}/valid", R, L, "bool", meta, fill_value=False)
+    if conf.sift:
+        new_rows_array(group, "sift", R, DESCRIPTOR_DIM, "uint8", meta, fill_value=0)
     return group
 
 
@@ -162,6 +168,11 @@ def write_image_features(group: zarr.Group, root: zarr.Group, i: int, feats: Ima
         g["features"][block] = _pad_rows(f.astype(g["features"].dtype), n_pad)
         g["confidences"][block] = _pad_rows(c.astype(g["confidences"].dtype), n_pad)
         g["valid"][block] = _pad_rows(v.astype(bool), n_pad)
+    if "sift" in group:
+        if feats.sift is None or feats.sift.shape != (n, DESCRIPTOR_DIM):
+            raise StoreError(f"Image {i}: the feature group stores SIFT descriptors, {n} rows, and none or other "
+                             "rows were extracted.")
+        group["sift"][block] = _pad_rows(feats.sift, n_pad)
     group["global"][i] = feats.global_descriptor.astype(np.float32)
     group["reason"][i] = ""
     group["status"][i] = DONE

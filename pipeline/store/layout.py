@@ -268,9 +268,8 @@ def extend_store(root: zarr.Group, scene: Scene) -> List[int]:
                 group[name].resize((I2,) + group[name].shape[1:])
                 if name != "global":
                     group[name][I:I2] = PENDING if name == "status" else ""
-            for _, scale in group.groups():
-                for _, array in scale.arrays():
-                    array.resize((R2,) + array.shape[1:])
+            for array in feature_row_arrays(group):
+                array.resize((R2,) + array.shape[1:])
     meta.update(num_images=I2, num_points=P2, num_observations=meta["num_observations"] + len(obs_image),
                 num_rows=R2, scene_observations=len(scene.obs_point))
     root.attrs["pixloc_map"] = meta  # the commit point
@@ -302,9 +301,16 @@ def image_row_arrays(root: zarr.Group, group: Optional[zarr.Group] = None) -> Li
     groups = [group] if group is not None else ([g for _, g in root["features"].groups()] if "features" in root
                                                 else [])
     for g in groups:
-        for _, scale in sorted(g.groups()):
-            arrays += [a for name, a in sorted(scale.arrays()) if not name.startswith("pca_")]
+        arrays += feature_row_arrays(g)
     return arrays
+
+
+def feature_row_arrays(group: zarr.Group) -> List[zarr.Array]:
+    """A feature group's arrays of one row per observation: every image scale's (not its PCA
+    bases) and the SIFT descriptors where it stores them."""
+    arrays = [a for _, scale in sorted(group.groups()) for name, a in sorted(scale.arrays())
+              if not name.startswith("pca_")]
+    return arrays + ([group["sift"]] if "sift" in group else [])
 
 
 def unconsolidate(group: zarr.Group) -> None:

@@ -95,6 +95,7 @@ class MapReader:
         self._cached_bytes = 0
         self._points = functools.lru_cache(maxsize=4 * cache_images)(self._read_points)
         self._xy = functools.lru_cache(maxsize=cache_images)(self._read_xy)  # the sift prior's, per reference
+        self._sift = functools.lru_cache(maxsize=cache_images)(self._read_sift)
 
     def _leave_out_lost(self) -> None:
         """Descriptors are unit vectors: a done image's zero one is a missing chunk read as fill
@@ -143,6 +144,21 @@ class MapReader:
             return np.asarray(array[s], np.float64)
         except Exception as e:  # noqa: BLE001
             raise StoreReadError(f"map store {self.path}: array observations/xy cannot be read for reference "
+                                 f"image {self.names[i]}: {type(e).__name__}: {e}") from None
+
+    def sift_descriptors(self, i: int) -> Optional[np.ndarray]:
+        """Image i's stored SIFT descriptor per observation ((N, 128) uint8, in row order; zeros where
+        no keypoint is near), or None where the map stores none (``FeatureConfig.sift``); cached."""
+        return self._sift(int(i)) if "sift" in self.group else None
+
+    def _read_sift(self, i: int) -> np.ndarray:
+        s = slice(int(self.row_start[i]), int(self.row_start[i] + self.num_obs[i]))
+        array = self.group["sift"]
+        self._check_present(i, [array])
+        try:
+            return np.asarray(array[s])
+        except Exception as e:  # noqa: BLE001
+            raise StoreReadError(f"map store {self.path}: array {array.path} cannot be read for reference "
                                  f"image {self.names[i]}: {type(e).__name__}: {e}") from None
 
     def image_path(self, i: int) -> Path:

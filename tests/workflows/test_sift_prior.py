@@ -65,3 +65,32 @@ def test_failed_txt_and_the_report_say_that_pnp_failed_and_the_search_took_over(
         assert rest and rest[-1].startswith("search: ")
     page = make_report(work / "no-pnp", queries, num_examples=1).read_text()
     assert "<th data-type='text'>stages</th>" in page and page.count(FALLBACK) >= len(HELD_OUT)
+
+
+def test_a_map_that_stores_sift_localizes_without_the_reference_images(temple, shared, monkeypatch):
+    """build-map --sift stores a SIFT descriptor per observation (the SIFT of the map's own
+    triangulation lands within 2 px of nearly every observation); the sift prior then matches the
+    query to them and never reads a reference image."""
+    import pipeline.localization.sift as sift_prior
+    from pipeline.store.check import check_store
+    from pipeline.store.reader import MapReader
+    job, queries, work = temple
+    root = shared / "data" / "middlebury" / "templeRing"
+    scene = load_scene(MapSource("middlebury", root, hold_out=HELD_OUT), work / "work")  # the finished model
+    fconf = dataclasses.replace(job.features, sift=1600)
+    build_map(scene, work / "sift.zarr", fconf)
+    reader = MapReader(work / "sift.zarr", fconf)
+    stored = [reader.sift_descriptors(i) for i in range(len(reader.names))]
+    assert all(d.shape == (n, 128) and d.dtype == np.uint8 for d, n in zip(stored, reader.num_obs))
+    assert np.mean(np.concatenate([d.any(1) for d in stored])) > 0.8
+    assert check_store(work / "sift.zarr").ok
+
+    def no_images(*args):
+        raise AssertionError("a reference image was read")
+    monkeypatch.setattr(sift_prior, "reference_sift", no_images)
+    job = dataclasses.replace(job, store=str(work / "sift.zarr"), features=fconf, prior="sift")
+    records = run_sync(plan_localization(job, queries, work / "stored-sift"))
+    assert all(r["success"] and r["notes"][0].startswith(sift_prior.NOTE) for r in records)
+    for r, q in zip(records, queries):
+        t, R = pose_errors(record_pose(r), q.cam_from_world_gt)
+        assert t < 0.01 and R < 1.0

@@ -97,6 +97,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--resize", type=int, default=512,
                    help="longer image side of the maps' and queries' features (7-Scenes: 320, Sacre Coeur: "
                         "1024 with image scales 4 1, as in the other benchmarks, whatever this says)")
+    p.add_argument("--sift", type=int, default=0, metavar="N",
+                   help="maps that store SIFT descriptors extracted at N px (build-map --sift), which the sift "
+                        "prior then matches instead of extracting the references' (default 0: none)")
     p.add_argument("--limit", type=int, default=0,
                    help="at most this many queries per scene and fold (a quick look; runs kept apart)")
 
@@ -262,7 +265,7 @@ def goals(rows: List[Dict]) -> List[str]:
 
 
 def main(args: argparse.Namespace) -> int:
-    fconf = FeatureConfig(model=DEFAULT_MODEL, resize=args.resize, image_scales=(1,))
+    fconf = FeatureConfig(model=DEFAULT_MODEL, resize=args.resize, image_scales=(1,), sift=args.sift)
     lconf = LocalizerConfig(num_dbs=3, num_iters=50)
     args.work.mkdir(parents=True, exist_ok=True)
     runs = args.work / ("runs" if not args.limit else f"runs-limit{args.limit}")
