@@ -212,6 +212,25 @@ def _first_session(scene, keep):
                  scene.point_ids[used])
 
 
+def test_adding_a_session_to_a_store_of_principal_components_and_sift(maupertuis, tmp_path):
+    """Before: adding a session to a --pca store resized the PCA bases as if they were rows, and the
+    new image's features failed to project (ValueError: operands could not be broadcast). The
+    bases are kept; the per-observation arrays (features, SIFT descriptors) grow with the rows."""
+    from pipeline.store.reader import MapReader
+    conf = FeatureConfig(resize=256, image_scales=(1,), pca=8, sift=640)
+    path = tmp_path / "map.zarr"
+    build_map(_first_session(maupertuis, [0, 1, 2]), path, conf)
+    group = open_store(path)[f"features/{feature_key(conf)}"]
+    bases = {name: a[:] for name, a in group["s0"].arrays() if name.startswith("pca_")}
+    assert [r.status for r in build_map(maupertuis, path, conf)] == ["done"]
+    group = open_store(path)[f"features/{feature_key(conf)}"]
+    assert all(np.array_equal(group["s0"][name][:], b) for name, b in bases.items())
+    reader = MapReader(path, conf)
+    assert all(reader.sift_descriptors(i).shape == (n, 128) for i, n in enumerate(reader.num_obs))
+    cover = [reader.sift_descriptors(i).any(1).mean() for i in range(4)]
+    assert min(cover) > 0.02 and cover[3] > 0.5 * np.mean(cover[:3]), cover  # the new image's own, not fill
+
+
 def test_adding_a_mapping_session_extracts_only_the_new_images(built, maupertuis, tmp_path, monkeypatch):
     """A map of 3 images, then the model extended with a 4th: the store keeps its rows, adds the new
     image, its observations and the points only it sees (the others matched by COLMAP id), and
