@@ -1,9 +1,10 @@
 """Benchmark: what int8 (and PCA) feature storage saves on disk, and what it costs in localization.
 
 For each scene and storage type (``--storage``: ``float16``, the default, and ``int8``; a PCA of D
-components as ``int8-pcaD``), at ``--image-scales`` (default 1), the same map is built
-(leave-one-out on Strecha fountain-P11 and Herz-Jesus-P8, the demo scene, 7scenes_stairs; the
-triangulations and the demo scene of the verification benchmark in ``--work`` are reused) and
+components as ``int8-pcaD``; SIFT descriptors stored for the sift prior as ``-siftN`` after
+either), at ``--image-scales`` (default 1), the same map is built (leave-one-out on Strecha
+fountain-P11 and Herz-Jesus-P8, the demo scene, 7scenes_stairs; the triangulations and the demo
+scene of the verification benchmark in ``--work`` are reused) and
 its queries are localized from retrieval (top-1 prior, verification on). Per scene and type:
 bytes on disk per observation (the feature group, and the whole store), files per image, and
 recall at (5 cm, 1 deg), (25 cm, 2 deg), (1 m, 5 deg), with the change from float16 in points.
@@ -51,7 +52,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scenes", nargs="+", default=list(SCENES), choices=SCENES, help="scenes to run")
     p.add_argument("--storage", nargs="+", default=list(DTYPES), metavar="TYPE",
                    help="storage types compared with the first: float16, int8, float32, optionally with a PCA "
-                        "of D components as TYPE-pcaD (e.g. int8-pca48); default float16 int8")
+                        "of D components as TYPE-pcaD (e.g. int8-pca48), and SIFT descriptors stored for the sift "
+                        "prior with -siftN (e.g. float16-sift1600); default float16 int8")
     p.add_argument("--image-scales", type=int, nargs="+", default=[1],
                    help="image scales of the maps (default 1; the official multiscale is 4 1, with --resize 1024: "
                         "at 512, the coarse image is too small for the coarsest level)")
@@ -86,9 +88,10 @@ def store_bytes(store: Path, conf: FeatureConfig) -> Dict[str, float]:
 
 
 def storage_config(base: FeatureConfig, variant: str) -> FeatureConfig:
-    """``TYPE`` or ``TYPE-pcaD`` -> the feature config with that storage."""
+    """``TYPE``, ``TYPE-pcaD``, with ``-siftN`` after either -> the feature config with that storage."""
+    variant, _, sift = variant.partition("-sift")
     dtype, _, pca = variant.partition("-pca")
-    return dataclasses.replace(base, dtype=dtype, pca=int(pca or 0))
+    return dataclasses.replace(base, dtype=dtype, pca=int(pca or 0), sift=int(sift or 0))
 
 
 def scene_rows(args, key: str) -> List[Dict]:
