@@ -152,7 +152,6 @@ def write_image_features(group: zarr.Group, root: zarr.Group, i: int, feats: Ima
     shard = root.attrs["pixloc_map"]["shard_rows"]
     n = rows.stop - rows.start
     block = slice(rows.start, rows.start + int(padded_rows(np.array(n), shard)))
-    n_pad = block.stop - block.start
     dims = [int(d) for d in group.attrs["dims"]]
     bases, stored = pca_bases(group), stored_dims(group)
     for k in range(len(group.attrs["config"]["image_scales"])):
@@ -164,24 +163,27 @@ def write_image_features(group: zarr.Group, root: zarr.Group, i: int, feats: Ima
         g = group[f"s{k}"]
         if "scales" in g:
             f, scales = quantize_int8(f, stored)
-            g["scales"][block] = _pad_rows(scales, n_pad)
-        g["features"][block] = _pad_rows(f.astype(g["features"].dtype), n_pad)
-        g["confidences"][block] = _pad_rows(c.astype(g["confidences"].dtype), n_pad)
-        g["valid"][block] = _pad_rows(v.astype(bool), n_pad)
+            _write_rows(g["scales"], block, scales)
+        _write_rows(g["features"], block, f)
+        _write_rows(g["confidences"], block, c)
+        _write_rows(g["valid"], block, v)
     if "sift" in group:
         if feats.sift is None or feats.sift.shape != (n, DESCRIPTOR_DIM):
             raise StoreError(f"Image {i}: the feature group stores SIFT descriptors, {n} rows, and none or other "
                              "rows were extracted.")
-        group["sift"][block] = _pad_rows(feats.sift, n_pad)
+        _write_rows(group["sift"], block, feats.sift)
     group["global"][i] = feats.global_descriptor.astype(np.float32)
     group["reason"][i] = ""
     group["status"][i] = DONE
 
 
-def _pad_rows(x: np.ndarray, n: int) -> np.ndarray:
-    out = np.zeros((n,) + x.shape[1:], x.dtype)
-    out[: len(x)] = x
-    return out
+def _write_rows(array: zarr.Array, block: slice, values: np.ndarray) -> None:
+    """An image's rows, padded to its whole block, written even where they are all fill values (a
+    valid mask all False, SIFT descriptors all zero): zarr would otherwise leave the shard out, and
+    a done image's absent shard is a missing file to every reader (``missing_objects``)."""
+    out = np.zeros((block.stop - block.start,) + values.shape[1:], array.dtype)
+    out[: len(values)] = values
+    array.with_config({"write_empty_chunks": True})[block] = out
 
 
 def consolidate(root: zarr.Group, group: zarr.Group) -> None:

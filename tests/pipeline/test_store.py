@@ -231,6 +231,19 @@ def test_adding_a_session_to_a_store_of_principal_components_and_sift(maupertuis
     assert min(cover) > 0.02 and cover[3] > 0.5 * np.mean(cover[:3]), cover  # the new image's own, not fill
 
 
+def test_an_image_whose_rows_are_all_fill_values_is_not_missing(maupertuis, tmp_path):
+    """Before: zarr leaves out a shard whose rows are all fill values, so an image whose SIFT
+    descriptors were all zeros (no keypoint within 2 px of its observations; virtual_gallery's
+    rgb_00224) read as a missing file and failed every query that used it."""
+    from pipeline.store.check import check_store
+    from pipeline.store.reader import MapReader
+    conf = FeatureConfig(resize=128, image_scales=(1,), sift=64)  # at 64 px, hardly a keypoint
+    build_map(maupertuis, tmp_path / "map.zarr", conf)
+    reader = MapReader(tmp_path / "map.zarr", conf)
+    stored = [reader.sift_descriptors(i) for i in range(len(reader.names))]  # no StoreReadError
+    assert any(not d.any() for d in stored) and check_store(tmp_path / "map.zarr").ok
+
+
 def test_adding_a_mapping_session_extracts_only_the_new_images(built, maupertuis, tmp_path, monkeypatch):
     """A map of 3 images, then the model extended with a 4th: the store keeps its rows, adds the new
     image, its observations and the points only it sees (the others matched by COLMAP id), and
