@@ -145,11 +145,9 @@ def extract_image_features(net: UNet, conf: FeatureConfig, image: ImageRecord, p
         if image_scale == 1 or k == len(conf.image_scales) - 1:
             descriptor = global_descriptor(pred["features"][-1][0], conf.descriptor).cpu().numpy()
     sift = None
-    if conf.sift:  # the observations where the image's camera sees them, COLMAP pixels
-        xy, d = extract_sift(rgb, conf.sift, MAX_FEATURES)
-        xy *= np.array([image.camera.width / rgb.shape[1], image.camera.height / rgb.shape[0]])
-        p2d, visible = image.camera.to_pixloc(torch.float64).cam2image(p3d_cam)
+    if conf.sift:  # keypoints and observations in the pixels of the image read (COLMAP convention)
+        p2d, visible = camera.cam2image(p3d_cam)
         observed = np.where(visible.numpy()[:, None], p2d.numpy() + 0.5, np.nan)
-        sift = observation_descriptors(xy, d, observed, MAX_GAP)
+        sift = observation_descriptors(*extract_sift(rgb, conf.sift, MAX_FEATURES), observed, MAX_GAP)
     return ImageFeatures(samples, descriptor, sift)
 
