@@ -17,6 +17,7 @@ from typing import Dict, List, Optional
 from pipeline.mapping.build import ImageResult, extract_features, finish_build, pending_images, write_structure
 from pipeline.models import network
 from pipeline.mapping.features import FeatureConfig
+from pipeline.keypoints import DESCRIPTOR_DIM
 from pipeline.scene import Scene
 
 from . import executor
@@ -43,13 +44,15 @@ class BuildPlan:
     def expected_bytes(self) -> int:
         """Approximate store size before compression: per observation and scale, the features
         (2 bytes per channel in float16, 1 in int8 plus a scale per level, 4 in float32), then a
-        confidence and a valid flag per level; padding rows are not stored."""
+        confidence and a valid flag per level, and 128 bytes of SIFT descriptor with ``conf.sift``
+        (before compression: zeros where no keypoint is near); padding rows are not stored."""
         n_obs = len(self.scene.obs_point)
         dims = self.conf.stored_dims(self.dims)
         width = {"float16": 2, "int8": 1, "float32": 4}[self.conf.dtype]
         conf = 4 if self.conf.dtype == "float32" else 2
         per_level = conf + 1 + (2 if self.conf.dtype == "int8" else 0)
         per_obs = len(self.conf.image_scales) * (width * sum(dims) + per_level * len(dims)) + 8 + 8
+        per_obs += DESCRIPTOR_DIM if self.conf.sift else 0
         return n_obs * per_obs + len(self.scene.points) * 28 + len(self.scene.images) * (4 * self.dims[-1] + 200)
 
     def describe(self) -> str:

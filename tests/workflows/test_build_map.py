@@ -112,6 +112,14 @@ def test_dry_run_prints_the_plan(shared, tmp_path):
     assert "4 images, 1039 points, 3355 observations" in out.stdout
     assert "4 images to extract in 4 tasks" in out.stdout and "expected size" in out.stdout
     assert not (tmp_path / "m.zarr").exists()
+    sizes = []
+    for extra in ([], ["--sift", "1600"]):  # the SIFT descriptors: 128 bytes per observation before compression
+        out = subprocess.run([sys.executable, "-m", "workflows.cli", "build-map", "colmap",
+                              str(root / "reconstruction"), "--images", str(root / "images"), "--store",
+                              str(tmp_path / "m.zarr"), "--dry-run", *extra], capture_output=True, text=True, cwd=ROOT)
+        sizes.append(float(out.stdout.split("expected size")[1].split()[0]))
+        assert ("'sift': 1600" in out.stdout) == bool(extra)
+    assert abs((sizes[1] - sizes[0]) * 2**20 - 128 * 3355) < 0.1 * 2**20
 
 
 def test_rgbd_pose_txt_source_plan(shared, tmp_path):
