@@ -50,3 +50,10 @@ def test_a_rerun_reads_the_runs_back(run, shared):
           "--priors", "top1", "sift", "--limit", "1"])
     again = json.loads((work / "rows.json").read_text())
     assert {(r["scene"], r["prior"]): r["s_per_query"] for r in again} == before  # the same runs, not new ones
+
+
+def test_a_work_folder_of_other_feature_settings_is_refused(run, shared, capsys):
+    _, _, work = run
+    with pytest.raises(SystemExit, match="--resize, --sift"):
+        main(["benchmark", "accuracy", "--shared", str(shared), "--work", str(work), "--scenes", "kermit",
+              "--resize", "640", "--limit", "1"])

@@ -268,6 +268,11 @@ def main(args: argparse.Namespace) -> int:
     fconf = FeatureConfig(model=DEFAULT_MODEL, resize=args.resize, image_scales=(1,), sift=args.sift)
     lconf = LocalizerConfig(num_dbs=3, num_iters=50)
     args.work.mkdir(parents=True, exist_ok=True)
+    settings = args.work / "features.json"  # one work folder, one feature setting: its maps hold one group
+    if settings.exists() and json.loads(settings.read_text()) != fconf.to_dict():
+        raise SystemExit(f"pixloc: error: {args.work} holds maps of features {settings.read_text().strip()}, "
+                         f"not {json.dumps(fconf.to_dict())} (--resize, --sift): give another --work")
+    settings.write_text(json.dumps(fconf.to_dict()) + "\n")
     runs = args.work / ("runs" if not args.limit else f"runs-limit{args.limit}")
     rows: List[Dict] = []
     remarks = []  # scenes whose map could not be built (with the reason), the night photo's outcome
