@@ -162,12 +162,9 @@ class ImageRecord:
 
     def depth_from_world(self) -> np.ndarray:
         """The depth sensor's pose (3, 4): back-projection, fusion and depth tests use it."""
-        T = np.asarray(self.cam_from_world, np.float64)
         if self.color_from_depth is None:
-            return T
-        C = np.asarray(self.color_from_depth, np.float64)
-        R = C[:, :3].T  # depth_from_color
-        return np.concatenate([R @ T[:, :3], (R @ (T[:, 3] - C[:, 3]))[:, None]], 1)
+            return np.asarray(self.cam_from_world, np.float64)
+        return (Pose.from_matrix(self.color_from_depth).inv() @ Pose.from_matrix(self.cam_from_world)).to_matrix()
 
 
 @dataclass

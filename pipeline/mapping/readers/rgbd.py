@@ -6,6 +6,8 @@ from typing import List, Optional, Sequence
 
 import numpy as np
 
+from pixloc.geometry import Pose
+
 from pipeline.scene import CameraRecord, ImageRecord, SceneError, qvec_to_rotmat
 
 # 7-Scenes practice: colour treated as focal 525, principal point (320, 240);
@@ -80,8 +82,8 @@ def read_7scenes(root, sequences: Sequence[int], tags=None, color_from_depth="au
             pose_file = folder / f"{stem}.pose.txt"
             c2w = _matrix_file(pose_file) if pose_file.is_file() else np.full((4, 4), np.nan)
             pose = _world_to_cam(c2w)
-            if C is not None:
-                pose = np.concatenate([C[:, :3] @ pose[:, :3], (C[:, :3] @ pose[:, 3] + C[:, 3])[:, None]], 1)
+            if C is not None:  # colour_from_world = colour_from_depth @ depth_from_world
+                pose = (Pose.from_matrix(C) @ Pose.from_matrix(pose)).to_matrix()
             images.append(ImageRecord(
                 f"seq-{seq:02d}/{color.name}", color, SEVEN_SCENES_COLOR, pose,
                 {"sequence": f"seq-{seq:02d}", **dict(tags or {})},
