@@ -93,9 +93,12 @@ class MapReader:
         self._blocks: "OrderedDict[Tuple[int, int], Tuple]" = OrderedDict()
         self._cache_limits = (cache_images, cache_bytes)
         self._cached_bytes = 0
-        self._points = functools.lru_cache(maxsize=4 * cache_images)(self._read_points)
-        self._xy = functools.lru_cache(maxsize=cache_images)(self._read_xy)  # the sift prior's, per reference
-        self._sift = functools.lru_cache(maxsize=cache_images)(self._read_sift)
+        self._sift_array = self.group["sift"] if "sift" in self.group else None
+        obs_xy = root["observations/xy"]
+        self._points = functools.lru_cache(maxsize=4 * cache_images)(lambda i: self._image_rows(i, self._obs_point))
+        # the sift prior's, per reference
+        self._xy = functools.lru_cache(maxsize=cache_images)(lambda i: self._image_rows(i, obs_xy).astype(np.float64))
+        self._sift = functools.lru_cache(maxsize=cache_images)(lambda i: self._image_rows(i, self._sift_array))
 
     def _leave_out_lost(self) -> None:
         """Descriptors are unit vectors: a done image's zero one is a missing chunk read as fill
@@ -118,13 +121,14 @@ class MapReader:
                                  f"{len(missing)} of its files are missing ({', '.join(missing[:2])}"
                                  f"{' ...' if len(missing) > 2 else ''}): rebuild it (run pixloc check-store)")
 
-    def _read_points(self, i: int) -> np.ndarray:
-        s = slice(int(self.row_start[i]), int(self.row_start[i] + self.num_obs[i]))
-        self._check_present(i, [self._obs_point])
+    def _image_rows(self, i: int, array) -> np.ndarray:
+        """Image i's rows of a per-observation array, its files checked first; read on demand (the
+        callers cache them per image)."""
+        self._check_present(i, [array])
         try:
-            return self._obs_point[s]
+            return np.asarray(array[int(self.row_start[i]):int(self.row_start[i] + self.num_obs[i])])
         except Exception as e:  # noqa: BLE001
-            raise StoreReadError(f"map store {self.path}: array observations/point cannot be read for reference "
+            raise StoreReadError(f"map store {self.path}: array {array.path} cannot be read for reference "
                                  f"image {self.names[i]}: {type(e).__name__}: {e}") from None
 
     def image_points(self, i: int) -> np.ndarray:
@@ -136,30 +140,10 @@ class MapReader:
         where the source has none: RGB-D maps); read on demand and cached, as ``image_points``."""
         return self._xy(int(i))
 
-    def _read_xy(self, i: int) -> np.ndarray:
-        s = slice(int(self.row_start[i]), int(self.row_start[i] + self.num_obs[i]))
-        array = self._root["observations/xy"]
-        self._check_present(i, [array])
-        try:
-            return np.asarray(array[s], np.float64)
-        except Exception as e:  # noqa: BLE001
-            raise StoreReadError(f"map store {self.path}: array observations/xy cannot be read for reference "
-                                 f"image {self.names[i]}: {type(e).__name__}: {e}") from None
-
     def sift_descriptors(self, i: int) -> Optional[np.ndarray]:
         """Image i's stored SIFT descriptor per observation ((N, 128) uint8, in row order; zeros where
         no keypoint is near), or None where the map stores none (``FeatureConfig.sift``); cached."""
-        return self._sift(int(i)) if "sift" in self.group else None
-
-    def _read_sift(self, i: int) -> np.ndarray:
-        s = slice(int(self.row_start[i]), int(self.row_start[i] + self.num_obs[i]))
-        array = self.group["sift"]
-        self._check_present(i, [array])
-        try:
-            return np.asarray(array[s])
-        except Exception as e:  # noqa: BLE001
-            raise StoreReadError(f"map store {self.path}: array {array.path} cannot be read for reference "
-                                 f"image {self.names[i]}: {type(e).__name__}: {e}") from None
+        return None if self._sift_array is None else self._sift(int(i))
 
     def image_path(self, i: int) -> Path:
         """Image i's file, as recorded at build time."""
