@@ -130,16 +130,16 @@ def split_parts(key: str, split: Split, shared: Path, work: Path, fconf: Feature
     """(name, store, queries) for each fold of the scene; a finished map is reused."""
     source, images, model = _posed(key, split, shared, work)
     for fold in range(split.folds):
-        held = held_out([im.name for im in images], split.every, fold)
+        held = set(held_out([im.name for im in images], split.every, fold))
         name = f"{key}-{fold + 1}of{split.every}"  # another split is another map, never a finished one reused
         store = work / f"{name}.zarr"
         if not store_complete(store, fconf):
             if model is not None:
-                scene = model.subset([i for i, im in enumerate(model.images) if im.name not in set(held)])
+                scene = model.subset([i for i, im in enumerate(model.images) if im.name not in held])
             else:
-                scene = load_scene(dataclasses.replace(source, hold_out=tuple(held)), work / f"{name}.work")
+                scene = load_scene(dataclasses.replace(source, hold_out=tuple(sorted(held))), work / f"{name}.work")
             build_sync(plan_build(scene, store, fconf))
-        queries = [as_query(im) for im in images if im.name in set(held)]
+        queries = [as_query(im) for im in images if im.name in held]
         yield name, store, queries[:limit or None]
 
 
