@@ -82,8 +82,8 @@ SPLITS: Dict[str, Split] = {
     # OpenMVS's scene.mvs is a binary serialization that we do not parse: the poses are an SfM's
     "sceaux": Split(MapSource("sfm", _data("sceaux_castle", "images"))),
 }
-OWN_SPLITS = ("7scenes", "sacre_coeur", "virtual_gallery")  # splits they have in other benchmarks
-METRIC_OWN = {"7scenes": True, "sacre_coeur": False, "virtual_gallery": True}
+# the scenes that keep the splits they have in other benchmarks, and whether each is metric
+OWN_SPLITS = {"7scenes": True, "sacre_coeur": False, "virtual_gallery": True}
 SCENES = ("fountain", "herzjesus", "7scenes", "sacre_coeur", "virtual_gallery", *list(SPLITS)[2:])
 
 
@@ -284,7 +284,7 @@ def main(args: argparse.Namespace) -> int:
             print(f"- {remarks[-1]}", flush=True)
             continue
         scale = scene_scale(parts[0][1])
-        metric = METRIC_OWN[key] if key in OWN_SPLITS else SPLITS[key].metric
+        metric = OWN_SPLITS[key] if key in OWN_SPLITS else SPLITS[key].metric
         per_prior, gt = localize_priors(parts, list(args.priors), runs, lconf, RetrievalConfig(k=5))
         if "top1" in per_prior:  # the prior itself: the top-1 reference's pose, unrefined
             per_prior["reference"] = {"records": [dict(r, success=False) for r in per_prior["top1"]["records"]],
