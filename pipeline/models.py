@@ -7,7 +7,7 @@ from typing import Tuple
 
 from torch import nn
 
-from pixloc.nets.registry import load_refiner, state_digest
+from pixloc.nets.registry import load_refiner
 from pixloc.refiner import TwoViewRefiner
 
 
@@ -20,10 +20,11 @@ def localization_model(model: str, device: str = "cpu") -> Tuple[TwoViewRefiner,
 @functools.lru_cache(maxsize=2)
 def _loaded(model: str, device: str) -> Tuple[TwoViewRefiner, str]:
     refiner = load_refiner(model).to(device).eval()
-    return refiner, state_digest(refiner.extractor)
+    return refiner, refiner.feature_digest()
 
 
 def network(model: str, device: str = "cpu") -> Tuple[nn.Module, str]:
     """The feature network of ``localization_model`` and its digest."""
     refiner, digest = localization_model(model, device)
     return refiner.extractor, digest
+

@@ -6,6 +6,7 @@ of the previous one (Sarlin et al. 2021, Sec. 3.3; official
 ``TwoViewRefiner``).
 """
 
+import hashlib
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Dict, List, Optional, Sequence
 
@@ -83,6 +84,15 @@ class TwoViewRefiner(nn.Module):
         self.success_thresh = success_thresh
         self.clamp_error = clamp_error
         self.autocast_dtype = None  # e.g. torch.bfloat16: the network (not the LM) in mixed precision
+
+    def feature_digest(self) -> str:
+        """What identifies the feature network's weights (a map store records it of its features):
+        SHA-256 (first 16 hex digits) of its parameters and buffers, by name."""
+        h = hashlib.sha256()
+        for name, tensor in sorted(self.extractor.state_dict().items()):
+            h.update(name.encode())
+            h.update(tensor.detach().cpu().contiguous().numpy().tobytes())
+        return h.hexdigest()[:16]
 
     def extract(self, image: Tensor) -> Dict[str, List[Tensor]]:
         if self.autocast_dtype is None:

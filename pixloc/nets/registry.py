@@ -1,5 +1,5 @@
 """Feature models by name or file: the names this project knows, its model file format, official
-PixLoc checkpoints (``checkpoint_best.tar``), and a digest that identifies a network's weights.
+PixLoc checkpoints (``checkpoint_best.tar``), each read into a ``Recipe`` and built in one place.
 
 Names: ``pixloc-lite0`` (the model trained by this project, shipped in the package),
 ``lite0-imagenet`` (its untrained initialisation: ImageNet encoder, seeded random
@@ -11,10 +11,10 @@ the numpy scalar types that official checkpoints store in ``eval`` are allowed. 
 arbitrary pickled code is refused.
 """
 
-import hashlib
+import functools
 import pickle
 import zipfile
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
 from typing import Any, Callable, Dict, Optional
@@ -66,10 +66,21 @@ NAMED: Dict[str, Named] = {
 }
 
 
-def _refiner(net: nn.Module, normalize_features: bool = True) -> TwoViewRefiner:
-    """The network with the official initial damping (LearnedDamping at theta = 0) per level."""
-    solvers = [LevenbergMarquardt(LearnedDamping(), num_iters=100, pad=2) for _ in net.strides]
-    return TwoViewRefiner(net, solvers, normalize_features=normalize_features).eval()
+def _initial_solver() -> LevenbergMarquardt:
+    """The official initial damping (LearnedDamping at theta = 0)."""
+    return LevenbergMarquardt(LearnedDamping(), num_iters=100, pad=2)
+
+
+@dataclass
+class Recipe:
+    """What a model is made of, read and checked before anything is built: its network's
+    constructor, one solver per level, the refiner's options and, for a file, its weights."""
+
+    source: str  # the name or file, for messages
+    network: Callable[[], nn.Module]
+    solver: Callable[[], LevenbergMarquardt] = _initial_solver
+    options: Dict[str, Any] = field(default_factory=dict)  # TwoViewRefiner's keyword arguments
+    state: Optional[Dict[str, torch.Tensor]] = None
 
 
 def available_models() -> Dict[str, str]:
@@ -81,20 +92,41 @@ def shipped_model_path(name: str) -> Path:
     return Path(str(resources.files(__package__) / "weights" / NAMED[name].weights))
 
 
-def load_refiner(spec: str) -> TwoViewRefiner:
-    """A model by name, or from a file saved by ``save_model`` or an official checkpoint."""
+def model_recipe(spec: str) -> Recipe:
+    """The recipe of a model by name, or of a file saved by ``save_model`` or an official checkpoint."""
     named = NAMED.get(spec)
     if named is not None and named.build is not None:
-        return _refiner(named.build().eval(), normalize_features=named.normalize_features)
+        return Recipe(spec, named.build, options={"normalize_features": named.normalize_features})
     if named is not None:
         path = shipped_model_path(spec)
         if not path.is_file():
             raise CheckpointError(f"The package has no weights for {spec!r} ({path} is missing).")
-        return load_model(path)
+        return model_file_recipe(read_checkpoint(path), path)
     if Path(spec).is_file():
         ckpt = read_checkpoint(spec)
-        return _from_model_dict(ckpt, spec) if ckpt.get("format") == MODEL_FORMAT else load_official_checkpoint(spec)
+        return model_file_recipe(ckpt, spec) if ckpt.get("format") == MODEL_FORMAT else official_recipe(ckpt, spec)
     raise ValueError(f"Unknown feature model {spec!r}: give one of {sorted(available_models())} or a model file.")
+
+
+def load_refiner(spec: str) -> TwoViewRefiner:
+    """A model (in eval mode) by name, or from a file saved by ``save_model`` or an official checkpoint."""
+    recipe = model_recipe(spec)
+    return build_refiner(recipe)
+
+
+def build_refiner(recipe: Recipe) -> TwoViewRefiner:
+    """The refiner (in eval mode) that a recipe describes: the one place where one is built."""
+    net = recipe.network().eval()
+    refiner = TwoViewRefiner(net, [recipe.solver() for _ in net.strides], **recipe.options)
+    if recipe.state is not None:
+        try:
+            missing, unexpected = refiner.load_state_dict(recipe.state, strict=False)
+        except RuntimeError as e:  # a tensor of another shape
+            raise CheckpointError(f"{recipe.source} does not match its configuration: {e}") from None
+        if missing or unexpected:
+            raise CheckpointError(f"{recipe.source} does not match its configuration: missing {missing[:5]}, "
+                                  f"unexpected {unexpected[:5]}.")
+    return refiner.eval()
 
 
 def save_model(refiner: TwoViewRefiner, architecture: str, path, info: Optional[Dict[str, Any]] = None,
@@ -119,7 +151,7 @@ def save_model(refiner: TwoViewRefiner, architecture: str, path, info: Optional[
 
 
 def load_model(path) -> TwoViewRefiner:
-    return _from_model_dict(read_checkpoint(path), path)
+    return load_refiner(str(path))
 
 
 def model_info(spec: str) -> Dict[str, Any]:
@@ -131,26 +163,14 @@ def model_info(spec: str) -> Dict[str, Any]:
     return dict(ckpt.get("info", {})) if ckpt.get("format") == MODEL_FORMAT else {}
 
 
-def _from_model_dict(ckpt: Dict[str, Any], path) -> TwoViewRefiner:
+def model_file_recipe(ckpt: Dict[str, Any], path) -> Recipe:
+    """The recipe of a file saved by ``save_model`` (float16 weights are read back as float32)."""
     if ckpt.get("version") != 1 or ckpt.get("architecture") not in ARCHITECTURES:
         raise CheckpointError(f"{path}: unsupported model file (version {ckpt.get('version')}, "
                               f"architecture {ckpt.get('architecture')!r}).")
-    refiner = _refiner(ARCHITECTURES[ckpt["architecture"]](), bool(ckpt.get("normalize_features", True)))
     state = {k: v.float() if v.is_floating_point() else v for k, v in ckpt["state"].items()}
-    try:
-        refiner.load_state_dict(state, strict=True)
-    except RuntimeError as e:
-        raise CheckpointError(f"{path}: weights do not fit the {ckpt['architecture']} network: {e}") from None
-    return refiner.eval()
-
-
-def state_digest(module: nn.Module) -> str:
-    """SHA-256 (first 16 hex digits) of a module's parameters and buffers, by name."""
-    h = hashlib.sha256()
-    for name, tensor in sorted(module.state_dict().items()):
-        h.update(name.encode())
-        h.update(tensor.detach().cpu().contiguous().numpy().tobytes())
-    return h.hexdigest()[:16]
+    return Recipe(f"{path} ({ckpt['architecture']})", ARCHITECTURES[ckpt["architecture"]],
+                  options={"normalize_features": bool(ckpt.get("normalize_features", True))}, state=state)
 
 
 # --- official PixLoc checkpoints ---------------------------------------------------------------
@@ -191,8 +211,13 @@ def _get(conf: Dict, key: str, default=None):
     return conf.get(key, default) if isinstance(conf, dict) else default
 
 
-def refiner_from_conf(conf: Dict[str, Any]) -> TwoViewRefiner:
-    """Build a TwoViewRefiner from an official ``conf['model']`` dict."""
+def official_recipe(ckpt: Dict[str, Any], path) -> Recipe:
+    """The recipe of an official ``checkpoint_best.tar``: its ``conf['model']`` and its weights,
+    renamed to ours."""
+    if not {"model", "conf"} <= set(ckpt) or not isinstance(ckpt["model"], dict):
+        raise CheckpointError(f"{path} is not an official PixLoc checkpoint: expected the keys 'model' and "
+                              f"'conf', found {sorted(map(str, ckpt))}.")
+    conf = _get(ckpt["conf"], "model")
     if _get(conf, "name") != "two_view_refiner":
         raise CheckpointError(f"Unsupported model {_get(conf, 'name')!r}: expected 'two_view_refiner'.")
     ext = _get(conf, "extractor", {})
@@ -202,23 +227,26 @@ def refiner_from_conf(conf: Dict[str, Any]) -> TwoViewRefiner:
     scales = list(_get(ext, "output_scales", [0, 2, 4]))
     dims = _get(ext, "output_dim", 128)
     dims = [dims] * len(scales) if isinstance(dims, int) else list(dims)
-    extractor = vgg_unet(ext["encoder"], decoder=list(_get(ext, "decoder", [64, 64, 64, 64])),
-                         output_scales=scales, output_dims=dims,
-                         compute_confidence=bool(_get(ext, "compute_uncertainty", False)))
+    network = functools.partial(vgg_unet, ext["encoder"], decoder=list(_get(ext, "decoder", [64, 64, 64, 64])),
+                                output_scales=scales, output_dims=dims,
+                                compute_confidence=bool(_get(ext, "compute_uncertainty", False)))
     opt = _get(conf, "optimizer", {})
-    if _get(opt, "name") != "learned_optimizer" or _get(_get(opt, "damping", {}), "type", "constant") != "constant":
+    damping = _get(opt, "damping", {})
+    if _get(opt, "name") != "learned_optimizer" or _get(damping, "type", "constant") != "constant":
         raise CheckpointError(f"Unsupported optimizer {_get(opt, 'name')!r}: expected a "
                               "learned_optimizer with constant damping.")
-    pad = _get(opt, "pad", _get(_get(opt, "interpolation", {}), "pad", 4))
-    solvers = [LevenbergMarquardt(
-        LearnedDamping(tuple(_get(_get(opt, "damping", {}), "log_range", (-6, 5)))),
-        loss=_get(opt, "loss_fn", "squared_loss"), num_iters=int(_get(opt, "num_iters", 100)),
-        pad=int(pad), interpolation=_get(_get(opt, "interpolation", {}), "mode", "linear"))
-        for _ in scales]
-    return TwoViewRefiner(extractor, solvers,
-                          normalize_features=bool(_get(conf, "normalize_features", True)),
-                          success_thresh=float(_get(conf, "success_thresh", 2)),
-                          clamp_error=float(_get(conf, "clamp_error", 50)))
+    interpolation = _get(opt, "interpolation", {})
+
+    def solver() -> LevenbergMarquardt:  # a damping of its own per level
+        return LevenbergMarquardt(LearnedDamping(tuple(_get(damping, "log_range", (-6, 5)))),
+                                  loss=_get(opt, "loss_fn", "squared_loss"), num_iters=int(_get(opt, "num_iters", 100)),
+                                  pad=int(_get(opt, "pad", _get(interpolation, "pad", 4))),
+                                  interpolation=_get(interpolation, "mode", "linear"))
+    options = {"normalize_features": bool(_get(conf, "normalize_features", True)),
+               "success_thresh": float(_get(conf, "success_thresh", 2)),
+               "clamp_error": float(_get(conf, "clamp_error", 50))}
+    return Recipe(f"{path} (official)", network, solver, options,
+                  convert_official_state_dict(ckpt["model"], len(scales)))
 
 
 def convert_official_state_dict(state: Dict[str, torch.Tensor], num_levels: int) -> Dict[str, torch.Tensor]:
@@ -246,14 +274,5 @@ def convert_official_state_dict(state: Dict[str, torch.Tensor], num_levels: int)
 
 def load_official_checkpoint(path) -> TwoViewRefiner:
     """A TwoViewRefiner (in eval mode) from an official ``checkpoint_best.tar``."""
-    ckpt = read_checkpoint(path)
-    if not {"model", "conf"} <= set(ckpt) or not isinstance(ckpt["model"], dict):
-        raise CheckpointError(f"{path} is not an official PixLoc checkpoint: expected the keys 'model' and "
-                              f"'conf', found {sorted(map(str, ckpt))}.")
-    model = refiner_from_conf(_get(ckpt["conf"], "model"))
-    state = convert_official_state_dict(ckpt["model"], len(model.solvers))
-    missing, unexpected = model.load_state_dict(state, strict=False)
-    if missing or unexpected:
-        raise CheckpointError(f"{path} does not match its configuration: missing {missing[:5]}, "
-                              f"unexpected {unexpected[:5]}.")
-    return model.eval()
+    recipe = official_recipe(read_checkpoint(path), path)
+    return build_refiner(recipe)

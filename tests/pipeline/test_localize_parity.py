@@ -20,7 +20,7 @@ from pipeline.textfiles import read_pairs
 from pipeline.mapping.readers.colmap import read_colmap
 from pipeline.localization.verify import VerificationConfig
 from pixloc.geometry import Pose
-from pixloc.nets.registry import load_refiner, state_digest
+from pixloc.nets.registry import load_refiner
 
 
 def as_pose(values) -> Pose:
@@ -51,7 +51,7 @@ def test_official_localization_cases(setup, config, tmp_path):
                           tuple(refinement["multiscale"] or [1]), conf["optimizer"]["pad"], "float32")
     build_map(scene, tmp_path / "map.zarr", fconf)
     refiner = load_refiner(ckpt)
-    reader = MapReader(tmp_path / "map.zarr", fconf, state_digest(refiner.extractor))
+    reader = MapReader(tmp_path / "map.zarr", fconf, refiner.feature_digest())
     localizer = Localizer(refiner.extractor, refiner.solvers, reader, LocalizerConfig(
         num_dbs=refinement["num_dbs"], average_observations=refinement["average_observations"],
         num_iters=conf["optimizer"]["num_iters"],

@@ -135,7 +135,7 @@ def oracle_rows(args) -> List[Dict]:
     from pipeline.mapping.readers.colmap import read_colmap
     from pipeline.localization.verify import VerificationConfig
     from pixloc.geometry import Pose
-    from pixloc.nets.registry import load_refiner, state_digest
+    from pixloc.nets.registry import load_refiner
 
     oracle = args.shared / "oracle"
     ckpt = oracle / "official_megadepth_random" / "checkpoint_best.tar"
@@ -177,7 +177,7 @@ def oracle_rows(args) -> List[Dict]:
                                   tuple(refinement["multiscale"] or [1]), conf["optimizer"]["pad"], dtype)
             store = args.work / "storage" / "oracle" / f"{config}-{dtype}.zarr"
             build_map(scene, store, fconf)
-            reader = MapReader(store, fconf, state_digest(refiner.extractor))
+            reader = MapReader(store, fconf, refiner.feature_digest())
             localizer = Localizer(refiner.extractor, refiner.solvers, reader, LocalizerConfig(
                 num_dbs=refinement["num_dbs"], average_observations=refinement["average_observations"],
                 num_iters=conf["optimizer"]["num_iters"], verification=VerificationConfig(enabled=False)))
