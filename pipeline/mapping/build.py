@@ -19,11 +19,12 @@ from pipeline.models import network
 from pipeline.runtime import restore_malloc_thresholds, torch_threads
 from pipeline.scene import Scene
 from pipeline.store.compression import fit_pca
-from pipeline.store.feature_groups import consolidate, feature_key, init_features, mark_failed, write_image_features
+from pipeline.store.feature_groups import feature_key, init_features, mark_failed, write_image_features
 from pipeline.store.layout import (
     DONE,
     FAILED,
     PENDING,
+    consolidate,
     consolidated,
     create_store,
     image_records,
@@ -122,11 +123,11 @@ def extract_features(store_path, conf: FeatureConfig, indices: Sequence[int], de
 
 
 def _extract_features(store_path, conf, indices, device, overwrite) -> List[ImageResult]:
-    root = open_store(store_path, mode="r+")
     net, digest = network(conf.model, device)
-    group = init_features(root, conf, digest, list(net.output_dims))  # refuses another model
+    root = open_store(store_path, mode="r+")
     images = image_records(root)
     xyz = root["points/xyz"][:]
+    group = init_features(root, conf, digest, list(net.output_dims))  # refuses another model
     results = []
     for i in indices:
         image = images[i]
@@ -166,7 +167,7 @@ def pending_images(store_path, conf: FeatureConfig) -> List[int]:
 
 def finish_build(store_path, conf: FeatureConfig) -> None:
     """After a build: consolidate the feature group's per-image arrays for fast opening
-    (``pipeline.store.feature_groups.consolidate``), unless they already are."""
+    (``pipeline.store.layout.consolidate``), unless they already are."""
     root = open_store(store_path, mode="r+")
     group = root[f"features/{feature_key(conf)}"]
     if not consolidated(group, root.attrs["pixloc_map"]):

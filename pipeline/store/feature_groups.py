@@ -14,37 +14,8 @@ from pipeline.store.compression import project, quantize_int8
 from pipeline.mapping.features import FeatureConfig, ImageFeatures
 from pipeline.images import file_sha256
 from pipeline.keypoints import DESCRIPTOR_DIM
-from pipeline.store.layout import (DONE, FAILED, PENDING, StoreError, get_array, image_rows, new_array,
-                    new_rows_array, padded_rows, read)
-
-
-def check_feature_group(group: zarr.Group, meta: Dict, path) -> None:
-    """Refuse a feature group whose arrays are missing or disagree with its config and dims."""
-    try:
-        dims = [int(d) for d in group.attrs["dims"]]
-        scales = len(group.attrs["config"]["image_scales"])
-    except (KeyError, TypeError, ValueError) as e:
-        raise StoreError(f"{path}: feature group {group.path} has no readable config or dims ({e}).") from None
-    I, R, L = meta["num_images"], meta["num_rows"], len(dims)  # noqa: E741
-    stored = stored_dims(group)
-    expected = {"status": (I,), "reason": (I,)}
-    for k in range(scales):
-        expected.update({f"s{k}/features": (R, sum(stored)), f"s{k}/confidences": (R, L), f"s{k}/valid": (R, L)})
-        if group.attrs["config"].get("dtype") == "int8":
-            expected[f"s{k}/scales"] = (R, L)
-        for level, (d, kept) in enumerate(zip(dims, stored)):
-            if kept < d:
-                expected[f"s{k}/pca_mean_{level}"] = (d,)
-                expected[f"s{k}/pca_basis_{level}"] = (d, kept)
-    if group.attrs["config"].get("sift"):
-        expected["sift"] = (R, DESCRIPTOR_DIM)
-    for name, shape in expected.items():
-        array = get_array(group, name, path)
-        if tuple(array.shape[1:]) != shape[1:] or array.shape[0] < shape[0] or (
-                "pca_" in name and tuple(array.shape) != shape):
-            raise StoreError(f"{path}: array {group.path}/{name} has shape {tuple(array.shape)}, expected {shape}.")
-    if get_array(group, "global", path).shape[0] < I:
-        raise StoreError(f"{path}: array {group.path}/global has {group['global'].shape[0]} rows for {I} images.")
+from pipeline.store.layout import (DONE, FAILED, PENDING, StoreError, image_rows, new_array, new_rows_array,
+                                   padded_rows, write_rows)
 
 
 @functools.lru_cache(maxsize=16)
@@ -130,12 +101,6 @@ def init_features(root: zarr.Group, conf: FeatureConfig, digest: str, dims: List
     return group
 
 
-def stored_dims(group: zarr.Group) -> List[int]:
-    """The channels a feature group stores per level (fewer than the network's with a PCA)."""
-    pca = int(group.attrs["config"].get("pca", 0))
-    return [min(int(d), pca) if pca else int(d) for d in group.attrs["dims"]]
-
-
 def pca_bases(group: zarr.Group) -> PCABases:
     """{(image scale, level): (mean, directions)} of a feature group stored as a PCA (else empty)."""
     conf = group.attrs["config"]
@@ -148,58 +113,30 @@ def pca_bases(group: zarr.Group) -> PCABases:
 
 def write_image_features(group: zarr.Group, root: zarr.Group, i: int, feats: ImageFeatures) -> None:
     """Write image i's rows (whole shards), then mark it done: status last, so a crash leaves it pending."""
-    rows = image_rows(root, i)
-    shard = root.attrs["pixloc_map"]["shard_rows"]
-    n = rows.stop - rows.start
-    block = slice(rows.start, rows.start + int(padded_rows(np.array(n), shard)))
-    dims = [int(d) for d in group.attrs["dims"]]
-    bases, stored = pca_bases(group), stored_dims(group)
+    bases = pca_bases(group)
+    columns = {}  # (array path in the group, its values)
     for k in range(len(group.attrs["config"]["image_scales"])):
-        levels = [feats.samples[(k, level)] for level in range(len(dims))]
-        f = np.concatenate([project(x[0], bases[(k, level)]) if (k, level) in bases else x[0]
-                            for level, x in enumerate(levels)], 1)
-        c = np.stack([x[1] for x in levels], 1)
-        v = np.stack([x[2] for x in levels], 1)
-        g = group[f"s{k}"]
-        if "scales" in g:
-            f, scales = quantize_int8(f, stored)
-            _write_rows(g["scales"], block, scales)
-        _write_rows(g["features"], block, f)
-        _write_rows(g["confidences"], block, c)
-        _write_rows(g["valid"], block, v)
+        levels = [feats.samples[(k, level)] for level in range(len(group.attrs["dims"]))]
+        kept = [project(x[0], bases[(k, level)]) if (k, level) in bases else x[0] for level, x in enumerate(levels)]
+        f = np.concatenate(kept, 1)
+        if f"s{k}/scales" in group:
+            f, columns[f"s{k}/scales"] = quantize_int8(f, [x.shape[1] for x in kept])
+        columns[f"s{k}/features"] = f
+        columns[f"s{k}/confidences"] = np.stack([x[1] for x in levels], 1)
+        columns[f"s{k}/valid"] = np.stack([x[2] for x in levels], 1)
+    rows = image_rows(root, i)
     if "sift" in group:
-        if feats.sift is None or feats.sift.shape != (n, DESCRIPTOR_DIM):
-            raise StoreError(f"Image {i}: the feature group stores SIFT descriptors, {n} rows, and none or other "
-                             "rows were extracted.")
-        _write_rows(group["sift"], block, feats.sift)
+        if feats.sift is None or feats.sift.shape != (rows.stop - rows.start, DESCRIPTOR_DIM):
+            raise StoreError(f"Image {i}: the feature group stores SIFT descriptors, {rows.stop - rows.start} rows, "
+                             "and none or other rows were extracted.")
+        columns["sift"] = feats.sift
+    block = slice(rows.start, rows.start + int(padded_rows(np.array(rows.stop - rows.start),
+                                                           root.attrs["pixloc_map"]["shard_rows"])))
+    for name, values in columns.items():
+        write_rows(group[name], block, values)
     group["global"][i] = feats.global_descriptor.astype(np.float32)
     group["reason"][i] = ""
     group["status"][i] = DONE
-
-
-def _write_rows(array: zarr.Array, block: slice, values: np.ndarray) -> None:
-    """An image's rows, padded to its whole block, written even where they are all fill values (a
-    valid mask all False, SIFT descriptors all zero): zarr would otherwise leave the shard out, and
-    a done image's absent shard is a missing file to every reader (``missing_objects``)."""
-    out = np.zeros((block.stop - block.start,) + values.shape[1:], array.dtype)
-    out[: len(values)] = values
-    array.with_config({"write_empty_chunks": True})[block] = out
-
-
-def consolidate(root: zarr.Group, group: zarr.Group) -> None:
-    """Copy the per-image ``status`` and ``global`` arrays (one chunk per image, so that workers
-    write their own) into one chunk each, for readers: reading 6,697 one-image chunks takes
-    seconds, on every open. Called when a build has finished; ``unconsolidate`` before the next
-    one writes. The copy is valid while ``attrs["consolidated"]`` names the image count."""
-    meta = root.attrs["pixloc_map"]
-    I = meta["num_images"]  # noqa: E741
-    status, descriptors = read(group, "status", meta), read(group, "global", meta)
-    for name, values in (("status_all", status), ("global_all", descriptors)):
-        if name in group:
-            del group[name]
-        new_array(group, name, values.shape, values.shape if len(values) else (1,) + values.shape[1:],
-               values.dtype)[...] = values
-    group.attrs["consolidated"] = {"num_images": I}
 
 
 def mark_failed(group: zarr.Group, i: int, reason: str) -> None:

@@ -13,8 +13,9 @@ import numpy as np
 from pipeline.store.compression import dequantize_int8, reconstruct
 from pipeline.mapping.features import FeatureConfig
 from pipeline.scene import CameraRecord
-from pipeline.store.feature_groups import check_feature_group, feature_key, pca_bases, stored_dims
-from pipeline.store.layout import DONE, FAILED, StoreError, StoreReadError, consolidated, missing_objects, open_store
+from pipeline.store.feature_groups import feature_key, pca_bases
+from pipeline.store.layout import (DONE, FAILED, StoreError, StoreReadError, check_feature_group, consolidated,
+                                   missing_objects, open_store, stored_dims)
 from pipeline.store.layout import read as store_read
 
 logger = logging.getLogger(__name__)
@@ -45,12 +46,13 @@ class MapReader:
                  cache_bytes: int = 512 * 2**20):
         self.path = Path(path)
         root = open_store(self.path)
+        meta = root.attrs["pixloc_map"]
         key = f"features/{feature_key(conf)}"
         if key not in root:
             available = sorted(root["features"].group_keys()) if "features" in root else []
             raise StoreError(f"{path} has no features for {conf.to_dict()} (it has: {available or 'none'}).")
         self.group = root[key]
-        check_feature_group(self.group, root.attrs["pixloc_map"], path)
+        check_feature_group(self.group, meta, path)
         if self.group.attrs.get("config") != conf.to_dict():
             raise StoreError(f"{path}: features {key} were made with {self.group.attrs.get('config')}.")
         if digest is not None and self.group.attrs.get("model_digest") != digest:
@@ -59,9 +61,6 @@ class MapReader:
         self.conf = conf
         self.dims: List[int] = list(self.group.attrs["dims"])
         self.stored_dims = stored_dims(self.group)
-        self.pca = pca_bases(self.group)  # levels stored as principal components: reconstructed on read
-
-        meta = root.attrs["pixloc_map"]
 
         def read(group, name):
             try:
@@ -82,23 +81,25 @@ class MapReader:
         self.status = read(self.group, "status_all" if self.static else "status")
         self.xyz = read(root, "points/xyz")
         self.track_length = read(root, "points/track_length")
-        self._obs_point = root["observations/point"]
         self._root, self._paths = root, None
         self.image_source_id = read(root, "images/source_id")
         self.point_source_id = read(root, "points/source_id")
         self.global_descriptors = read(self.group, "global_all" if self.static else "global")
-        self._leave_out_lost()
+        self.pca = pca_bases(self.group)  # levels stored as principal components: reconstructed on read
         self._read = read
         self.stats = {"blocks": 0, "hits": 0, "bytes": 0}
         self._blocks: "OrderedDict[Tuple[int, int], Tuple]" = OrderedDict()
         self._cache_limits = (cache_images, cache_bytes)
         self._cached_bytes = 0
-        self._sift_array = self.group["sift"] if "sift" in self.group else None
-        obs_xy = root["observations/xy"]
-        self._points = functools.lru_cache(maxsize=4 * cache_images)(lambda i: self._image_rows(i, self._obs_point))
-        # the sift prior's, per reference
-        self._xy = functools.lru_cache(maxsize=cache_images)(lambda i: self._image_rows(i, obs_xy).astype(np.float64))
-        self._sift = functools.lru_cache(maxsize=cache_images)(lambda i: self._image_rows(i, self._sift_array))
+        self._leave_out_lost()
+        # per-observation arrays read per image on demand, each cached: the points (every query
+        # needs them), where they are observed and their SIFT descriptors (the sift prior's)
+        per_image = {"point": (root["observations/point"], 4 * cache_images),
+                     "xy": (root["observations/xy"], cache_images)}
+        if "sift" in self.group:
+            per_image["sift"] = (self.group["sift"], cache_images)
+        self._rows = {name: functools.lru_cache(maxsize=size)(functools.partial(self._image_rows, array=array))
+                      for name, (array, size) in per_image.items()}
 
     def _leave_out_lost(self) -> None:
         """Descriptors are unit vectors: a done image's zero one is a missing chunk read as fill
@@ -133,17 +134,17 @@ class MapReader:
 
     def image_points(self, i: int) -> np.ndarray:
         """The points observed by image i, in row order (read on demand and cached)."""
-        return self._points(int(i))
+        return self._rows["point"](int(i))
 
     def image_xy(self, i: int) -> np.ndarray:
         """Where image i observes its points (N, 2), COLMAP pixel coordinates, in row order (NaN
         where the source has none: RGB-D maps); read on demand and cached, as ``image_points``."""
-        return self._xy(int(i))
+        return self._rows["xy"](int(i)).astype(np.float64)
 
     def sift_descriptors(self, i: int) -> Optional[np.ndarray]:
         """Image i's stored SIFT descriptor per observation ((N, 128) uint8, in row order; zeros where
         no keypoint is near), or None where the map stores none (``FeatureConfig.sift``); cached."""
-        return None if self._sift_array is None else self._sift(int(i))
+        return self._rows["sift"](int(i)) if "sift" in self._rows else None
 
     def image_path(self, i: int) -> Path:
         """Image i's file, as recorded at build time."""

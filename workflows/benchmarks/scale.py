@@ -95,8 +95,8 @@ def synthetic_scene(num_images: int, num_points: int, num_obs: int, seed: int = 
 
 
 def build(store: Path, scene: Scene, conf: FeatureConfig, seed: int) -> Dict:
-    from pipeline.store.feature_groups import consolidate, init_features, write_image_features
-    from pipeline.store.layout import create_store
+    from pipeline.store.feature_groups import init_features, write_image_features
+    from pipeline.store.layout import consolidate, create_store
     rng = np.random.default_rng(seed + 1)
     t0 = time.perf_counter()
     root = create_store(store, scene, overwrite=True)
@@ -285,8 +285,7 @@ def store_at_scale(args: argparse.Namespace) -> int:
         root = open_store(store)
         assert root.attrs["pixloc_map"]["num_images"] == counts["images"], "--reuse: another size"
         num_obs, gen_s, built = root["images/num_obs"][:], float("nan"), None
-        from pipeline.store.feature_groups import consolidate
-        from pipeline.store.layout import consolidated
+        from pipeline.store.layout import consolidate, consolidated
         group = root[f"features/{next(iter(root['features'].group_keys()))}"]
         if not consolidated(group, root.attrs["pixloc_map"]):
             consolidate(open_store(store, mode="r+"), open_store(store, mode="r+")[group.path])
