@@ -10,7 +10,6 @@ an interrupted build resumes with what is missing.
 import contextlib
 import logging
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Dict, List, Optional
 
 
@@ -19,6 +18,7 @@ from pipeline.models import network
 from pipeline.mapping.features import FeatureConfig
 from pipeline.keypoints import DESCRIPTOR_DIM
 from pipeline.scene import Scene
+from pipeline.store import location
 
 from . import executor
 from .sources import describe_source
@@ -31,7 +31,7 @@ class BuildPlan:
     """What a build will do: the scene, the store, the feature config and the task batches."""
 
     scene: Scene
-    store: Path
+    store: str  # a folder or a URL (``pipeline.store.location``)
     conf: FeatureConfig
     batches: List[List[int]]
     dims: List[int]
@@ -78,8 +78,8 @@ def plan_build(scene: Scene, store, conf: FeatureConfig, *, batch_size: int = 1,
     with ``overwrite``, which rebuilds the store). Images of ``scene`` that an existing store does
     not have are added to it (a new mapping session, ``pipeline.store.layout.extend_store``): they get
     the indices after the stored ones."""
-    store = Path(store)
-    if store.exists() and not overwrite:
+    store = location.normalize(store)
+    if location.exists(store) and not overwrite:
         from pipeline.store.layout import open_store, read
         stored = set(str(n) for n in read(open_store(store), "images/name"))
         new = sum(im.name not in stored for im in scene.images)

@@ -67,6 +67,12 @@ def build_parser() -> argparse.ArgumentParser:
     from .cli_localize import add_report_arguments
     add_report_arguments(sub.add_parser("report", help="HTML report of a localize output (plots, examples)"))
 
+    for name in ("build-map", "check-store", "localize", "evaluate", "report"):  # the commands that open a store
+        sub.choices[name].add_argument(
+            "--storage-options", metavar="JSON", help="fsspec storage options of a store given as a URL, e.g. "
+            "'{\"endpoint_url\": \"http://127.0.0.1:9000\"}' (also PIXLOC_STORAGE_OPTIONS; credentials from the "
+            "usual environment, AWS_ACCESS_KEY_ID ...; docs/cluster.md)")
+
     from .demo import add_arguments as demo_arguments
     demo_arguments(sub.add_parser("demo", help="the whole system on a generated synthetic scene (offline)",
                                   description="Generate a scene, build its map, localize queries in four "
@@ -93,6 +99,7 @@ def build_parser() -> argparse.ArgumentParser:
     from .benchmarks import scale as bench_scale
     from .benchmarks import search as bench_search
     from .benchmarks import storage as bench_storage
+    from .benchmarks import store_latency as bench_store_latency
     from .benchmarks import verification as bench_verification
     for name, module, text in [
             ("lm", bench_lm, "LM iterations per second, batched vs one problem at a time"),
@@ -105,6 +112,8 @@ def build_parser() -> argparse.ArgumentParser:
             ("scale", bench_scale,
              "S1-S5, P3: an Aachen-size store, cities built and localized at size, adding a session"),
             ("storage", bench_storage, "bytes per observation and recall of int8 against float16 feature storage"),
+            ("store-latency", bench_store_latency,
+             "a query's reads of a store in an S3 bucket at 0-50 ms per request, concurrent vs one at a time"),
             ("accuracy", bench_accuracy,
              "recall, precision and time per prior on every posed real scene, against SIFT + PnP")]:
         p = bench_sub.add_parser(name, help=text)
@@ -130,6 +139,10 @@ def main(argv: Optional[List[str]] = None) -> int:
         from pipeline.images import MAX_PIXELS_ENV
         os.environ[MAX_PIXELS_ENV] = str(args.max_image_pixels)  # inherited by local Dask workers
     try:
+        if getattr(args, "storage_options", None):
+            from pipeline.store.location import STORAGE_OPTIONS_ENV, storage_options
+            os.environ[STORAGE_OPTIONS_ENV] = args.storage_options  # inherited by local Dask workers
+            storage_options()  # refused here when it is not a JSON object
         return args.func(args)
     except KeyboardInterrupt:  # finished shards and images are on disk (executor.dask_client quiets Dask's teardown)
         print("pixloc: interrupted; run the same command again to resume", file=sys.stderr)

@@ -9,6 +9,8 @@ from pathlib import Path
 
 from pipeline.mapping.features import DTYPES, FeatureConfig
 from pipeline.mapping.image_pairs import METHODS as PAIR_METHODS, PairsConfig
+from pipeline.store import location
+
 from . import executor, presets
 from .build_map import pending_batches, plan_build, prepare_structure, run_dask, run_sync
 from .localize import store_lock
@@ -41,7 +43,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("path", type=Path, help="colmap: the model folder; sfm: the image folder; " + "; ".join(
         f"{kind}: {what}" for kind, what in POSED_FORMATS.items()) + "; 7scenes: the dataset root; posetxt: the folder "
         "of color/, depth/, pose.txt")
-    p.add_argument("--store", type=Path, required=True, help="output map store (a .zarr folder)")
+    p.add_argument("--store", required=True, help="output map store: a .zarr folder, or a URL (s3://bucket/map.zarr; "
+                   "docs/cluster.md)")
     p.add_argument("--images", type=Path, help="image folder of a COLMAP model (default: PATH/../images), a Bundler "
                    "bundle or an OpenSfM reconstruction")
     p.add_argument("--sequences", type=int, nargs="+", default=[], help="7-Scenes sequences of the map")
@@ -68,9 +71,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="spatial/retrieval: neighbours per image")
     p.add_argument("--batch-size", type=int, default=1, help="images per task")
     p.add_argument("--device", default="cpu", help="torch device of the feature network (cpu, cuda, cuda:1)")
-    p.add_argument("--work-dir", type=Path, help="SfM/triangulation files (default: the store's path with .work "
-                   "for its suffix: "
-                   "map.work for map.zarr)")
+    p.add_argument("--work-dir", type=Path, help="SfM/triangulation files and the log (default: the store's path "
+                   "with .work for its suffix: map.work for map.zarr; for a URL, NAME.work in the current folder)")
     p.add_argument("--scheduler", help="an existing Dask scheduler: its address (tcp://host:8786) or the file "
                    "that 'dask scheduler "
                    "--scheduler-file' wrote (default: a local cluster; docs/cluster.md)")
@@ -93,13 +95,13 @@ def main(args: argparse.Namespace) -> int:
                  given(args, FLAGS), where="build-map options")
     if Path(conf.model).suffix:  # a model file, recorded absolute
         conf = dataclasses.replace(conf, model=str(absolute(conf.model)))
-    store = absolute(args.store)
+    store = location.normalize(args.store)
     source = MapSource(args.kind, absolute(args.path), absolute(args.images), tuple(args.sequences),
                        args.rgbd_points, args.densify, tuple(args.intrinsics), args.depth_scale, args.depth_ext,
                        tuple(args.hold_out))
     pairs = PairsConfig("file" if args.pairs_file and args.pairs == "auto" else args.pairs,
                         args.pairs_neighbors, path=str(absolute(args.pairs_file)) if args.pairs_file else None)
-    work_dir = absolute(args.work_dir) or store.with_suffix(".work")
+    work_dir = absolute(args.work_dir) or location.work_dir(store)
     t0 = time.time()
     if args.dry_run and source.kind in RECONSTRUCTED:  # a dry run computes and writes nothing
         print(f"map store      {store}" + (" (overwritten)" if args.overwrite else "") + f"\nsource         "
@@ -109,7 +111,7 @@ def main(args: argparse.Namespace) -> int:
               "  1 structure, 2 features: counted once the reconstruction exists\n(dry run: nothing computed or "
               "written)")
         return 0
-    with store_lock(store):
+    with store_lock(store, work_dir):
         from .logs import colmap_to_file, to_file
         log = to_file(work_dir / "build-map.log")
         colmap_to_file(work_dir)
@@ -122,7 +124,7 @@ def main(args: argparse.Namespace) -> int:
         print(plan.describe())
         if args.dry_run:
             return 0
-        if not plan.overwrite and store.exists():
+        if not plan.overwrite and location.exists(store):
             prepare_structure(plan)  # cheap; re-admits refused images whose problem is gone
             if not pending_batches(plan):
                 print(f"\nAll {len(scene.images)} images of {store} already have features (or were refused): "
@@ -141,7 +143,7 @@ def main(args: argparse.Namespace) -> int:
 
 
 def add_check_store_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("store", type=Path, help="a map store (.zarr folder)")
+    p.add_argument("store", help="a map store (a .zarr folder or a URL)")
     p.add_argument("--repair", action="store_true", help="mark the images whose files are damaged or missing "
                    "pending, so that the same build-map command rebuilds only them")
     p.set_defaults(func=check_store_main)

@@ -20,6 +20,7 @@ from pipeline.mapping.features import FeatureConfig
 from pipeline.progress import count
 from pipeline.localization.results import POSE_NAMES, REJECTED, outcome, pose_names_problem, read_records, reason_groups
 from pipeline.localization.shard import POINT_SELECTIONS, PRIORS, LocalizationJob
+from pipeline.store import location
 from pipeline.store.layout import StoreError, open_store
 from pipeline.textfiles import read_json, write_atomic
 
@@ -92,7 +93,8 @@ def add_query_arguments(p: argparse.ArgumentParser) -> None:
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     add_query_arguments(p)
-    p.add_argument("--store", type=Path, required=True, help="map store built by pixloc build-map")
+    p.add_argument("--store", required=True, help="map store built by pixloc build-map (a folder or a URL: "
+                   "s3://bucket/map.zarr)")
     p.add_argument("--features", help="feature group of the store (default: its only one)")
     p.add_argument("--output", type=Path, required=True, help="output folder (records, poses, shards)")
     add_flags(p, LocalizationJob, FLAGS)
@@ -149,7 +151,7 @@ def pose_names_of(args: argparse.Namespace) -> str:
     return (presets.load(args.preset).get("pose_names") if args.preset else None) or POSE_NAMES[0]
 
 
-def store_feature_config(store: Path, key=None) -> FeatureConfig:
+def store_feature_config(store, key=None) -> FeatureConfig:
     root = open_store(store)
     groups = sorted(root["features"].group_keys()) if "features" in root else []
     if not groups:
@@ -166,7 +168,7 @@ def store_feature_config(store: Path, key=None) -> FeatureConfig:
 
 def build_job(args: argparse.Namespace) -> LocalizationJob:
     """The job: the store and its features, the dataclass defaults, the preset, the command line."""
-    store = Path(_absolute(args.store))
+    store = location.normalize(args.store)
     fconf = store_feature_config(store, args.features)
     settings = job_settings(args)
     if settings.get("scales") and not set(settings["scales"]) <= set(fconf.image_scales):

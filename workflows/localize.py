@@ -43,6 +43,7 @@ from pipeline.localization.shard import LocalizationJob, localize_shard, retriev
 from pipeline.progress import count
 from pipeline.queries import QueryRecord
 from pipeline.regions import camera_centres, region_order
+from pipeline.store import location
 from pipeline.store.feature_groups import feature_key
 from pipeline.store.layout import StoreError, store_fingerprint
 from pipeline.textfiles import InputError, read_json, write_atomic
@@ -309,12 +310,19 @@ def file_lock(path: Path, busy: str):
         path.unlink(missing_ok=True)
 
 
-def store_lock(store: Path):
-    """The lock a build takes on its store: ``STORE.lock`` beside it (the store itself may be
-    erased and recreated under it by --overwrite)."""
-    store = Path(store)
-    store.parent.mkdir(parents=True, exist_ok=True)
-    return file_lock(store.with_name(store.name + ".lock"), f"{store} is being built by another pixloc build-map")
+def store_lock(store, work_dir: Optional[Path] = None):
+    """The lock a build takes on its store: ``STORE.lock`` beside a local store (the store itself
+    may be erased and recreated under it by --overwrite); for a store in object storage,
+    ``store.lock`` in the build's local work folder, which stops a second build from this host
+    only: builds from several hosts into one bucket are the caller's to serialise
+    (docs/cluster.md)."""
+    if location.is_url(store):
+        path = Path(work_dir or location.work_dir(store)) / "store.lock"
+    else:
+        store = Path(store)
+        path = store.with_name(store.name + ".lock")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return file_lock(path, f"{store} is being built by another pixloc build-map")
 
 
 def _alive(pid: int) -> bool:

@@ -9,7 +9,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
-from typing import Callable, Dict, Iterable
+from typing import Callable, Dict, Iterable, Optional
 
 ROOT = Path(__file__).resolve().parents[1]
 DASK = Path(sys.executable).parent / "dask"
@@ -26,14 +26,17 @@ def wait_for(condition: Callable[[], bool], timeout: float = 120.0, every: float
 
 class ProcessCluster:
     """A scheduler (its file in ``work``/scheduler.json) and one worker process per name, one thread
-    each, every library held to one thread (torch tasks set their own)."""
+    each, every library held to one thread (torch tasks set their own); the workers run in ``cwd``
+    (default: this process's folder) with this process's environment."""
 
-    def __init__(self, work: Path, names: Iterable[str] = ("w0", "w1"), timeout: float = 120.0):
+    def __init__(self, work: Path, names: Iterable[str] = ("w0", "w1"), timeout: float = 120.0,
+                 cwd: Optional[Path] = None):
         if not DASK.exists():
             raise FileNotFoundError(f"the dask command is not installed next to this Python ({DASK})")
         self.sched = Path(work) / "scheduler.json"
         self.sched.unlink(missing_ok=True)
         self.env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT)}
+        self.cwd = cwd
         self.procs: Dict[str, subprocess.Popen] = {"scheduler": subprocess.Popen(
             [str(DASK), "scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard", "--scheduler-file",
              str(self.sched)], env=self.env, stderr=subprocess.DEVNULL)}
@@ -51,7 +54,7 @@ class ProcessCluster:
         self.procs[name] = subprocess.Popen(
             [str(DASK), "worker", "--scheduler-file", str(self.sched), "--nthreads", "1", "--no-nanny",
              "--no-dashboard", "--name", name, "--host", "127.0.0.1", "--memory-limit", "0"],
-            env=self.env, stderr=subprocess.DEVNULL)
+            env=self.env, cwd=self.cwd, stderr=subprocess.DEVNULL)
 
     def client(self, timeout: float = 60.0):
         from distributed import Client

@@ -21,6 +21,7 @@ import numpy as np
 
 from pipeline.evaluate import DEFAULT_THRESHOLDS, evaluate, fmt, shown_families
 from pipeline.mapping.features import FeatureConfig
+from pipeline.store.layout import open_store
 from pipeline.store.reader import MapReader
 from pipeline.queries import QueryRecord
 from pipeline.localization.results import outcome, read_records, reason_groups, stages_text
@@ -314,8 +315,7 @@ def make_report(output: Path, queries: List[QueryRecord], num_examples: int = 3,
     refiner, digest = localization_model(job["model"], "cpu")
     reader = MapReader(job["store"], FeatureConfig(**fconf), digest)
     if units is None:
-        import zarr
-        units = map_units(dict(zarr.open_group(job["store"], mode="r").attrs["pixloc_map"]).get("source", {}))
+        units = map_units(dict(open_store(job["store"]).attrs["pixloc_map"]).get("source", {}))
     errors = {r["name"]: query_errors(r, gt.get(r["name"])) for r in records}
     families = sorted({k for r in records for k in r.get("tags", {})})
     family = "condition" if "condition" in families else (families[0] if families else None)

@@ -14,6 +14,7 @@ from typing import Callable, Dict, List, Optional
 import numpy as np
 import zarr
 
+from pipeline.store import location
 from pipeline.store.layout import (
     DONE,
     FAILED,
@@ -60,7 +61,7 @@ class StoreCheck:
         state = ("all chunks verified" if self.ok else
                  ", ".join(f"{n} {what}" for n, what in ((len(self.bad), "bad chunks"), (len(self.problems),
                            "layout problems"), (num_pending, "images pending")) if n))
-        lines = [f"{self.path}: {self.arrays} arrays, {self.chunks} chunks, {self.bytes / 2**20:.1f} MiB on disk: "
+        lines = [f"{self.path}: {self.arrays} arrays, {self.chunks} chunks, {self.bytes / 2**20:.1f} MiB stored: "
                  + state]
         lines += [f"  layout: {p}" for p in self.problems]
         for key, names in self.pending.items():
@@ -97,10 +98,9 @@ def _arrays(group: zarr.Group, prefix: str = ""):
 
 def check_store(path, progress: Optional[Callable[[str], None]] = None) -> StoreCheck:
     """Read every chunk of every array of the store at ``path``; never raises for a bad chunk."""
-    path = Path(path)
     out = StoreCheck(path)
-    out.bytes = sum(f.stat().st_size for f in path.rglob("*") if f.is_file())
     root = open_store(path)  # refuses a bad layout with a clear StoreError
+    out.bytes = location.total_bytes(path)
     meta = root.attrs["pixloc_map"]
     try:  # the structure every other check needs: damaged, the store is refused whole
         names = [str(n) for n in read(root, "images/name")]

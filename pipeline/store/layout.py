@@ -44,6 +44,7 @@ import zarr
 from zarr.codecs import Crc32cCodec, ZstdCodec
 
 from pipeline.keypoints import DESCRIPTOR_DIM
+from pipeline.store import location
 from pipeline.scene import CameraRecord, ImageRecord, Scene
 
 VERSION = 3
@@ -71,17 +72,13 @@ def new_rows_array(group: zarr.Group, name: str, rows: int, width: Optional[int]
 STORE_ENTRIES = {"zarr.json", "images", "points", "observations", "features"}
 
 
-def refuse_foreign(path: Path) -> None:
+def refuse_foreign(path) -> None:
     """--overwrite erases only what is recognisably a map store (or an empty folder): a folder of
     anything else is refused, named, with what it holds."""
-    if path.is_file():
+    if location.is_file(path):
         raise StoreError(f"{path} is a file, not a map store: --overwrite only replaces a map store.")
-    entries = {p.name for p in path.iterdir()}
-    header = path / "zarr.json"
-    try:
-        ours = header.is_file() and "pixloc_map" in header.read_text(errors="replace")
-    except OSError:
-        ours = False
+    entries = location.entries(path)
+    ours = b"pixloc_map" in (location.read_bytes(path, "zarr.json") or b"")
     if entries and not ours and not entries <= STORE_ENTRIES:
         raise StoreError(f"{path} is not a PixLoc map store (it holds {', '.join(sorted(entries)[:4])}"
                          f"{' ...' if len(entries) > 4 else ''}): --overwrite only replaces a map store; choose "
@@ -131,9 +128,9 @@ def create_store(path, scene: Scene, chunk_rows: int = 256, overwrite: bool = Fa
 
     ``shard_rows`` (a multiple of ``chunk_rows``; default ``default_shard_rows``) is the unit
     each image's block of rows is padded to."""
-    path = Path(path)
     names = [im.name for im in scene.images]
-    if path.exists() and not overwrite:
+    exists = location.exists(path)
+    if exists and not overwrite:
         root = open_store(path, mode="r+")
         stored = [str(n) for n in read(root, "images/name")]
         meta = root.attrs["pixloc_map"]
@@ -150,7 +147,7 @@ def create_store(path, scene: Scene, chunk_rows: int = 256, overwrite: bool = Fa
         raise StoreError(f"{path} holds another map (other images or observations); "
                          "choose another path, rebuild it with --overwrite, or add images with a scene that "
                          "holds every image of the map.")
-    if path.exists():
+    if exists:
         refuse_foreign(path)
     order = np.lexsort((scene.obs_point, scene.obs_image))
     obs_image, obs_point, obs_xy = scene.obs_image[order], scene.obs_point[order], scene.obs_xy[order]
@@ -165,7 +162,7 @@ def create_store(path, scene: Scene, chunk_rows: int = 256, overwrite: bool = Fa
     rank = np.arange(len(obs_image)) - np.concatenate([[0], np.cumsum(num_obs)[:-1]])[obs_image]
     row = row_start[obs_image] + rank
 
-    root = zarr.open_group(str(path), mode="w")
+    root = zarr.open_group(store=location.zarr_store(path), mode="w")
     root.attrs["pixloc_map"] = {
         "version": VERSION, "chunk_rows": chunk_rows, "shard_rows": shard_rows, "num_images": len(names),
         "num_points": len(scene.points), "num_observations": int(len(obs_point)), "num_rows": rows,
@@ -278,22 +275,32 @@ def extend_store(root: zarr.Group, scene: Scene) -> List[int]:
     return list(range(I, I2))
 
 
-def missing_objects(array: zarr.Array, rows: slice) -> List[str]:
+def missing_objects(arrays, rows: slice) -> List[str]:
     """The storage objects (shard files, or chunks of unsharded arrays) that hold rows ``rows`` of
-    ``array`` and are absent, empty, or not plain files: zarr reads those as fill values (zeros, -1),
-    so every reader of an image's rows asks here first. Keys relative to the store."""
+    ``arrays`` (one array or several) and are absent, empty, or not plain files: zarr reads those
+    as fill values (zeros, -1), so every reader of an image's rows asks here first. Keys relative
+    to the store. The objects are asked about together (against object storage, one round trip)."""
+    import asyncio
+
     from zarr.core.sync import sync
 
-    unit = (array.shards or array.chunks)[0]
+    arrays = [arrays] if isinstance(arrays, zarr.Array) else list(arrays)
     stop = max(rows.stop, rows.start + 1)
-    out = []
-    for k in range(rows.start // unit, -(-stop // unit)):
-        key = array.metadata.encode_chunk_key((k,) + (0,) * (array.ndim - 1))
-        where = array.store_path / key
+    objects = []
+    for array in arrays:
+        unit = (array.shards or array.chunks)[0]
+        for k in range(rows.start // unit, -(-stop // unit)):
+            key = array.metadata.encode_chunk_key((k,) + (0,) * (array.ndim - 1))
+            objects.append((f"{array.path}/{key}", array.store_path / key))
+
+    async def absent(where) -> bool:
         # an empty object is as missing as an absent one: a chunk or a shard index is never 0 bytes
-        if not sync(where.exists()) or not sync(where.store.getsize(where.path)):
-            out.append(f"{array.path}/{key}")
-    return out
+        return not await where.exists() or not await where.store.getsize(where.path)
+
+    async def ask():
+        return await asyncio.gather(*(absent(where) for _, where in objects))
+
+    return [name for (name, _), gone in zip(objects, sync(ask()) if objects else []) if gone]
 
 
 def image_row_arrays(root: zarr.Group, group: Optional[zarr.Group] = None) -> List[zarr.Array]:
@@ -353,13 +360,16 @@ def consolidated(group: zarr.Group, meta: Dict) -> bool:
 
 
 def open_store(path, mode: str = "r") -> zarr.Group:
-    """Open a map store after checking its layout (``check_layout``); a bad one is refused
-    with a StoreError that says what is wrong."""
-    path = Path(path)
-    if not path.exists():
+    """Open a map store (a folder or a URL, ``pipeline.store.location``) after checking its layout
+    (``check_layout``); a bad one is refused with a StoreError that says what is wrong."""
+    try:
+        present = location.exists(path)
+    except (OSError, ValueError) as e:  # a URL that cannot be reached, bad storage options
+        raise StoreError(f"Map store {path} cannot be reached: {type(e).__name__}: {e}") from None
+    if not present:
         raise StoreError(f"Map store {path} does not exist.")
     try:
-        root = zarr.open_group(str(path), mode=mode)
+        root = zarr.open_group(store=location.zarr_store(path, read_only=mode == "r"), mode=mode)
         meta = root.attrs.get("pixloc_map")
     except Exception as e:  # unreadable or invalid zarr.json  # noqa: BLE001
         raise StoreError(f"{path} is not a readable zarr group: {type(e).__name__}: {e}") from None

@@ -4,12 +4,14 @@ import functools
 import json
 import logging
 from collections import OrderedDict
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
+from pipeline.store import location
 from pipeline.store.compression import dequantize_int8, reconstruct
 from pipeline.mapping.features import FeatureConfig
 from pipeline.scene import CameraRecord
@@ -43,9 +45,9 @@ class MapReader:
     """
 
     def __init__(self, path, conf: FeatureConfig, digest: Optional[str] = None, cache_images: int = 256,
-                 cache_bytes: int = 512 * 2**20):
-        self.path = Path(path)
-        root = open_store(self.path)
+                 cache_bytes: int = 512 * 2**20, read_threads: int = 16):
+        self.path = path  # a folder or a URL (``pipeline.store.location``)
+        root = open_store(path)
         meta = root.attrs["pixloc_map"]
         key = f"features/{feature_key(conf)}"
         if key not in root:
@@ -91,6 +93,15 @@ class MapReader:
         self._blocks: "OrderedDict[Tuple[int, int], Tuple]" = OrderedDict()
         self._cache_limits = (cache_images, cache_bytes)
         self._cached_bytes = 0
+        # a query's reference blocks and point rows are read concurrently: against object storage
+        # a read is a few round trips, and one at a time they would add up (docs/cluster.md)
+        self._read_threads = read_threads
+        self._pool: Optional[ThreadPoolExecutor] = None
+        # each image scale's arrays, opened once (opening one reads its metadata)
+        names = ["features", "scales", "confidences", "valid"] if conf.dtype == "int8" else [
+            "features", "confidences", "valid"]
+        self._block_arrays = [{name: self.group[f"s{k}/{name}"] for name in names}
+                              for k in range(len(conf.image_scales))]
         self._leave_out_lost()
         # per-observation arrays read per image on demand, each cached: the points (every query
         # needs them), where they are observed and their SIFT descriptors (the sift prior's)
@@ -116,7 +127,7 @@ class MapReader:
         """A done image whose rows are not all on disk fails the query that needs it, named; its
         rows are never read as fill values (zeros, point -1)."""
         s = slice(int(self.row_start[i]), int(self.row_start[i] + self.num_obs[i]))
-        missing = [m for a in arrays for m in missing_objects(a, s)]
+        missing = missing_objects(arrays, s)
         if missing:
             raise StoreReadError(f"map store {self.path}: reference image {self.names[i]} is marked done but "
                                  f"{len(missing)} of its files are missing ({', '.join(missing[:2])}"
@@ -168,6 +179,7 @@ class MapReader:
                      selected: Optional[np.ndarray] = None) -> Observations:
         """Every observation, in ``dbs``, of the points they see with track length >= min;
         only the (point, image) pairs of ``selected`` (K, 2) when given (hloc PnP inliers)."""
+        self._concurrently(self.image_points, dbs)
         rows = [np.arange(self.row_start[i], self.row_start[i] + self.num_obs[i]) for i in dbs]
         db = np.concatenate([np.full(len(r), i) for r, i in zip(rows, dbs)]) if rows else np.zeros(0, int)
         rows = np.concatenate(rows) if rows else np.zeros(0, int)
@@ -185,25 +197,20 @@ class MapReader:
         points = {int(s): i for i, s in enumerate(self.point_source_id) if s >= 0}
         return images, points
 
-    def _read_block(self, i: int, scale: int) -> Tuple[List[np.ndarray], np.ndarray, np.ndarray]:
-        """Image i's rows at one image scale: per level features (N, C_l) float32, then
-        confidences (N, L) float32 and valid (N, L)."""
+    def _read_block(self, i: int, scale: int) -> Tuple[Tuple[List[np.ndarray], np.ndarray, np.ndarray], int]:
+        """Image i's rows at one image scale: (per level features (N, C_l) float32, then
+        confidences (N, L) float32 and valid (N, L)), and the bytes read (thread-safe: the
+        callers count and cache it)."""
         s = slice(int(self.row_start[i]), int(self.row_start[i] + self.num_obs[i]))
-        g = self.group[f"s{scale}"]
-        names = [n for n in ("features", "scales", "confidences", "valid")
-                 if n != "scales" or self.conf.dtype == "int8"]
-        self._check_present(i, [g[n] for n in names])
+        arrays = self._block_arrays[scale]
+        self._check_present(i, list(arrays.values()))
         out = {}
-        for name in ("features", "scales", "confidences", "valid"):
-            if name == "scales" and self.conf.dtype != "int8":
-                continue
+        for name, array in arrays.items():
             try:
-                out[name] = g[name][s]
+                out[name] = array[s]
             except Exception as e:  # zarr/numcodecs raise many types for a bad chunk  # noqa: BLE001
-                raise StoreReadError(f"map store {self.path}: array {g.path}/{name} cannot be read for "
+                raise StoreReadError(f"map store {self.path}: array {array.path} cannot be read for "
                                      f"reference image {self.names[i]}: {type(e).__name__}: {e}") from None
-        self.stats["blocks"] += 1
-        self.stats["bytes"] += sum(a.nbytes for a in out.values())
         if "scales" in out:
             features = dequantize_int8(out["features"], out["scales"], self.stored_dims)
         else:
@@ -212,31 +219,62 @@ class MapReader:
                         for k in range(len(self.stored_dims))]
         features = [reconstruct(f, self.pca[(scale, level)]) if (scale, level) in self.pca else f
                     for level, f in enumerate(features)]
-        return features, out["confidences"].astype(np.float32), out["valid"]
+        return (features, out["confidences"].astype(np.float32), out["valid"]), sum(a.nbytes for a in out.values())
+
+    def clear_cache(self) -> None:
+        """Forget every block, row and object read (the next reads go to the store)."""
+        if isinstance(self._root.store, location.WholeObjects):
+            self._root.store.clear()
+        self._blocks.clear()
+        self._cached_bytes = 0
+        for rows in self._rows.values():
+            rows.cache_clear()
+
+    def _concurrently(self, fn, args) -> list:
+        """``[fn(a) for a in args]``, run on the reader's threads."""
+        if self._read_threads <= 1 or len(args) <= 1:
+            return [fn(a) for a in args]
+        if self._pool is None:
+            self._pool = ThreadPoolExecutor(self._read_threads, thread_name_prefix="map-store-read")
+        return list(self._pool.map(fn, args))
 
     def block(self, i: int, scale: int):
         """The cached block of image i at ``scale`` (see ``_read_block``); counts cache hits."""
-        key = (int(i), int(scale))
-        if key in self._blocks:
-            self._blocks.move_to_end(key)
-            self.stats["hits"] += 1
-            return self._blocks[key]
-        out = self._read_block(*key)
+        return self.blocks([i], scale)[0]
+
+    def blocks(self, images: List[int], scale: int) -> list:
+        """The blocks of ``images`` at ``scale``, the ones not cached read concurrently."""
+        keys = [(int(i), int(scale)) for i in images]
+        todo = list(dict.fromkeys(k for k in keys if k not in self._blocks))
+        read = dict(zip(todo, self._concurrently(lambda k: self._read_block(*k), todo)))
+        out = {}
+        for key in keys:  # the cached ones first: caching the new ones may evict them
+            if key in self._blocks and key not in out:
+                self._blocks.move_to_end(key)
+                self.stats["hits"] += 1
+                out[key] = self._blocks[key]
+        for key, (block, nbytes) in read.items():
+            self._cache(key, block)
+            self.stats["blocks"] += 1
+            self.stats["bytes"] += nbytes
+            out[key] = block
+        return [out[key] for key in keys]
+
+    def _cache(self, key: Tuple[int, int], out) -> None:
         self._blocks[key] = out
         self._cached_bytes += _nbytes(out)
         max_blocks, max_bytes = self._cache_limits
         while len(self._blocks) > 1 and (len(self._blocks) > max_blocks or self._cached_bytes > max_bytes):
             _, old = self._blocks.popitem(last=False)
             self._cached_bytes -= _nbytes(old)
-        return out
 
     def features(self, obs: Observations, scale: int) -> List[Tuple[np.ndarray, np.ndarray, np.ndarray]]:
         """Per level: features (M, C) float32, confidences (M,), valid (M,) of the observations."""
         M = len(obs.rows)
         out = [(np.zeros((M, dim), np.float32), np.zeros(M, np.float32), np.zeros(M, bool)) for dim in self.dims]
-        for i in np.unique(obs.db):
+        images = [int(i) for i in np.unique(obs.db)]
+        for i, (f, w, v) in zip(images, self.blocks(images, scale)):
             sel = np.flatnonzero(obs.db == i)
-            f, w, v = self.block(int(i), scale)
             local = obs.rows[sel] - self.row_start[i]
             for level, (F, W, V) in enumerate(out):
                 F[sel], W[sel], V[sel] = f[level][local], w[local, level], v[local, level]
@@ -257,12 +295,6 @@ def forget_readers() -> None:
     _OPEN.clear()
 
 
-def _stamp(path: Path, key: str) -> Tuple:
-    """Changes when the store or the feature group is rewritten."""
-    files = (path / "zarr.json", path / key / "zarr.json")
-    return tuple(f.stat().st_mtime_ns if f.exists() else None for f in files)
-
-
 def open_reader(path, conf: FeatureConfig, digest: Optional[str] = None) -> MapReader:
     """A MapReader shared by the tasks of this process (Dask worker or sync run).
 
@@ -271,9 +303,10 @@ def open_reader(path, conf: FeatureConfig, digest: Optional[str] = None) -> MapR
     A store or feature group rewritten since is reopened; which images are usable is
     re-read on every call.
     """
-    path = Path(path).resolve()
-    name = (str(path), json.dumps(conf.to_dict(), sort_keys=True), digest)
-    stamp = _stamp(path, f"features/{feature_key(conf)}")
+    path = location.normalize(path)
+    name = (path, json.dumps(conf.to_dict(), sort_keys=True), digest)
+    # changes when the store or the feature group is rewritten
+    stamp = location.stamp(path, ("zarr.json", f"features/{feature_key(conf)}/zarr.json"))
     cached = _OPEN.get(name)
     if cached is not None and cached[0] == stamp:
         cached[1].refresh()

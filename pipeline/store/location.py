@@ -1,0 +1,247 @@
+"""Where a map store lives: a local folder, or an object-storage URL (``s3://bucket/map.zarr``,
+``gs://``, any fsspec protocol whose package is installed; ``file://`` is a local folder).
+
+This module is the one place that turns a store's name into storage: every store is opened
+through ``zarr_store``, so a URL works wherever a path does, and the few operations zarr does
+not do (does it exist, what does it hold, when did it change) are here, for both kinds.
+
+Credentials and endpoints come from the usual environment (``AWS_ACCESS_KEY_ID``,
+``AWS_SECRET_ACCESS_KEY``, ``AWS_ENDPOINT_URL``, ...) and, for the rest, from
+``PIXLOC_STORAGE_OPTIONS``: a JSON object of fsspec storage options (``--storage-options`` sets
+it; Dask workers that pixloc starts inherit it, workers started by hand need it in their
+environment, see docs/cluster.md).
+"""
+
+import json
+import os
+from collections import OrderedDict
+from pathlib import Path
+from typing import Any, Dict, Optional, Set, Tuple, Union
+
+STORAGE_OPTIONS_ENV = "PIXLOC_STORAGE_OPTIONS"
+# fsspec caches directory listings per process; a store that other processes write (build
+# workers, a build while localizing) must be listed afresh
+_FRESH = {"s3": {"use_listings_cache": False}, "gs": {"cache_timeout": 0}}
+# s3fs asks an object's size (a HEAD, one more round trip) before reading it whole, to split a large
+# one into concurrent parts; a store's objects are a few MiB
+_WHOLE = {"s3": {"max_concurrency": 1}}
+
+StoreName = Union[str, Path]
+
+try:
+    from zarr.storage import WrapperStore
+except ImportError:  # zarr < 3.1
+    from zarr.storage._wrapper import WrapperStore
+
+
+class StoreLocationError(ValueError):
+    """A store URL or storage options that cannot be used (named, with the fix)."""
+
+
+def is_url(store: StoreName) -> bool:
+    """Whether ``store`` names object storage (a URL other than ``file://``)."""
+    return "://" in str(store) and not str(store).startswith("file://")
+
+
+def normalize(store: StoreName) -> str:
+    """The name a job records: an absolute local path, or the URL without a trailing slash."""
+    text = str(store)
+    if text.startswith("file://"):
+        text = text[len("file://"):]
+    if is_url(text):
+        return text.rstrip("/")
+    return str(Path(text).expanduser().resolve())
+
+
+def storage_options() -> Dict[str, Any]:
+    """The fsspec storage options of ``PIXLOC_STORAGE_OPTIONS`` (a JSON object), else {}."""
+    text = os.environ.get(STORAGE_OPTIONS_ENV, "").strip()
+    if not text:
+        return {}
+    try:
+        options = json.loads(text)
+    except json.JSONDecodeError as e:
+        raise StoreLocationError(f"{STORAGE_OPTIONS_ENV} (--storage-options) is not JSON: {e}") from None
+    if not isinstance(options, dict):
+        raise StoreLocationError(f"{STORAGE_OPTIONS_ENV} (--storage-options) must be a JSON object, "
+                                 f"not {type(options).__name__}.")
+    return options
+
+
+def filesystem(store: StoreName) -> Tuple[Any, str]:
+    """(fsspec filesystem, path in it) of a store URL."""
+    import fsspec
+
+    url = normalize(store)
+    protocol = url.split("://", 1)[0]
+    try:
+        fs, path = fsspec.core.url_to_fs(url, **{**_FRESH.get(protocol, {}), **storage_options()})
+    except ImportError as e:
+        raise StoreLocationError(f"{url}: the {protocol}:// protocol needs a package that is not installed "
+                                 f"({e}); for s3:// install s3fs (pip install 'pixloc-at-scale[s3]').") from None
+    except ValueError as e:  # an unknown protocol
+        raise StoreLocationError(f"{url}: {e}") from None
+    return fs, path
+
+
+def zarr_store(store: StoreName, read_only: bool = False):
+    """The zarr store of a local folder or a URL (the latter through fsspec, asynchronously: zarr
+    drives it from its own event loop, apart from the filesystem this module's calls use)."""
+    from zarr.storage import FsspecStore, LocalStore
+
+    if not is_url(store):
+        return LocalStore(normalize(store), read_only=read_only)
+    url = normalize(store)
+    protocol = url.split("://", 1)[0]
+    options = {**_FRESH.get(protocol, {}), **_WHOLE.get(protocol, {}), **storage_options()}
+    try:
+        remote = FsspecStore.from_url(url, storage_options=options, read_only=read_only)
+        return WholeObjects(remote) if read_only else remote
+    except ImportError as e:
+        raise StoreLocationError(f"{url}: the protocol needs a package that is not installed ({e}); for s3:// "
+                                 "install s3fs (pip install 'pixloc-at-scale[s3]').") from None
+
+
+class WholeObjects(WrapperStore):
+    """A remote store, read an object at a time: zarr reads a shard as ranges (its index, then each
+    chunk), each a round trip to object storage; here the first range fetches the whole object
+    (one GET, concurrent requests for it share it), and the others are served from memory. The
+    objects read last are kept, up to ``max_bytes``; ``exists`` and ``getsize`` are answered from
+    the same fetch (a reader checks an object before reading it). For read-only stores only: it
+    does not see other processes' writes (readers reopen a rewritten store, ``stamp``)."""
+
+    def __init__(self, store, max_bytes: int = 256 * 2**20):
+        super().__init__(store)
+        self.max_bytes = max_bytes
+        self._objects: "OrderedDict[str, Any]" = OrderedDict()
+        self._bytes = 0
+        self._pending: Dict[str, Any] = {}
+
+    def _with_store(self, store):
+        return type(self)(store, self.max_bytes)
+
+    def clear(self) -> None:
+        """Forget the objects kept."""
+        self._objects.clear()
+        self._bytes = 0
+
+    async def _whole(self, key: str, prototype):
+        """The object ``key`` (a zarr Buffer), or None if it is absent."""
+        import asyncio
+
+        if key in self._objects:
+            self._objects.move_to_end(key)
+            return self._objects[key]
+        if key in self._pending:  # being fetched for another read
+            return await asyncio.shield(self._pending[key])
+        done = asyncio.get_running_loop().create_future()
+        self._pending[key] = done
+        try:
+            data = await self._store.get(key, prototype)
+        except BaseException as e:
+            if isinstance(e, Exception):
+                done.set_exception(e)
+                done.exception()  # retrieved: raised to the caller here, not logged as never retrieved
+            else:  # cancelled
+                done.cancel()
+            raise
+        finally:
+            self._pending.pop(key, None)
+        done.set_result(data)
+        if data is not None:
+            self._objects[key] = data
+            self._bytes += len(data)
+            while len(self._objects) > 1 and self._bytes > self.max_bytes:
+                self._bytes -= len(self._objects.popitem(last=False)[1])
+        return data
+
+    async def get(self, key, prototype, byte_range=None):
+        from zarr.abc.store import OffsetByteRequest, RangeByteRequest, SuffixByteRequest
+
+        data = await self._whole(key, prototype)
+        if data is None or byte_range is None:
+            return data
+        if isinstance(byte_range, RangeByteRequest):
+            return data[byte_range.start:byte_range.end]
+        if isinstance(byte_range, OffsetByteRequest):
+            return data[byte_range.offset:]
+        if isinstance(byte_range, SuffixByteRequest):
+            return data[max(len(data) - byte_range.suffix, 0):]
+        raise TypeError(f"unexpected byte range {byte_range!r}")
+
+    async def exists(self, key: str) -> bool:
+        from zarr.core.buffer import default_buffer_prototype
+
+        return await self._whole(key, default_buffer_prototype()) is not None
+
+    async def getsize(self, key: str) -> int:
+        from zarr.core.buffer import default_buffer_prototype
+
+        data = await self._whole(key, default_buffer_prototype())
+        if data is None:
+            raise FileNotFoundError(key)
+        return len(data)
+
+
+def exists(store: StoreName) -> bool:
+    """Whether anything is stored under ``store``."""
+    if not is_url(store):
+        return Path(normalize(store)).exists()
+    fs, path = filesystem(store)
+    return bool(fs.exists(path))
+
+
+def entries(store: StoreName) -> Set[str]:
+    """The names directly under ``store`` (files and folders, or objects and prefixes)."""
+    if not is_url(store):
+        return {p.name for p in Path(normalize(store)).iterdir()}
+    fs, path = filesystem(store)
+    return {str(p).rstrip("/").rsplit("/", 1)[-1] for p in fs.ls(path, detail=False)}
+
+
+def read_bytes(store: StoreName, key: str) -> Optional[bytes]:
+    """The object ``key`` under ``store`` (``zarr.json``, ``features/x/zarr.json``), None if absent."""
+    if not is_url(store):
+        try:
+            return (Path(normalize(store)) / key).read_bytes()
+        except (FileNotFoundError, IsADirectoryError, NotADirectoryError):
+            return None
+    fs, path = filesystem(store)
+    try:
+        return fs.cat_file(f"{path}/{key}")
+    except FileNotFoundError:
+        return None
+
+
+def stamp(store: StoreName, keys) -> Tuple:
+    """Something that changes when any of ``keys`` under ``store`` is rewritten: modification times
+    of local files (no read), the objects' contents for a URL (small metadata objects: one GET each)."""
+    if not is_url(store):
+        files = [Path(normalize(store)) / key for key in keys]
+        return tuple(f.stat().st_mtime_ns if f.exists() else None for f in files)
+    return tuple(read_bytes(store, key) for key in keys)
+
+
+def is_file(store: StoreName) -> bool:
+    """Whether ``store`` is a single file (or object), not a folder."""
+    if not is_url(store):
+        return Path(normalize(store)).is_file()
+    fs, path = filesystem(store)
+    return bool(fs.isfile(path))
+
+
+def total_bytes(store: StoreName) -> int:
+    """The bytes stored under ``store``."""
+    if not is_url(store):
+        return sum(f.stat().st_size for f in Path(normalize(store)).rglob("*") if f.is_file())
+    fs, path = filesystem(store)
+    return int(fs.du(path))
+
+
+def work_dir(store: StoreName) -> Path:
+    """The default work folder of a build (SfM files, logs, the lock): ``NAME.work`` beside a local
+    store; in the current folder for a URL (a build's work folder stays local to the build)."""
+    name = normalize(store)
+    if not is_url(name):
+        return Path(name).with_suffix(".work")
+    return Path.cwd() / Path(name.split("://", 1)[1].rstrip("/")).with_suffix(".work").name
