@@ -94,8 +94,7 @@ def plan_build(scene: Scene, store, conf: FeatureConfig, *, batch_size: int = 1,
 
 def run_sync(plan: BuildPlan, progress: bool = False) -> List[ImageResult]:
     """Run the plan in this process."""
-    prepare_structure(plan)
-    batches = pending_batches(plan)
+    batches = prepare_structure(plan)
     results = []
     with _progress(batches, progress) as bar:
         for batch in batches:
@@ -113,24 +112,20 @@ def _progress(batches: List[List[int]], progress: bool):
     return Progress(sum(len(b) for b in batches), "features", "image")
 
 
-def prepare_structure(plan: BuildPlan) -> None:
-    """Write (or check) the store structure; refused images whose problem is gone become pending."""
-    write_structure(plan.scene, plan.store, plan.conf, chunk_rows=plan.chunk_rows, shard_rows=plan.shard_rows,
-                    source=plan.source, device=plan.device, overwrite=plan.overwrite)
+def prepare_structure(plan: BuildPlan) -> List[List[int]]:
+    """Write (or check) the store structure (refused images whose problem is gone become pending);
+    returns the plan's batches less the images finished since planning or refused now."""
+    todo = set(write_structure(plan.scene, plan.store, plan.conf, chunk_rows=plan.chunk_rows,
+                               shard_rows=plan.shard_rows, source=plan.source, device=plan.device,
+                               overwrite=plan.overwrite))
     plan.overwrite = False  # done once: the tasks then resume like any build
-
-
-def pending_batches(plan: BuildPlan) -> List[List[int]]:
-    """The plan's batches less images finished since planning (or refused at the structure stage)."""
-    todo = set(pending_images(plan.store, plan.conf))
     batches = [[i for i in b if i in todo] for b in plan.batches]
     return [b for b in batches if b]
 
 
 def run_dask(plan: BuildPlan, client, progress: bool = False) -> List[ImageResult]:
     """Run the plan on a dask.distributed client: one task per batch, retried if its worker dies."""
-    prepare_structure(plan)
-    batches = pending_batches(plan)
+    batches = prepare_structure(plan)
     calls = [(str(plan.store), plan.conf, batch, plan.device) for batch in batches]
     with _progress(batches, progress) as bar:
         done = executor.run_dask(client, extract_features, calls, "features", plan.device,

@@ -12,7 +12,7 @@ from pipeline.mapping.image_pairs import METHODS as PAIR_METHODS, PairsConfig
 from pipeline.store import location
 
 from . import executor, presets
-from .build_map import pending_batches, plan_build, prepare_structure, run_dask, run_sync
+from .build_map import plan_build, prepare_structure, run_dask, run_sync
 from .localize import store_lock
 from .options import Flag, add_flags, build, given
 from .sources import KINDS, POSED_FORMATS, MapSource, describe_source, load_scene
@@ -125,8 +125,7 @@ def main(args: argparse.Namespace) -> int:
         if args.dry_run:
             return 0
         if not plan.overwrite and location.exists(store):
-            prepare_structure(plan)  # cheap; re-admits refused images whose problem is gone
-            if not pending_batches(plan):
+            if not prepare_structure(plan):  # cheap; re-admits refused images whose problem is gone
                 print(f"\nAll {len(scene.images)} images of {store} already have features (or were refused): "
                       "nothing to do (--overwrite rebuilds it).")
                 return 0

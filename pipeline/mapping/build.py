@@ -19,7 +19,7 @@ from pipeline.models import network
 from pipeline.runtime import restore_malloc_thresholds, torch_threads
 from pipeline.scene import Scene
 from pipeline.store.compression import fit_pca
-from pipeline.store.feature_groups import feature_key, init_features, mark_failed, write_image_features
+from pipeline.store.feature_groups import feature_key, init_features, mark_failed, needs_pca, write_image_features
 from pipeline.store.layout import (
     DONE,
     FAILED,
@@ -50,29 +50,36 @@ class ImageResult:
 
 def write_structure(scene: Scene, store_path, conf: FeatureConfig, *, chunk_rows: int = 256,
                     overwrite: bool = False, source: Optional[Dict] = None, device: str = "cpu",
-                    shard_rows: Optional[int] = None) -> Dict[int, str]:
+                    shard_rows: Optional[int] = None) -> List[int]:
     """Create the store and its feature group; record images that cannot be used as failed.
 
-    Returns {image index: reason} for the images refused up front.
+    Returns the images (store indices) whose features are still to be made (``pending_images``).
     """
     problems = scene.check()
     root = create_store(store_path, scene, chunk_rows=chunk_rows, overwrite=overwrite, source=source,
                         shard_rows=shard_rows)
     net, digest = network(conf.model, device)
-    group = init_features(root, conf, digest, list(net.output_dims),
-                          pca=lambda: fit_store_pca(scene, conf, net, problems, device))
+    bases = fit_store_pca(scene, conf, net, problems, device) if needs_pca(root, conf) else None
+    group = init_features(root, conf, digest, list(net.output_dims), pca=bases)
     meta = root.attrs["pixloc_map"]
-    status, reasons = read(group, "status", meta), read(group, "reason", meta)
+    status, reasons = read(group, "status", meta), read(group, "reason", meta).astype(object)
     if not consolidated(group, meta) or (status != DONE).any():
         unconsolidate(group)  # images will be written: readers use the per-image arrays meanwhile
     index = store_index(root, scene)  # scene order -> store order (an added session may differ)
     for k, i in enumerate(index):
         if k in problems and status[i] != DONE:
             mark_failed(group, i, f"{REFUSED}{problems[k]}")
+            status[i], reasons[i] = FAILED, f"{REFUSED}{problems[k]}"
             logger.warning("Image %s left out of the map: %s", scene.images[k].name, problems[k])
         elif k not in problems and status[i] == FAILED and str(reasons[i]).startswith(REFUSED):
             group["status"][i] = PENDING  # the problem is gone (e.g. the file is back): retry
-    return {index[k]: reason for k, reason in problems.items()}
+            status[i] = PENDING
+    return _pending(status, reasons)
+
+
+def _pending(status: np.ndarray, reasons: np.ndarray) -> List[int]:
+    """Images not done: pending, or failed for a reason that may pass (not refused)."""
+    return [i for i, (s, r) in enumerate(zip(status, reasons)) if s != DONE and not str(r).startswith(REFUSED)]
 
 
 def fit_store_pca(scene: Scene, conf: FeatureConfig, net, problems: Dict[int, str], device: str = "cpu",
@@ -160,9 +167,7 @@ def pending_images(store_path, conf: FeatureConfig) -> List[int]:
     if key not in root:
         return list(range(root.attrs["pixloc_map"]["num_images"]))
     meta = root.attrs["pixloc_map"]
-    status = read(root, f"{key}/status", meta)
-    reasons = read(root, f"{key}/reason", meta)
-    return [i for i, (s, r) in enumerate(zip(status, reasons)) if s != DONE and not str(r).startswith(REFUSED)]
+    return _pending(read(root, f"{key}/status", meta), read(root, f"{key}/reason", meta))
 
 
 def finish_build(store_path, conf: FeatureConfig) -> None:
@@ -176,7 +181,7 @@ def finish_build(store_path, conf: FeatureConfig) -> None:
 
 def build_map(scene: Scene, store_path, conf: FeatureConfig, **kwargs) -> List[ImageResult]:
     """Synchronous map build: structure, then every pending image in order."""
-    write_structure(scene, store_path, conf, **kwargs)
-    results = extract_features(store_path, conf, pending_images(store_path, conf), device=kwargs.get("device", "cpu"))
+    pending = write_structure(scene, store_path, conf, **kwargs)
+    results = extract_features(store_path, conf, pending, device=kwargs.get("device", "cpu"))
     finish_build(store_path, conf)
     return results

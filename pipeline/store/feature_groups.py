@@ -5,7 +5,7 @@ failed (with a reason)."""
 
 import functools
 from pathlib import Path
-from typing import Callable, Dict, List, Optional, Tuple
+from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 import zarr
@@ -51,11 +51,11 @@ PCABases = Dict[Tuple[int, int], Tuple[np.ndarray, np.ndarray]]
 
 
 def init_features(root: zarr.Group, conf: FeatureConfig, digest: str, dims: List[int],
-                  pca: Optional[Callable[[], PCABases]] = None) -> zarr.Group:
+                  pca: Optional[PCABases] = None) -> zarr.Group:
     """Create (or check and reuse) the feature group of ``conf``; another model is refused.
 
-    With ``conf.pca``, creating the group needs ``pca``: a function returning, per (image scale,
-    level) stored reduced, the mean (C,) and basis (C, D) (``fit_pca``); called only then."""
+    With ``conf.pca``, creating the group needs ``pca``: per (image scale, level) stored reduced,
+    the mean (C,) and basis (C, D) (``fit_pca``); ``needs_pca`` says when."""
     key = feature_key(conf)
     expected = {"config": conf.to_dict(), "model_digest": digest, "dims": list(dims)}
     if f"features/{key}" in root:
@@ -74,7 +74,7 @@ def init_features(root: zarr.Group, conf: FeatureConfig, digest: str, dims: List
         if pca is None:
             raise ValueError(f"Feature group {key!r} stores a PCA of the features: it is created with its bases "
                              "(pipeline.mapping.build.write_structure fits them).")
-        bases = pca()
+        bases = pca
     group = root.create_group(f"features/{key}")
     group.attrs.update(expected)
     new_array(group, "status", (I,), (1,), "int8", fill_value=PENDING)
@@ -99,6 +99,12 @@ def init_features(root: zarr.Group, conf: FeatureConfig, digest: str, dims: List
     if conf.sift:
         new_rows_array(group, "sift", R, DESCRIPTOR_DIM, "uint8", meta, fill_value=0)
     return group
+
+
+def needs_pca(root: zarr.Group, conf: FeatureConfig) -> bool:
+    """Whether ``init_features`` will create the group of ``conf`` stored as a PCA (its bases are
+    fitted first, on the map's images)."""
+    return bool(conf.pca) and f"features/{feature_key(conf)}" not in root
 
 
 def pca_bases(group: zarr.Group) -> PCABases:

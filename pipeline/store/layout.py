@@ -72,17 +72,16 @@ def new_rows_array(group: zarr.Group, name: str, rows: int, width: Optional[int]
 STORE_ENTRIES = {"zarr.json", "images", "points", "observations", "features"}
 
 
-def refuse_foreign(path) -> None:
+def refuse_foreign(path, found: "location.Contents") -> None:
     """--overwrite erases only what is recognisably a map store (or an empty folder): a folder of
-    anything else is refused, named, with what it holds."""
-    if location.is_file(path):
+    anything else is refused, named, with what it holds (``found``)."""
+    if found.is_file:
         raise StoreError(f"{path} is a file, not a map store: --overwrite only replaces a map store.")
-    entries = location.entries(path)
-    ours = b"pixloc_map" in (location.read_bytes(path, "zarr.json") or b"")
-    if entries and not ours and not entries <= STORE_ENTRIES:
-        raise StoreError(f"{path} is not a PixLoc map store (it holds {', '.join(sorted(entries)[:4])}"
-                         f"{' ...' if len(entries) > 4 else ''}): --overwrite only replaces a map store; choose "
-                         "another --store.")
+    ours = b"pixloc_map" in (found.header or b"")
+    if found.entries and not ours and not found.entries <= STORE_ENTRIES:
+        raise StoreError(f"{path} is not a PixLoc map store (it holds {', '.join(sorted(found.entries)[:4])}"
+                         f"{' ...' if len(found.entries) > 4 else ''}): --overwrite only replaces a map store; "
+                         "choose another --store.")
 
 
 def default_shard_rows(num_obs: np.ndarray, chunk_rows: int, max_chunks: int = 64) -> int:
@@ -113,7 +112,7 @@ def _image_columns(images: List[ImageRecord], row_start: np.ndarray, num_obs: np
             "images/camera": np.array([im.camera.to_json() for im in images]),
             "images/tags": np.array([json.dumps(im.tags, sort_keys=True) for im in images]),
             "images/path": np.array([str(im.path) for im in images]),
-            "images/cam_from_world": np.stack([_flat_pose(im.cam_from_world) for im in images]),
+            "images/cam_from_world": np.asarray([_flat_pose(im.cam_from_world) for im in images], np.float64),
             "images/row_start": np.asarray(row_start, np.int64), "images/num_obs": np.asarray(num_obs, np.int64),
             "images/source_id": np.array([im.source_id for im in images], np.int64)}
 
@@ -129,9 +128,9 @@ def create_store(path, scene: Scene, chunk_rows: int = 256, overwrite: bool = Fa
     ``shard_rows`` (a multiple of ``chunk_rows``; default ``default_shard_rows``) is the unit
     each image's block of rows is padded to."""
     names = [im.name for im in scene.images]
-    exists = location.exists(path)
-    if exists and not overwrite:
-        root = open_store(path, mode="r+")
+    found, store = location.contents(path), location.zarr_store(path)
+    if found is not None and not overwrite:
+        root = _checked_root(store, path, "r+")
         stored = [str(n) for n in read(root, "images/name")]
         meta = root.attrs["pixloc_map"]
         # the scene that built or last extended the store (an added session keeps only the new
@@ -147,8 +146,8 @@ def create_store(path, scene: Scene, chunk_rows: int = 256, overwrite: bool = Fa
         raise StoreError(f"{path} holds another map (other images or observations); "
                          "choose another path, rebuild it with --overwrite, or add images with a scene that "
                          "holds every image of the map.")
-    if exists:
-        refuse_foreign(path)
+    if found is not None:
+        refuse_foreign(path, found)
     order = np.lexsort((scene.obs_point, scene.obs_image))
     obs_image, obs_point, obs_xy = scene.obs_image[order], scene.obs_point[order], scene.obs_xy[order]
     num_obs = np.bincount(obs_image, minlength=len(scene.images))
@@ -162,7 +161,7 @@ def create_store(path, scene: Scene, chunk_rows: int = 256, overwrite: bool = Fa
     rank = np.arange(len(obs_image)) - np.concatenate([[0], np.cumsum(num_obs)[:-1]])[obs_image]
     row = row_start[obs_image] + rank
 
-    root = zarr.open_group(store=location.zarr_store(path), mode="w")
+    root = zarr.open_group(store=store, mode="w")
     root.attrs["pixloc_map"] = {
         "version": VERSION, "chunk_rows": chunk_rows, "shard_rows": shard_rows, "num_images": len(names),
         "num_points": len(scene.points), "num_observations": int(len(obs_point)), "num_rows": rows,
@@ -363,13 +362,18 @@ def open_store(path, mode: str = "r") -> zarr.Group:
     """Open a map store (a folder or a URL, ``pipeline.store.location``) after checking its layout
     (``check_layout``); a bad one is refused with a StoreError that says what is wrong."""
     try:
-        present = location.exists(path)
+        return _checked_root(location.zarr_store(path, read_only=mode == "r", must_exist=True), path, mode)
+    except location.MissingStore:
+        raise StoreError(f"Map store {path} does not exist.") from None
     except (OSError, ValueError) as e:  # a URL that cannot be reached, bad storage options
+        if isinstance(e, StoreError):
+            raise
         raise StoreError(f"Map store {path} cannot be reached: {type(e).__name__}: {e}") from None
-    if not present:
-        raise StoreError(f"Map store {path} does not exist.")
+
+
+def _checked_root(store, path, mode: str) -> zarr.Group:
     try:
-        root = zarr.open_group(store=location.zarr_store(path, read_only=mode == "r"), mode=mode)
+        root = zarr.open_group(store=store, mode=mode)
         meta = root.attrs.get("pixloc_map")
     except Exception as e:  # unreadable or invalid zarr.json  # noqa: BLE001
         raise StoreError(f"{path} is not a readable zarr group: {type(e).__name__}: {e}") from None

@@ -15,8 +15,9 @@ environment, see docs/cluster.md).
 import json
 import os
 from collections import OrderedDict
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Dict, Optional, Set, Tuple, Union
+from typing import Any, Dict, FrozenSet, Optional, Tuple, Union
 
 STORAGE_OPTIONS_ENV = "PIXLOC_STORAGE_OPTIONS"
 # fsspec caches directory listings per process; a store that other processes write (build
@@ -36,6 +37,10 @@ except ImportError:  # zarr < 3.1
 
 class StoreLocationError(ValueError):
     """A store URL or storage options that cannot be used (named, with the fix)."""
+
+
+class MissingStore(FileNotFoundError):
+    """Nothing is stored under the name."""
 
 
 def is_url(store: StoreName) -> bool:
@@ -84,11 +89,14 @@ def filesystem(store: StoreName) -> Tuple[Any, str]:
     return fs, path
 
 
-def zarr_store(store: StoreName, read_only: bool = False):
+def zarr_store(store: StoreName, read_only: bool = False, must_exist: bool = False):
     """The zarr store of a local folder or a URL (the latter through fsspec, asynchronously: zarr
-    drives it from its own event loop, apart from the filesystem this module's calls use)."""
+    drives it from its own event loop, apart from the filesystem this module's calls use);
+    ``must_exist``: MissingStore where nothing is stored under the name."""
     from zarr.storage import FsspecStore, LocalStore
 
+    if must_exist and not exists(store):
+        raise MissingStore(str(store))
     if not is_url(store):
         return LocalStore(normalize(store), read_only=read_only)
     url = normalize(store)
@@ -191,14 +199,6 @@ def exists(store: StoreName) -> bool:
     return bool(fs.exists(path))
 
 
-def entries(store: StoreName) -> Set[str]:
-    """The names directly under ``store`` (files and folders, or objects and prefixes)."""
-    if not is_url(store):
-        return {p.name for p in Path(normalize(store)).iterdir()}
-    fs, path = filesystem(store)
-    return {str(p).rstrip("/").rsplit("/", 1)[-1] for p in fs.ls(path, detail=False)}
-
-
 def read_bytes(store: StoreName, key: str) -> Optional[bytes]:
     """The object ``key`` under ``store`` (``zarr.json``, ``features/x/zarr.json``), None if absent."""
     if not is_url(store):
@@ -222,12 +222,29 @@ def stamp(store: StoreName, keys) -> Tuple:
     return tuple(read_bytes(store, key) for key in keys)
 
 
-def is_file(store: StoreName) -> bool:
-    """Whether ``store`` is a single file (or object), not a folder."""
+@dataclass(frozen=True)
+class Contents:
+    """What is stored under a name: a single file (or object), or the names directly under it."""
+
+    is_file: bool
+    entries: FrozenSet[str]
+    header: Optional[bytes]  # its zarr.json, if any
+
+
+def contents(store: StoreName) -> Optional[Contents]:
+    """What is stored under ``store``, None where nothing is."""
+    if not exists(store):
+        return None
     if not is_url(store):
-        return Path(normalize(store)).is_file()
+        path = Path(normalize(store))
+        if path.is_file():
+            return Contents(True, frozenset(), None)
+        return Contents(False, frozenset(p.name for p in path.iterdir()), read_bytes(store, "zarr.json"))
     fs, path = filesystem(store)
-    return bool(fs.isfile(path))
+    if fs.isfile(path):
+        return Contents(True, frozenset(), None)
+    names = frozenset(str(p).rstrip("/").rsplit("/", 1)[-1] for p in fs.ls(path, detail=False))
+    return Contents(False, names, read_bytes(store, "zarr.json"))
 
 
 def total_bytes(store: StoreName) -> int:

@@ -253,20 +253,16 @@ class MapReader:
                 self._blocks.move_to_end(key)
                 self.stats["hits"] += 1
                 out[key] = self._blocks[key]
+        max_blocks, max_bytes = self._cache_limits
         for key, (block, nbytes) in read.items():
-            self._cache(key, block)
+            self._blocks[key] = block
+            self._cached_bytes += _nbytes(block)
+            while len(self._blocks) > 1 and (len(self._blocks) > max_blocks or self._cached_bytes > max_bytes):
+                self._cached_bytes -= _nbytes(self._blocks.popitem(last=False)[1])
             self.stats["blocks"] += 1
             self.stats["bytes"] += nbytes
             out[key] = block
         return [out[key] for key in keys]
-
-    def _cache(self, key: Tuple[int, int], out) -> None:
-        self._blocks[key] = out
-        self._cached_bytes += _nbytes(out)
-        max_blocks, max_bytes = self._cache_limits
-        while len(self._blocks) > 1 and (len(self._blocks) > max_blocks or self._cached_bytes > max_bytes):
-            _, old = self._blocks.popitem(last=False)
-            self._cached_bytes -= _nbytes(old)
 
     def features(self, obs: Observations, scale: int) -> List[Tuple[np.ndarray, np.ndarray, np.ndarray]]:
         """Per level: features (M, C) float32, confidences (M,), valid (M,) of the observations."""

@@ -100,7 +100,7 @@ def build(store: Path, scene: Scene, conf: FeatureConfig, seed: int) -> Dict:
     rng = np.random.default_rng(seed + 1)
     t0 = time.perf_counter()
     root = create_store(store, scene, overwrite=True)
-    group = init_features(root, conf, "synthetic", DIMS, pca=lambda: {  # random orthonormal bases
+    group = init_features(root, conf, "synthetic", DIMS, pca={  # random orthonormal bases
         (k, level): (np.zeros(d, np.float32), np.linalg.qr(rng.normal(size=(d, conf.pca)))[0].astype(np.float32))
         for k in range(len(conf.image_scales)) for level, d in enumerate(DIMS) if d > conf.pca})
     t1 = time.perf_counter()
