@@ -44,12 +44,14 @@ def fit_pca(samples: np.ndarray, components: int, max_rows: int = 50_000, seed: 
 
 
 def project(features: np.ndarray, basis: Tuple[np.ndarray, np.ndarray]) -> np.ndarray:
-    """(N, C) features -> (N, D) components of ``basis`` (mean, directions)."""
+    """(N, C) features -> (N, D) float32 components of ``basis`` (mean, directions). Summed in
+    float64, so that the result does not depend on how many threads BLAS splits the product into
+    (a sync run and a Dask worker's must store and read the same values)."""
     mean, directions = basis
-    return (np.asarray(features, np.float32) - mean) @ directions
+    return ((np.asarray(features, np.float64) - mean) @ directions.astype(np.float64)).astype(np.float32)
 
 
 def reconstruct(components: np.ndarray, basis: Tuple[np.ndarray, np.ndarray]) -> np.ndarray:
-    """(N, D) components -> (N, C) features."""
+    """(N, D) components -> (N, C) float32 features (summed in float64, as ``project``)."""
     mean, directions = basis
-    return components @ directions.T + mean
+    return (np.asarray(components, np.float64) @ directions.T.astype(np.float64) + mean).astype(np.float32)

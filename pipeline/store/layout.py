@@ -454,6 +454,11 @@ def check_feature_group(group: zarr.Group, meta: Dict, path) -> None:
         if tuple(array.shape[1:]) != shape[1:] or array.shape[0] < shape[0] or (
                 "pca_" in name and tuple(array.shape) != shape):
             raise StoreError(f"{path}: array {group.path}/{name} has shape {tuple(array.shape)}, expected {shape}.")
+    bases = [get_array(group, name, path) for name in expected if "pca_" in name]
+    missing = missing_objects(bases, slice(0, 1)) if bases else []
+    if missing:  # every feature of the group needs them: absent, they would be read as zeros
+        raise StoreError(f"{path}: {len(missing)} files of the feature group's PCA bases are missing ({missing[0]}): "
+                         "its features cannot be reconstructed; rebuild it with build-map --overwrite.")
     if get_array(group, "global", path).shape[0] < I:
         raise StoreError(f"{path}: array {group.path}/global has {group['global'].shape[0]} rows for {I} images.")
 
