@@ -28,11 +28,11 @@ FLAGS = {
     "--pad": Flag("pad", "interpolation margin in feature pixels"),
     "--descriptor": Flag("descriptor", "global descriptor for retrieval (gem pooling, or a 2x3 grid of mean-centred "
                          "features)", ("gem", "grid")),
-    "--dtype": Flag("dtype", "feature storage: float16, int8 (codes and a scale per row and level: smaller, for large "
-                    "maps) or float32", tuple(DTYPES)),
+    "--dtype": Flag("dtype", "feature storage: int8 (codes and a scale per row and level; with --pca 48, the compact "
+                    "store), float16 (every channel: --dtype float16 alone) or float32", tuple(DTYPES)),
     "--pca": Flag("pca", "store the levels with more than D channels as their D principal components (a PCA of the "
-                  "map's features, fitted on 8 of its images; e.g. 48 with --dtype int8 and two image scales: 257 to "
-                  "283 bytes per observation on the shared scenes); 0: every channel", metavar="D"),
+                  "map's features, fitted on 8 of its images; 48 with int8 and two image scales: 257 to 283 bytes per "
+                  "observation on the shared scenes); 0: every channel; default 48 with int8, else 0", metavar="D"),
     "--sift": Flag("sift", "also store a SIFT descriptor per observation, extracted at a longer side of N pixels "
                    "(e.g. 1600), for --prior sift: 128 bytes per observation; 0: none", metavar="N"),
 }

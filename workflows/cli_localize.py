@@ -163,7 +163,7 @@ def store_feature_config(store, key=None) -> FeatureConfig:
         raise StoreError(f"{store} has no feature group {key!r} (it has {groups}).")
     conf = dict(root[f"features/{key}"].attrs["config"])
     conf["image_scales"] = tuple(conf["image_scales"])
-    return FeatureConfig(**conf)
+    return FeatureConfig.from_dict(conf)
 
 
 def build_job(args: argparse.Namespace) -> LocalizationJob:

@@ -313,7 +313,7 @@ def make_report(output: Path, queries: List[QueryRecord], num_examples: int = 3,
     fconf = dict(job["features"])
     fconf["image_scales"] = tuple(fconf["image_scales"])
     refiner, digest = localization_model(job["model"], "cpu")
-    reader = MapReader(job["store"], FeatureConfig(**fconf), digest)
+    reader = MapReader(job["store"], FeatureConfig.from_dict(fconf), digest)
     if units is None:
         units = map_units(dict(open_store(job["store"]).attrs["pixloc_map"]).get("source", {}))
     errors = {r["name"]: query_errors(r, gt.get(r["name"])) for r in records}

@@ -27,6 +27,7 @@ logger = logging.getLogger(__name__)
 
 
 DTYPES = ("float16", "int8", "float32")
+COMPACT_PCA = 48  # the default store's components per level, with int8 (docs/benchmarks.md, feature storage)
 
 
 @dataclass(frozen=True)
@@ -38,17 +39,19 @@ class FeatureConfig:
     resize: longer image side in pixels at image scale 1 (images are only downscaled).
     image_scales: official ``multiscale`` factors, coarse first (e.g. (4, 1)).
     pad: interpolation margin in feature-map pixels (official ``pad``).
-    dtype: storage type of features, ``float16`` (default), ``int8`` (a quarter of float32:
-        codes with a float16 scale per row and level, for large maps; docs/map_store.md has
-        its measured cost in recall) or ``float32`` (bit-exact with extraction, for parity
-        studies). Confidences are float16 unless ``float32``.
+    dtype: storage type of features, ``int8`` (default: a quarter of float32, codes with a
+        float16 scale per row and level; with the PCA below, the compact store, whose recall
+        docs/benchmarks.md compares with float16 on every real scene), ``float16`` (every
+        channel in half precision: ``--dtype float16``) or ``float32`` (bit-exact with
+        extraction, for parity studies). Confidences are float16 unless ``float32``.
     descriptor: global descriptor for retrieval, from the coarsest feature map: ``gem``
         (generalised mean) or ``grid`` (mean-centred features averaged over a 2 x 3 grid:
         keeps the layout, more robust to changes of light in our synthetic tests).
-    pca: 0 (default) stores every channel; D > 0 stores the levels with more than D channels as
-        their D leading principal components (a PCA of the map's own features, fitted on a
-        sample of its images when the feature group is created, stored with it); readers
-        reconstruct the full channels. With int8, two image scales fit in about 300 bytes per
+    pca: 0 stores every channel; D > 0 stores the levels with more than D channels as their D
+        leading principal components (a PCA of the map's own features, fitted on a sample of
+        its images when the feature group is created, stored with it); readers reconstruct the
+        full channels. Default (None): 48 with int8, else 0, so ``--dtype float16`` alone gives
+        the full float16 store. With int8, two image scales fit in about 300 bytes per
         observation (docs/map_store.md).
     sift: 0 (default) stores no local features; N > 0 also stores, per observation, the SIFT
         descriptor (extracted at a longer side of N pixels, 4,096 per image) of the keypoint
@@ -60,12 +63,14 @@ class FeatureConfig:
     resize: int = 1024
     image_scales: Tuple[int, ...] = (4, 1)
     pad: int = 2
-    dtype: str = "float16"
+    dtype: str = "int8"
     descriptor: str = "gem"
-    pca: int = 0
+    pca: Optional[int] = None  # 48 with int8, else 0
     sift: int = 0
 
     def __post_init__(self):
+        if self.pca is None:
+            object.__setattr__(self, "pca", COMPACT_PCA if self.dtype == "int8" else 0)
         if self.dtype not in DTYPES:
             raise ValueError(f"Unknown feature storage type {self.dtype!r}; known: {', '.join(DTYPES)}.")
         if self.descriptor not in DESCRIPTORS:
@@ -74,6 +79,13 @@ class FeatureConfig:
             raise ValueError(f"pca must be 0 (off) or a number of components, not {self.pca}.")
         if self.sift and self.sift < 64:
             raise ValueError(f"sift must be 0 (off) or a longer image side of at least 64 pixels, not {self.sift}.")
+
+    @classmethod
+    def from_dict(cls, d: Dict) -> "FeatureConfig":
+        """The config a store recorded (``to_dict``): an absent ``pca`` or ``sift`` is 0 (stores
+        made before them, or without them), not the default."""
+        d = {"pca": 0, "sift": 0, **d}
+        return cls(**{**d, "image_scales": tuple(d.get("image_scales", cls.image_scales))})
 
     def to_dict(self) -> Dict:
         d = asdict(self)

@@ -14,7 +14,7 @@ from pipeline.store.feature_groups import feature_key
 from pipeline.store.layout import DONE, FAILED, StoreError, image_rows, open_store
 from tests.pipeline.helpers import assert_same_store
 
-CONF = FeatureConfig(resize=512, image_scales=(4, 1))
+CONF = FeatureConfig(resize=512, image_scales=(4, 1), dtype="float16")  # raw stored values are compared
 
 
 @pytest.fixture(scope="module")

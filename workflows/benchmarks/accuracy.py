@@ -32,7 +32,7 @@ import numpy as np
 from pipeline.evaluate import fmt, record_errors, usable_ground_truth
 from pipeline.localization.refine import LocalizerConfig
 from pipeline.localization.retrieval import RetrievalConfig
-from pipeline.mapping.features import FeatureConfig
+from pipeline.mapping.features import COMPACT_PCA, DTYPES, FeatureConfig
 from pipeline.mapping.readers.colmap import read_colmap, run_sfm
 from pipeline.store.reader import MapReader
 from pixloc.nets.registry import DEFAULT_MODEL
@@ -100,6 +100,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--sift", type=int, default=0, metavar="N",
                    help="maps that store SIFT descriptors extracted at N px (build-map --sift), which the sift "
                         "prior then matches instead of extracting the references' (default 0: none)")
+    p.add_argument("--dtype", choices=DTYPES, default=FeatureConfig.dtype,
+                   help="feature storage of the maps (the build-map default: the compact store)")
+    p.add_argument("--pca", type=int, metavar="D", help="principal components per level (build-map's default: "
+                   f"{COMPACT_PCA} with int8, else 0)")
+    p.add_argument("--against", type=Path, metavar="WORK",
+                   help="another work folder of this benchmark (other feature storage): its rows and its maps' bytes "
+                        "per observation side by side with this run's")
     p.add_argument("--limit", type=int, default=0,
                    help="at most this many queries per scene and fold (a quick look; runs kept apart)")
 
@@ -147,7 +154,8 @@ def scene_parts(key: str, args, fconf: FeatureConfig) -> List[Tuple[str, Path, L
     if key == "7scenes":
         parts = list(seven_scenes_map(args.shared, args.work, fconf))
     elif key == "sacre_coeur":
-        parts = sacre_coeur(args.shared, args.work, SACRE_COEUR_FEATURES)
+        parts = sacre_coeur(args.shared, args.work, dataclasses.replace(SACRE_COEUR_FEATURES, dtype=fconf.dtype,
+                                                                         pca=fconf.pca))
     elif key == "virtual_gallery":
         parts = list(virtual_gallery_map(args.shared, args.work, fconf))
     else:
@@ -265,13 +273,14 @@ def goals(rows: List[Dict]) -> List[str]:
 
 
 def main(args: argparse.Namespace) -> int:
-    fconf = FeatureConfig(model=DEFAULT_MODEL, resize=args.resize, image_scales=(1,), sift=args.sift)
+    fconf = FeatureConfig(model=DEFAULT_MODEL, resize=args.resize, image_scales=(1,), sift=args.sift,
+                          dtype=args.dtype, pca=args.pca)
     lconf = LocalizerConfig(num_dbs=3, num_iters=50)
     args.work.mkdir(parents=True, exist_ok=True)
     settings = args.work / "features.json"  # one work folder, one feature setting: its maps hold one group
     if settings.exists() and json.loads(settings.read_text()) != fconf.to_dict():
         raise SystemExit(f"pixloc: error: {args.work} holds maps of features {settings.read_text().strip()}, "
-                         f"not {json.dumps(fconf.to_dict())} (--resize, --sift): give another --work")
+                         f"not {json.dumps(fconf.to_dict())} (--resize, --sift, --dtype, --pca): give another --work")
     settings.write_text(json.dumps(fconf.to_dict()) + "\n")
     runs = args.work / ("runs" if not args.limit else f"runs-limit{args.limit}")
     rows: List[Dict] = []
@@ -303,4 +312,60 @@ def main(args: argparse.Namespace) -> int:
     for line in goals(rows) + remarks:
         print("- " + line)
     (args.work / "rows.json").write_text(json.dumps(rows, indent=1))
+    if args.against:
+        print()
+        print(storage_table(args.work, args.against, args.scenes))
     return 1 if any(": no map (" in line for line in remarks) else 0
+
+
+def store_bytes(work: Path, key: str) -> Optional[Tuple[float, float]]:
+    """(store bytes, feature bytes) per observation of a scene's maps in ``work`` (every fold)."""
+    from pipeline.store import location
+    from pipeline.store.layout import open_store
+
+    total = features = observations = 0
+    for store in sorted(work.glob(f"{key}*.zarr")):
+        observations += open_store(store).attrs["pixloc_map"]["num_observations"]
+        total += location.total_bytes(store)
+        features += location.total_bytes(store / "features")
+    return (total / observations, features / observations) if observations else None
+
+
+def storage_name(work: Path) -> str:
+    """The feature storage of a work folder's maps, as their feature groups record it."""
+    from pipeline.store.layout import open_store
+
+    for store in sorted(work.glob("*.zarr")):
+        for _, group in open_store(store)["features"].groups():
+            conf = group.attrs["config"]
+            return conf["dtype"] + (f" + PCA {conf['pca']}" if conf.get("pca") else "")
+    return "unknown"
+
+
+def storage_table(work: Path, against: Path, scenes) -> str:
+    """This run's recall and bytes per observation against another work folder's, per scene and prior."""
+    names = [storage_name(w) for w in (work, against)]
+    other = {(r["scene"], r["prior"]): r for r in json.loads((against / "rows.json").read_text())}
+    lines = [f"storage: {names[0]} ({work}) / {names[1]} ({against})", "",
+             "| scene | prior | queries | " + " | ".join(f"{t} recall" for t in RECALLS) + " | median error | "
+             "successes (wrong) | store B / obs | features B / obs |",
+             "| --- | --- | ---: | " + " | ".join("---:" for _ in RECALLS) + " | ---: | ---: | ---: | ---: |"]
+    sizes = {key: [store_bytes(w, key) for w in (work, against)] for key in scenes}
+    for r in json.loads((work / "rows.json").read_text()):
+        o = other.get((r["scene"], r["prior"]))
+        if o is None or r["prior"] == "reference":
+            continue
+        pair = lambda k, f="{:.0f} %", scale=100: " / ".join(  # noqa: E731
+            "-" if x.get(k) is None else f.format(scale * x[k]) for x in (r, o))
+        size = sizes.get(r["scene"], [None, None])
+        shown = [" / ".join("-" if s is None else f"{s[i]:.0f}" for s in size) for i in (0, 1)]
+        lines.append(f"| {r['scene']} | {r['prior']} | {r['queries']} | "
+                     + " | ".join(pair(t) for t in RECALLS)
+                     + f" | {pair('median_t_pct', '{:.2f} %', 1)}, {pair('median_R', '{:.2f} deg', 1)} | "
+                     + " / ".join(f"{x['accepted']} ({len(x['wrong'] or [])})" if x.get("accepted") is not None
+                                  else "-" for x in (r, o))
+                     + f" | {shown[0]} | {shown[1]} |")
+    same = sum(all(r.get(t) == other.get((r["scene"], r["prior"]), {}).get(t) for t in RECALLS)
+               for r in json.loads((work / "rows.json").read_text()) if (r["scene"], r["prior"]) in other)
+    lines += ["", f"rows with the same recall at every threshold: {same} of {len(other)}"]
+    return "\n".join(lines)

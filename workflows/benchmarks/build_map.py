@@ -40,7 +40,7 @@ def main(args: argparse.Namespace) -> int:
 
     root = args.shared / "data" / "maupertuis"
     scene = read_colmap(root / "reconstruction", root / "images").repeated(args.repeat)
-    conf = FeatureConfig(resize=args.resize, image_scales=(4, 1))
+    conf = FeatureConfig(resize=args.resize, image_scales=(4, 1), dtype="float16")
     n_img, n_obs = len(scene.images), len(scene.obs_point)
     print(f"Map building: {n_img} images ({n_obs} observations), features {conf.to_dict()}")
     print(f"{'workers':>7} {'seconds':>8} {'images/s':>9} {'vs 1 worker':>12} "

@@ -61,7 +61,7 @@ def build_city(args, blocks: int, per_condition: int) -> Dict:
     t1 = time.perf_counter()
     scene = rgbd_scene(mapping, method="frames", stride=8, min_track_length=3)
     t2 = time.perf_counter()
-    conf = FeatureConfig(resize=160, image_scales=(1,), dtype="int8", descriptor="grid")
+    conf = FeatureConfig(resize=160, image_scales=(1,), dtype="int8", descriptor="grid", pca=0)
     plan = plan_build(scene, store, conf, batch_size=4)
     cluster = ProcessCluster(args.work, ("w0", "w1"))
     try:

@@ -84,7 +84,7 @@ def read(store: str, conf: str, queries: str, seed: str) -> None:
     settings["image_scales"] = tuple(settings["image_scales"])
     before = rss()
     t0 = time.perf_counter()
-    reader = MapReader(store, FeatureConfig(**settings), cache_images=64)
+    reader = MapReader(store, FeatureConfig.from_dict(settings), cache_images=64)
     open_s = time.perf_counter() - t0
     opened = rss()
     rng = np.random.default_rng(int(seed))

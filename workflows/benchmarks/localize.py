@@ -83,7 +83,7 @@ def main(args: argparse.Namespace) -> int:
     try:
         scene = read_colmap(oracle / "sacre_coeur_sfm", images)
         shutil.copytree(oracle / "sacre_coeur_sfm", work / "sfm")
-        fconf = FeatureConfig(resize=args.resize, image_scales=(4, 1))
+        fconf = FeatureConfig(resize=args.resize, image_scales=(4, 1), dtype="float16")
         t0 = time.perf_counter()
         build_map(scene, work / "map.zarr", fconf)
         build_s = time.perf_counter() - t0

@@ -74,7 +74,8 @@ def main(args: argparse.Namespace) -> int:
         raise SystemExit(f"benchmark rgbd: {root} not found (set --shared or PIXLOC_SHARED)")
     args.work.mkdir(parents=True, exist_ok=True)
     preset = load("7scenes")
-    fconf = FeatureConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in preset["features"].items()})
+    fconf = FeatureConfig(**{"dtype": "float16", **{k: tuple(v) if isinstance(v, list) else v
+                                                   for k, v in preset["features"].items()}})
     store = args.work / "map.zarr"
     if not store.exists():
         build_map(rgbd_scene(read_7scenes(root, [2, 3]), method="tsdf"), store, fconf)  # build-map 7scenes

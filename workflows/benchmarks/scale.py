@@ -142,7 +142,7 @@ def city_rows(args) -> list:
         t1 = time.perf_counter()
         scene = rgbd_scene(mapping, method="frames", stride=8, min_track_length=3)
         store = args.work / f"city-{n}x{n}.zarr"
-        conf = FeatureConfig(resize=160, image_scales=(1,), dtype="int8", descriptor="grid")
+        conf = FeatureConfig(resize=160, image_scales=(1,), dtype="int8", descriptor="grid", pca=0)
         build_sync(plan_build(scene, store, conf))
         t2 = time.perf_counter()
         out = subprocess.run(command("localize", root, store, args.work / f"city-{n}x{n}-run"),
@@ -168,7 +168,7 @@ def add_rows(args) -> Dict:
                   query_spread=0.5, query_block="0-0")
     mapping, _ = read_synthetic(root)
     n_new = len(mapping) // 10
-    conf = FeatureConfig(resize=160, image_scales=(1,), dtype="int8", descriptor="grid")
+    conf = FeatureConfig(resize=160, image_scales=(1,), dtype="int8", descriptor="grid", pca=0)
     t0 = time.perf_counter()
     scene = rgbd_scene(mapping, method="frames", stride=8, min_track_length=3)
     scene_s = time.perf_counter() - t0

@@ -39,7 +39,7 @@ from .verification import demo_map, seven_scenes_map, strecha_maps, write_priors
 THRESHOLDS = ((0.05, 1.0), (0.25, 2.0), (1.0, 5.0))
 SCENES = ("fountain", "herzjesus", "demo", "7scenes", "sacre_coeur", "sacre_coeur_night", "virtual_gallery")
 # the official localization setting of the Sacre Coeur cases (oracle/localization_cases.json, avg)
-SACRE_COEUR_FEATURES = FeatureConfig(model=DEFAULT_MODEL, resize=1024, image_scales=(4, 1))
+SACRE_COEUR_FEATURES = FeatureConfig(model=DEFAULT_MODEL, resize=1024, image_scales=(4, 1), dtype="float16")
 HELD_OUT = {"fountain": ("fountain-P11", ["0002.jpg", "0004.jpg", "0006.jpg", "0008.jpg"]),
             "herzjesus": ("Herz-Jesus-P8", ["0002.jpg", "0003.jpg", "0004.jpg", "0005.jpg"])}
 
@@ -132,7 +132,7 @@ def localize_priors(parts, priors: List[str], runs: Path, lconf: LocalizerConfig
 
 
 def main(args: argparse.Namespace) -> int:
-    fconf = FeatureConfig(model=DEFAULT_MODEL, resize=512, image_scales=(1,))
+    fconf = FeatureConfig(model=DEFAULT_MODEL, resize=512, image_scales=(1,), dtype="float16")
     lconf = LocalizerConfig(num_dbs=3, num_iters=50)
     rows: List[Dict] = []
     for key, parts in _sources(args, fconf):

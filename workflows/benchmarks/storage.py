@@ -96,7 +96,7 @@ def storage_config(base: FeatureConfig, variant: str) -> FeatureConfig:
 
 def scene_rows(args, key: str) -> List[Dict]:
     scales, resize = tuple(getattr(args, "image_scales", (1,))), getattr(args, "resize", 512)
-    base = FeatureConfig(model=DEFAULT_MODEL, resize=resize, image_scales=scales)
+    base = FeatureConfig(model=DEFAULT_MODEL, resize=resize, image_scales=scales, dtype="float16")
     lconf = LocalizerConfig(num_dbs=3, num_iters=50)
     rows = []
     suffix = ("" if scales == (1,) else "-s" + "-".join(map(str, scales))) + ("" if resize == 512 else f"-r{resize}")

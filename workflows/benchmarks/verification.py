@@ -119,7 +119,7 @@ def collect(args) -> List[Dict]:
     """Runs (or reads back) every localization; one row per refinement with its errors and evidence."""
     from pixloc.nets.registry import DEFAULT_MODEL
     model = args.model or DEFAULT_MODEL
-    fconf = FeatureConfig(model=model, resize=512, image_scales=(1,))
+    fconf = FeatureConfig(model=model, resize=512, image_scales=(1,), dtype="float16")
     lconf = LocalizerConfig(num_dbs=3, num_iters=50, verification=VerificationConfig(enabled=False))
     work = args.work
     work.mkdir(parents=True, exist_ok=True)
@@ -204,7 +204,7 @@ def night(args) -> str:
     from pipeline.exif import exif_camera
     from pixloc.nets.registry import DEFAULT_MODEL
     root = args.shared / "data" / "sacre_coeur"
-    fconf = FeatureConfig(model=args.model or DEFAULT_MODEL, resize=1024, image_scales=(4, 1))
+    fconf = FeatureConfig(model=args.model or DEFAULT_MODEL, resize=1024, image_scales=(4, 1), dtype="float16")
     store = args.work / "sacre_coeur.zarr"
     build_map(read_colmap(args.shared / "oracle" / "sacre_coeur_sfm", root / "mapping"), store, fconf)
     path = root / "query" / "night.jpg"
