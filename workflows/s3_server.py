@@ -3,6 +3,7 @@ process (no mock of the client), and a TCP proxy in front of it that delays ever
 what a store's reads cost at a given round-trip latency."""
 
 import contextlib
+import importlib.util
 import socket
 import subprocess
 import sys
@@ -45,10 +46,8 @@ def moto_server(buckets=("maps",), timeout: float = 60.0) -> Iterator[str]:
     """Start moto's S3 server on a free port of 127.0.0.1 with ``buckets`` created; yields its
     endpoint URL and stops it after. ServerUnavailable says why it cannot start."""
     for module in ("moto", "s3fs", "boto3", "flask_cors"):
-        try:
-            __import__(module)
-        except ImportError:
-            raise ServerUnavailable(f"the S3 server needs {module} (pip install -e '.[test]')") from None
+        if importlib.util.find_spec(module) is None:
+            raise ServerUnavailable(f"the S3 server needs {module} (pip install -e '.[test]')")
     port = free_port()
     with tempfile.TemporaryDirectory() as tmp:
         log = Path(tmp) / "moto.log"

@@ -19,6 +19,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Dict, FrozenSet, Optional, Tuple, Union
 
+from zarr.storage import WrapperStore
+
 STORAGE_OPTIONS_ENV = "PIXLOC_STORAGE_OPTIONS"
 # fsspec caches directory listings per process; a store that other processes write (build
 # workers, a build while localizing) must be listed afresh
@@ -28,11 +30,6 @@ _FRESH = {"s3": {"use_listings_cache": False}, "gs": {"cache_timeout": 0}}
 _WHOLE = {"s3": {"max_concurrency": 1}}
 
 StoreName = Union[str, Path]
-
-try:
-    from zarr.storage import WrapperStore
-except ImportError:  # zarr < 3.1
-    from zarr.storage._wrapper import WrapperStore
 
 
 class StoreLocationError(ValueError):
