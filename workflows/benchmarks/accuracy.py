@@ -345,27 +345,32 @@ def storage_name(work: Path) -> str:
 def storage_table(work: Path, against: Path, scenes) -> str:
     """This run's recall and bytes per observation against another work folder's, per scene and prior."""
     names = [storage_name(w) for w in (work, against)]
+    rows = json.loads((work / "rows.json").read_text())
     other = {(r["scene"], r["prior"]): r for r in json.loads((against / "rows.json").read_text())}
+    sizes = {key: [store_bytes(w, key) for w in (work, against)] for key in scenes}
+
+    def pair(a: Dict, b: Dict, key: str, form: str = "{:.0f} %", scale: float = 100) -> str:
+        return " / ".join("-" if x.get(key) is None else form.format(scale * x[key]) for x in (a, b))
+
+    def successes(x: Dict) -> str:
+        return "-" if x.get("accepted") is None else f"{x['accepted']} ({len(x['wrong'] or [])})"
+
     lines = [f"storage: {names[0]} ({work}) / {names[1]} ({against})", "",
              "| scene | prior | queries | " + " | ".join(f"{t} recall" for t in RECALLS) + " | median error | "
              "successes (wrong) | store B / obs | features B / obs |",
              "| --- | --- | ---: | " + " | ".join("---:" for _ in RECALLS) + " | ---: | ---: | ---: | ---: |"]
-    sizes = {key: [store_bytes(w, key) for w in (work, against)] for key in scenes}
-    for r in json.loads((work / "rows.json").read_text()):
+    for r in rows:
         o = other.get((r["scene"], r["prior"]))
         if o is None or r["prior"] == "reference":
             continue
-        pair = lambda k, f="{:.0f} %", scale=100: " / ".join(  # noqa: E731
-            "-" if x.get(k) is None else f.format(scale * x[k]) for x in (r, o))
         size = sizes.get(r["scene"], [None, None])
         shown = [" / ".join("-" if s is None else f"{s[i]:.0f}" for s in size) for i in (0, 1)]
         lines.append(f"| {r['scene']} | {r['prior']} | {r['queries']} | "
-                     + " | ".join(pair(t) for t in RECALLS)
-                     + f" | {pair('median_t_pct', '{:.2f} %', 1)}, {pair('median_R', '{:.2f} deg', 1)} | "
-                     + " / ".join(f"{x['accepted']} ({len(x['wrong'] or [])})" if x.get("accepted") is not None
-                                  else "-" for x in (r, o))
-                     + f" | {shown[0]} | {shown[1]} |")
-    same = sum(all(r.get(t) == other.get((r["scene"], r["prior"]), {}).get(t) for t in RECALLS)
-               for r in json.loads((work / "rows.json").read_text()) if (r["scene"], r["prior"]) in other)
-    lines += ["", f"rows with the same recall at every threshold: {same} of {len(other)}"]
+                     + " | ".join(pair(r, o, t) for t in RECALLS)
+                     + f" | {pair(r, o, 'median_t_pct', '{:.2f} %', 1)}, {pair(r, o, 'median_R', '{:.2f} deg', 1)}"
+                     + f" | {successes(r)} / {successes(o)} | {shown[0]} | {shown[1]} |")
+    same = sum(all(r.get(t) == other[(r["scene"], r["prior"])].get(t) for t in RECALLS)
+               for r in rows if (r["scene"], r["prior"]) in other)
+    lines += ["", f"rows with the same recall at every threshold (the unrefined references and the totals "
+              f"included): {same} of {len(other)}"]
     return "\n".join(lines)
