@@ -37,7 +37,7 @@ def test_every_feature_file_deleted_is_never_read_as_zeros(stairs, tmp_path):
     job = stairs.copy(tmp_path)
     group = tmp_path / "copy.zarr" / "features" / feature_key(FCONF)
     for f in list(group.glob("s0/*/c/**/*")):
-        if f.is_file():
+        if f.is_file() and "/pca_" not in str(f):  # every row's files; the bases: test_random_damage
             f.unlink()
     report = check_store(job.store)
     assert not report.ok and report.bad and all("missing" in b.error for b in report.bad)
