@@ -1,6 +1,7 @@
 """The model a process works with, loaded once: the refiner (feature network and its per-level
-solvers) and its network's digest. Map building takes its network, localization all of it; a
-process that does both holds one copy."""
+solvers; the network prepared for inference, ``prepare_for_inference``) and its network's
+digest. Map building takes its network, localization all of it; a process that does both holds
+one copy."""
 
 import functools
 from typing import Tuple
@@ -8,6 +9,7 @@ from typing import Tuple
 from torch import nn
 
 from pixloc.nets.registry import load_refiner
+from pixloc.nets.unet import prepare_for_inference
 from pixloc.refiner import TwoViewRefiner
 
 
@@ -20,7 +22,9 @@ def localization_model(model: str, device: str = "cpu") -> Tuple[TwoViewRefiner,
 @functools.lru_cache(maxsize=2)
 def _loaded(model: str, device: str) -> Tuple[TwoViewRefiner, str]:
     refiner = load_refiner(model).to(device).eval()
-    return refiner, refiner.feature_digest()
+    digest = refiner.feature_digest()  # of the weights as trained, before folding
+    prepare_for_inference(refiner.extractor, device)
+    return refiner, digest
 
 
 def network(model: str, device: str = "cpu") -> Tuple[nn.Module, str]:

@@ -12,10 +12,11 @@ import torch
 
 logger = logging.getLogger(__name__)
 
-# glibc mallopt parameters (malloc.h) and the largest mmap threshold its dynamic rule reaches
-# on 64-bit systems (DEFAULT_MMAP_THRESHOLD_MAX).
-_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
-_MMAP_THRESHOLD_MAX = 32 * 1024 * 1024
+# glibc mallopt parameters (malloc.h)
+_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD, _M_MMAP_MAX = -1, -3, -4
+_MMAP_THRESHOLD_MAX, _MMAP_MAX_DEFAULT = 32 * 1024 * 1024, 65536
+_NEVER_TRIM = -1  # mallopt(3): "Setting M_TRIM_THRESHOLD to -1 disables trimming completely"
+USER_SETTINGS = ("MALLOC_MMAP_MAX_", "MALLOC_MMAP_THRESHOLD_")  # a user's choice, left alone
 
 
 @contextmanager
@@ -35,25 +36,38 @@ def torch_threads(n: int) -> Iterator[None]:
 
 
 @functools.lru_cache(maxsize=1)
-def restore_malloc_thresholds() -> bool:
-    """Give this process glibc's large-allocation behaviour back when ``MALLOC_TRIM_THRESHOLD_`` is set.
+def keep_freed_memory() -> bool:
+    """Let glibc reuse the large blocks this process frees instead of mapping fresh ones.
 
-    Dask's nannies start workers with ``MALLOC_TRIM_THRESHOLD_=65536``. Setting any malloc
-    threshold turns off glibc's dynamic mmap threshold, so every tensor over 128 KiB is then
-    mmapped and unmapped on each allocation, and its pages fault in again: on localization at
-    1024 px that is twice the system time and about 1 s more per query. This sets the
-    thresholds the dynamic rule would reach (mmap above 32 MiB, trim above 64 MiB). A
-    user-set ``MALLOC_MMAP_THRESHOLD_`` is left alone. Returns whether it changed anything.
+    A query at 1024 px allocates and frees tensors of 20 to 90 MB dozens of times. glibc serves
+    every block over 32 MiB (the largest mmap threshold its dynamic rule reaches) with a new
+    mmap whose pages fault in on first write, and Dask's nannies, which start workers with
+    ``MALLOC_TRIM_THRESHOLD_=65536``, make that every block over 128 KiB. With mmap off and no
+    trimming, freed blocks stay in the heap and are reused: a third of a query's CPU time at
+    Cambridge settings (docs/benchmarks.md, "The CPU query"). The price: a process's resident
+    memory stays at its high-water mark (1.37 GB after three 1024 px queries, against a peak of
+    1.20 GB and 0.66 GB held before) instead of falling between queries. A user's ``MALLOC_MMAP_MAX_`` or ``MALLOC_MMAP_THRESHOLD_`` is left
+    alone. Returns whether it changed anything (not on other C libraries).
     """
-    if "MALLOC_TRIM_THRESHOLD_" not in os.environ or "MALLOC_MMAP_THRESHOLD_" in os.environ:
+    if any(name in os.environ for name in USER_SETTINGS):
         return False
-    name = ctypes.util.find_library("c")
+    ok = set_malloc(keep_freed=True)
+    logger.debug("malloc: freed memory kept for reuse: %s", ok)
+    return ok
+
+
+def set_malloc(keep_freed: bool) -> bool:
+    """glibc's large blocks: freed ones kept in the heap for reuse (``keep_freed_memory``), or
+    each mapped afresh above 32 MiB and the heap trimmed above 64 MiB (what a Dask worker ran
+    with before, and what glibc's dynamic rule reaches). False where the C library is not glibc."""
     try:
-        libc = ctypes.CDLL(name)
-        mallopt = libc.mallopt
-    except (OSError, AttributeError, TypeError):  # not glibc: nothing to restore
+        mallopt = ctypes.CDLL(ctypes.util.find_library("c")).mallopt
+    except (OSError, AttributeError, TypeError):  # not glibc
         return False
-    ok = mallopt(_M_MMAP_THRESHOLD, _MMAP_THRESHOLD_MAX) == 1
-    ok &= mallopt(_M_TRIM_THRESHOLD, 2 * _MMAP_THRESHOLD_MAX) == 1
-    logger.debug("malloc thresholds restored: %s", ok)
-    return bool(ok)
+    mallopt.argtypes = [ctypes.c_int, ctypes.c_int]
+    if keep_freed:
+        settings = ((_M_MMAP_MAX, 0), (_M_TRIM_THRESHOLD, _NEVER_TRIM))
+    else:
+        settings = ((_M_MMAP_MAX, _MMAP_MAX_DEFAULT), (_M_MMAP_THRESHOLD, _MMAP_THRESHOLD_MAX),
+                    (_M_TRIM_THRESHOLD, 2 * _MMAP_THRESHOLD_MAX))
+    return all(mallopt(key, value) == 1 for key, value in settings)

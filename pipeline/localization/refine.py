@@ -33,6 +33,7 @@ logger = logging.getLogger(__name__)
 # measurement of docs/verification.md also recorded 1 and 10 px and a depth contrast: none did better
 CONTRAST_SHIFTS = (3.0,)
 MIN_SUBSET = 1024  # the fewest points a level is subsampled to (points_per_cell)
+NETWORK_PRECISIONS = {"float32": torch.float32, "bfloat16": torch.bfloat16}
 
 
 @dataclass(frozen=True)
@@ -46,7 +47,10 @@ class LocalizerConfig:
     fewer cells than points / ``points_per_cell``, LM runs on a seeded subset of
     max(``MIN_SUBSET``, points_per_cell x cells) of them (0: every point, as official PixLoc).
     Dense (RGB-D) maps put tens of thousands of points into the few hundred cells of the
-    coarse levels, where they are redundant and cost nearly all the time."""
+    coarse levels, where they are redundant and cost nearly all the time. network_precision:
+    the query's network pass in float32, or bfloat16 (autocast; the LM stays float32): a query's CPU
+    time 0.85x at Cambridge settings on a CPU with AVX512-BF16, with the same recall; not measured on
+    CPUs without native bfloat16 (docs/benchmarks.md, "The CPU query at Cambridge settings")."""
 
     num_dbs: int = 5
     average_observations: bool = False
@@ -54,7 +58,13 @@ class LocalizerConfig:
     min_track_length: int = 3
     min_points: int = 10
     points_per_cell: float = 0.0
+    network_precision: str = "float32"
     verification: VerificationConfig = field(default_factory=VerificationConfig)
+
+    def __post_init__(self):
+        if self.network_precision not in NETWORK_PRECISIONS:
+            raise ValueError(f"network_precision must be one of {sorted(NETWORK_PRECISIONS)}, "
+                             f"got {self.network_precision!r}.")
 
 
 @dataclass
@@ -169,7 +179,12 @@ class Localizer:
     def predict(self, rgb: np.ndarray, k: int):
         """Dense query prediction at image scale index k, and the resize factors."""
         resized, scales = resize_max(rgb, self.reader.conf.resize // self.reader.conf.image_scales[k])
-        return self.net(to_tensor(resized)[None].to(self.device)), scales
+        image = to_tensor(resized)[None].to(self.device)
+        if self.conf.network_precision == "float32":
+            return self.net(image), scales
+        with torch.autocast(torch.device(self.device).type, dtype=NETWORK_PRECISIONS[self.conf.network_precision]):
+            pred = self.net(image)
+        return {key: [x.float() for x in maps] for key, maps in pred.items()}, scales
 
     @torch.no_grad()
     def localize(self, query: QueryRecord, dbs: List[int], prior: np.ndarray,

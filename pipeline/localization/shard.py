@@ -26,7 +26,7 @@ from pipeline.localization.results import read_records, result_to_record, write_
 from pipeline.localization.retrieval import RETRIEVERS, RetrievalConfig, pairs_file, retrieve
 from pipeline.localization.sift import SiftConfig
 from pipeline.localization.search import Hypotheses, SearchConfig, rank_results, screen, solve, top1_first
-from pipeline.runtime import restore_malloc_thresholds, torch_threads
+from pipeline.runtime import keep_freed_memory, torch_threads
 from pipeline.store.layout import StoreError
 from pipeline.textfiles import InputError, write_atomic
 
@@ -75,8 +75,11 @@ class LocalizationJob:
 
     def to_dict(self) -> Dict:
         """The job as recorded in job.json (and compared by reruns); the search and SIFT settings
-        only with the priors that read them (``sift`` falls back to the search)."""
+        only with the priors that read them (``sift`` falls back to the search), the network's
+        precision only where it is not the default."""
         d = asdict(self)
+        if self.localizer.network_precision == "float32":  # as runs before the option recorded it
+            del d["localizer"]["network_precision"]
         if self.prior not in ("search", "sift"):
             del d["search"]
         if self.prior != "sift":
@@ -241,7 +244,7 @@ def retrieve_queries(job: LocalizationJob, queries: List[QueryRecord], out_path)
     out_path = Path(out_path)
     if out_path.exists():
         return json.loads(out_path.read_text())
-    restore_malloc_thresholds()
+    keep_freed_memory()
     out = {}
     with torch_threads(1):
         refiner, digest = localization_model(job.model, job.device)
@@ -272,7 +275,7 @@ def localize_shard(job: LocalizationJob, queries: List[QueryRecord], out_path) -
             return read_records(out_path)
         except InputError as e:  # damaged since it was written (atomically): this shard runs again
             logger.warning("%s: the shard runs again", e)
-    restore_malloc_thresholds()
+    keep_freed_memory()
     with torch_threads(1):  # one thread per task: parallelism comes from workers
         refiner, digest = localization_model(job.model, job.device)
         io = None

@@ -16,7 +16,7 @@ import torch
 from pipeline.images import read_image, resize_max, to_tensor
 from pipeline.mapping.features import FeatureConfig, extract_image_features
 from pipeline.models import network
-from pipeline.runtime import restore_malloc_thresholds, torch_threads
+from pipeline.runtime import keep_freed_memory, torch_threads
 from pipeline.scene import Scene
 from pipeline.store.compression import fit_pca
 from pipeline.store.feature_groups import feature_key, init_features, mark_failed, needs_pca, write_image_features
@@ -124,7 +124,7 @@ def extract_features(store_path, conf: FeatureConfig, indices: Sequence[int], de
     Runs with one torch thread (``torch_threads``): stores are then bitwise
     identical whatever executor built them.
     """
-    restore_malloc_thresholds()
+    keep_freed_memory()
     with torch_threads(1), torch.inference_mode():
         return _extract_features(store_path, conf, indices, device, overwrite)
 

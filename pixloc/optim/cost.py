@@ -115,11 +115,17 @@ def query_maps_layout(like: Tensor, channels: Optional[int] = None) -> torch.mem
     """Memory layout of query maps for sampling. On CPU, maps of 64 channels or more are
     channels-last: bilinear sampling then reads each tap's channels contiguously, which made
     it 2.3x faster on the 129 x 175 x 256 maps of a 1024 px query (bitwise the same samples).
-    Thinner maps stay as they are: there the layout change costs more than it saves."""
+    Thinner maps stay as they are, unless they already are channels-last (a network prepared
+    for inference gives such maps): there the layout change costs more than it saves."""
     channels = like.shape[1] if channels is None else channels
-    if like.device.type == "cpu" and channels >= 64:
+    if like.device.type == "cpu" and (channels >= 64 or _is_channels_last(like)):
         return torch.channels_last
     return torch.contiguous_format
+
+
+def _is_channels_last(x: Tensor) -> bool:
+    return x.dim() == 4 and x.shape[1] > 1 and not x.is_contiguous() \
+        and x.is_contiguous(memory_format=torch.channels_last)
 
 
 def new_query_maps(shape, like: Tensor, with_confidence: bool = True) -> Tensor:

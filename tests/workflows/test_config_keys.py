@@ -56,3 +56,18 @@ def test_a_training_config_takes_each_default_from_its_dataclass_and_reads_back(
     assert (packaged.steps, packaged.trainer.lr, packaged.trainer.total_steps) == (7, 3e-5, 7)
     (tmp_path / "resolved.yaml").write_text(yaml.safe_dump(packaged.to_dict()))  # as train writes config.yaml
     assert load_config(str(tmp_path / "resolved.yaml")) == packaged
+
+
+def test_the_network_precision_is_checked_and_recorded_only_where_it_is_not_the_default():
+    # runs recorded before the option had no such key: a rerun of one with the default still matches
+    from pipeline.localization.refine import LocalizerConfig
+    from pipeline.localization.retrieval import RetrievalConfig
+    from pipeline.localization.shard import LocalizationJob
+    from pipeline.mapping.features import FeatureConfig
+    job = LocalizationJob("map.zarr", FeatureConfig(), "pixloc-lite0", LocalizerConfig(), RetrievalConfig())
+    assert "network_precision" not in job.to_dict()["localizer"]
+    half = LocalizationJob("map.zarr", FeatureConfig(), "pixloc-lite0", LocalizerConfig(network_precision="bfloat16"),
+                           RetrievalConfig())
+    assert half.to_dict()["localizer"]["network_precision"] == "bfloat16"
+    with pytest.raises(ValueError, match="network_precision must be one of"):
+        LocalizerConfig(network_precision="float16")

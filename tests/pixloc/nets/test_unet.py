@@ -62,3 +62,39 @@ def test_vgg_unet_has_the_official_layout(encoder, skips):
     last_conv = 5 if encoder == "vgg16" else 7  # torchvision indices inside the last block
     assert f"encoder.4.{last_conv}.weight" in keys and f"encoder.4.{last_conv + 2}.weight" not in keys
     assert {"adaptation.2.0.weight", "uncertainty.0.0.bias", "decoder.3.layers.1.running_var"} <= keys
+
+
+def _prepared_matches(net, image, atol):
+    from pixloc.nets.unet import prepare_for_inference
+    with torch.no_grad():
+        before = net(image)
+        prepared = prepare_for_inference(net)
+        after = prepared(image)
+    assert prepared is net and not any(isinstance(m, torch.nn.BatchNorm2d) for m in net.modules())
+    for key in ("features", "confidences"):
+        for a, b in zip(after[key], before[key]):
+            assert a.is_contiguous(memory_format=torch.channels_last)
+            torch.testing.assert_close(a, b, atol=atol, rtol=0)
+
+
+def test_the_shipped_network_prepared_for_inference_gives_the_same_maps():
+    # BatchNorm folded into its convs, channels-last activations and 1x1 convs through oneDNN:
+    # the same features and confidences to float rounding, for the shipped model on a random image
+    from pipeline.images import to_tensor
+    from pixloc.nets.registry import load_refiner
+    rgb = np.asarray(np.random.default_rng(0).integers(0, 256, (200, 300, 3)), np.uint8)
+    _prepared_matches(load_refiner("pixloc-lite0").extractor.eval(), to_tensor(rgb)[None], atol=1e-4)
+
+
+def test_an_official_network_prepared_for_inference_matches_the_oracle(official, oracle):
+    import copy
+    d = np.load(oracle / "unet_forward.npz")
+    _prepared_matches(copy.deepcopy(official.extractor).eval(), torch.from_numpy(d["a/image"])[None], atol=1e-4)
+
+
+def test_the_pipeline_loads_the_prepared_network_with_the_weights_digest():
+    from pipeline.models import localization_model
+    from pixloc.nets.registry import load_refiner
+    refiner, digest = localization_model("pixloc-lite0")
+    assert digest == load_refiner("pixloc-lite0").feature_digest()  # stores built before still match
+    assert refiner.extractor.memory_format == torch.channels_last
