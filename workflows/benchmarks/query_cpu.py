@@ -1,0 +1,277 @@
+"""Benchmark: CPU seconds per query at Cambridge settings, per speed-up, with the poses they give.
+
+The maps are the accuracy benchmark's splits (``workflows.benchmarks.accuracy``) built at the
+Cambridge settings, the official ones for Cambridge Landmarks: 1024 px, image scales [4, 1], with
+the default (compact) store of the shipped model; the queries are localized from the top-1
+retrieved reference with 5 references, observations averaged and 100 LM iterations per level,
+verification on. Every variant runs the same queries in this process on one torch thread (as a
+worker does), after an untimed pass that warms the caches. Its time is the process's CPU seconds
+over the queries (image reading, retrieval, network passes, store reads and LM), with the wall
+seconds of its parts: before the LM (image, retrieval with its network pass at the finest image
+scale, prior), the features of the other image scale, and the LM. Its poses are compared with those
+of ``today``: the network as loaded before this work (no BatchNorm folding, the default memory
+layout, float32) and glibc mapping every block over 32 MiB afresh (as a worker ran before).
+
+Variants, each adding to the one above: ``BatchNorm folded`` (into the preceding convs),
+``channels-last`` activations, ``split convs, 1x1 by oneDNN`` (the decoder's convs of a concatenation
+as a sum of convs, and 1x1 convs through oneDNN: ``pixloc.nets.unet.prepare_for_inference`` is these
+four), ``freed memory reused`` (``pipeline.runtime.keep_freed_memory``: the default now),
+``bfloat16 network`` (``--network-precision bfloat16``: reduced precision, held to the same recall
+at every threshold); with ``--compile``, ``torch.compile`` of the default network (inductor, dynamic
+shapes), in float32 and bfloat16, its one-off compile time printed apart. Also measured: the
+``search`` prior's network passes per query against its LM runs (one pass per image scale serves
+every start). With ``--onnx``, one network pass is also timed in ONNX Runtime (not a dependency).
+"""
+
+import argparse
+import copy
+import dataclasses
+import json
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Dict, List
+
+import numpy as np
+import torch
+from torch import nn
+
+from pipeline.localization.refine import Localizer, LocalizerConfig
+from pipeline.localization.results import result_to_record
+from pipeline.localization.retrieval import RetrievalConfig
+from pipeline.localization.shard import LocalizationJob, localize_queries
+from pipeline.mapping.features import FeatureConfig
+from pipeline.runtime import set_malloc, torch_threads
+from pipeline.store.reader import MapReader
+from pixloc.geometry import Pose, pose_error
+from pixloc.nets.registry import DEFAULT_MODEL, load_refiner
+from pixloc.nets.unet import fold_batchnorm, prepare_for_inference
+
+from workflows.cli_localize import store_feature_config
+
+from . import accuracy
+from .sacre_coeur import sacre_coeur
+
+CAMBRIDGE = LocalizerConfig(num_dbs=5, average_observations=True, num_iters=100)
+FEATURES = FeatureConfig(model=DEFAULT_MODEL, resize=1024, image_scales=(4, 1))
+SCENES = ("fountain", "herzjesus", "sacre_coeur", "kermit")
+
+
+@dataclass(frozen=True)
+class Variant:
+    name: str
+    network: Callable[[nn.Module], nn.Module]  # from a fresh copy of the loaded network
+    keep_freed: bool = True  # glibc keeps freed blocks for reuse (pipeline.runtime.set_malloc)
+    precision: str = "float32"
+
+
+def _channels_last(net: nn.Module) -> nn.Module:
+    """Folded and channels-last, without ``prepare_for_inference``'s 1x1 convs through oneDNN."""
+    fold_batchnorm(net)
+    net.memory_format = torch.channels_last
+    return net.to(memory_format=torch.channels_last)
+
+
+def _compiled(net: nn.Module) -> nn.Module:
+    """Folded and channels-last, compiled (inductor makes its own 1x1 convs: oneDNN's aten op
+    has no shape function for its tracing)."""
+    return torch.compile(_channels_last(net), dynamic=True)
+
+
+VARIANTS = [Variant("today", lambda net: net, keep_freed=False),
+            Variant("BatchNorm folded", fold_batchnorm, keep_freed=False),
+            Variant("channels-last", _channels_last, keep_freed=False),
+            Variant("split convs, 1x1 by oneDNN", prepare_for_inference, keep_freed=False),
+            Variant("freed memory reused (default)", prepare_for_inference),
+            Variant("bfloat16 network", prepare_for_inference, precision="bfloat16")]
+COMPILED = [Variant("torch.compile", _compiled), Variant("torch.compile, bfloat16", _compiled, precision="bfloat16")]
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--shared", type=Path, default=Path(os.environ.get("PIXLOC_SHARED", "../shared")),
+                   help="the shared data folder (default: $PIXLOC_SHARED, else ../shared)")
+    p.add_argument("--work", type=Path, default=Path("outputs/benchmark-query-cpu"), help="maps (reused)")
+    p.add_argument("--scenes", nargs="+", default=list(SCENES), choices=accuracy.SCENES, help="scenes to run")
+    p.add_argument("--variants", nargs="+", metavar="NAME", choices=[v.name for v in VARIANTS + COMPILED],
+                   help="run only these variants (today is always run: the others are compared with it)")
+    p.add_argument("--compile", action="store_true", help="also measure torch.compile (about a minute to compile)")
+    p.add_argument("--limit", type=int, default=0, help="at most this many queries per map part (0: all)")
+    p.add_argument("--onnx", action="store_true", help="also time the network pass in ONNX Runtime (needs the "
+                   "onnxruntime and onnx packages, which the project does not depend on)")
+
+
+def _pose(matrix) -> Pose:
+    return Pose.from_matrix(np.asarray(matrix, np.float64))
+
+
+def _run(variant: Variant, refiner, parts, compile_s: Dict[str, float]) -> Dict:
+    """The variant's records per part, its CPU seconds and its network passes' and LM's shares."""
+    net = variant.network(copy.deepcopy(refiner.extractor).eval())
+    set_malloc(variant.keep_freed)
+    conf = dataclasses.replace(CAMBRIDGE, network_precision=variant.precision)
+    out = {"records": [], "results": [], "cpu": 0.0, "before": 0.0, "network": 0.0, "lm": 0.0}
+    for name, store, queries, gt in parts:
+        reader = MapReader(store, store_feature_config(store), refiner.feature_digest())
+        job = LocalizationJob(str(store), reader.conf, DEFAULT_MODEL, conf, RetrievalConfig(k=5), prior="top1")
+        localizer = Localizer(net, refiner.solvers, reader, conf)
+        with torch_threads(1):
+            if variant.name not in compile_s and variant in COMPILED:
+                t0 = time.perf_counter()
+                localize_queries(job, reader, localizer, queries[:1])
+                compile_s[variant.name] = time.perf_counter() - t0
+            t0 = time.process_time()
+            results = localize_queries(job, reader, localizer, queries)
+            out["cpu"] += time.process_time() - t0
+        for r, q in zip(results, queries):
+            out["before"] += r.timings.get("prior", 0.0)
+            out["network"] += sum(v for k, v in r.timings.items() if k.startswith("features_s"))
+            out["lm"] += sum(v for k, v in r.timings.items() if k.startswith("optim_s"))
+            out["records"].append(result_to_record(r, q.tags))
+            out["results"].append(r)
+    return out
+
+
+def _differences(run: Dict, today: Dict, metric: Dict[str, bool]) -> Dict:
+    """Largest position (mm where the scene is metric, else % of its scale) and rotation
+    differences of the refined poses from today's, and the queries refined by one and not the other."""
+    dt_mm, dt_pct, dR, unmatched = [0.0], [0.0], [0.0], 0
+    for r, base, (scene, scale) in zip(run["results"], today["results"], run["scenes"]):
+        if (r.refined is None) != (base.refined is None):
+            unmatched += 1
+            continue
+        if r.refined is None:
+            continue
+        R, t = pose_error(_pose(r.refined), _pose(base.refined))
+        (dt_mm if metric[scene] else dt_pct).append(1000 * float(t) if metric[scene] else 100 * float(t) / scale)
+        dR.append(float(R))
+    return {"max_dt_mm": max(dt_mm), "max_dt_pct": max(dt_pct), "max_dR": max(dR), "unmatched": unmatched}
+
+
+def _recalls(run: Dict, by_scene) -> List[float]:
+    """Recall (%) at every threshold of the accuracy benchmark, pooled over the scenes (the metric
+    thresholds over the metric scenes)."""
+    rows = []
+    for scene, (gt, scale, metric) in by_scene.items():
+        records = [rec for rec, (s, _) in zip(run["records"], run["scenes"]) if s == scene]
+        rows.append(accuracy.row(scene, "top1", records, gt, scale, metric, None))
+    out = []
+    for key in accuracy.RECALLS:
+        counted = [r for r in rows if r[key] is not None]
+        out.append(100 * sum(r[key] * r["queries"] for r in counted) / max(sum(r["queries"] for r in counted), 1))
+    return out
+
+
+def search_passes(refiner, part) -> Dict[str, float]:
+    """The search prior's network passes per query against its LM starts (every start refined:
+    ``first`` off): one pass per image scale serves them all."""
+    net = prepare_for_inference(copy.deepcopy(refiner.extractor))
+    passes, starts = [], []
+    net.register_forward_hook(lambda *_: passes.append(1))
+    name, store, queries, _ = part
+    reader = MapReader(store, store_feature_config(store), refiner.feature_digest())
+    job = LocalizationJob(str(store), reader.conf, DEFAULT_MODEL, CAMBRIDGE, RetrievalConfig(k=5), prior="search")
+    job = dataclasses.replace(job, search=dataclasses.replace(job.search, first=False))
+    batch = Localizer.localize_batch  # counted for every Localizer, the search's screening one too
+    Localizer.localize_batch = lambda self, candidates: starts.append(len(candidates)) or batch(self, candidates)
+    try:
+        with torch_threads(1):
+            localize_queries(job, reader, Localizer(net, refiner.solvers, reader, CAMBRIDGE), queries)
+    finally:
+        Localizer.localize_batch = batch
+    return {"runs": sum(starts) / len(queries), "passes": len(passes) / len(queries)}
+
+
+class _Outputs(nn.Module):
+    """The network's maps as a tuple, for the ONNX exporter."""
+
+    def __init__(self, net: nn.Module):
+        super().__init__()
+        self.net = net
+
+    def forward(self, image):
+        out = self.net(image)
+        return tuple(out["features"]) + tuple(out["confidences"])
+
+
+def onnx_network_seconds(refiner, work: Path, size=(672, 1024)) -> Dict[str, float]:
+    """One network pass at ``size`` on one thread: today's network, ours prepared, and ONNX Runtime
+    running the exported (BatchNorm-folded) network with every graph optimisation; best of 3."""
+    import onnxruntime
+
+    net = refiner.extractor.eval()
+    image = torch.rand(1, 3, *size)
+    path = work / "network.onnx"
+    torch.onnx.export(_Outputs(fold_batchnorm(copy.deepcopy(net))), (image,), str(path), dynamo=False,
+                      input_names=["image"], dynamic_axes={"image": {2: "h", 3: "w"}})
+    options = onnxruntime.SessionOptions()
+    options.intra_op_num_threads = options.inter_op_num_threads = 1
+    session = onnxruntime.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+    prepared = prepare_for_inference(copy.deepcopy(net))
+
+    def best(fn) -> float:
+        fn()
+        times = []
+        for _ in range(3):
+            t0 = time.perf_counter()
+            fn()
+            times.append(time.perf_counter() - t0)
+        return min(times)
+    with torch.no_grad(), torch_threads(1):
+        return {"today": best(lambda: net(image)), "prepared": best(lambda: prepared(image)),
+                "onnxruntime": best(lambda: session.run(None, {"image": image.numpy()}))}
+
+
+def main(args: argparse.Namespace) -> int:
+    fconf = FEATURES
+    args.work.mkdir(parents=True, exist_ok=True)
+    parts, by_scene, metric = [], {}, {}
+    for key in args.scenes:
+        found = accuracy.scene_parts(key, args, fconf) if key != "sacre_coeur" else \
+            sacre_coeur(args.shared, args.work, fconf)
+        found = [(n, s, q[:args.limit or None]) for n, s, q in found]
+        gt = {q.name: q.cam_from_world_gt for _, _, qs in found for q in qs}
+        metric[key] = accuracy.OWN_SPLITS[key] if key in accuracy.OWN_SPLITS else accuracy.SPLITS[key].metric
+        by_scene[key] = (gt, accuracy.scene_scale(found[0][1]), metric[key])
+        parts += [(n, s, q, key) for n, s, q in found]
+    scenes = [(key, by_scene[key][1]) for _, _, qs, key in parts for _ in qs]
+    n = len(scenes)
+    refiner = load_refiner(DEFAULT_MODEL).eval()
+    print(f"CPU time per query at Cambridge settings: {n} queries of {', '.join(args.scenes)}, "
+          f"{FEATURES.resize} px, image scales {list(FEATURES.image_scales)}, {CAMBRIDGE.num_dbs} references, "
+          f"{CAMBRIDGE.num_iters} LM iterations per level, one torch thread, model {DEFAULT_MODEL}", flush=True)
+    _run(VARIANTS[-2], refiner, parts, {})  # untimed: the images and store blocks are read once
+    variants = VARIANTS + (COMPILED if args.compile else [])
+    if args.variants:
+        variants = [v for v in VARIANTS + COMPILED if v.name == "today" or v.name in args.variants]
+    compile_s: Dict[str, float] = {}
+    runs = {}
+    for v in variants:
+        runs[v.name] = dict(_run(v, refiner, parts, compile_s), scenes=scenes)
+        print(f"- {v.name}: {runs[v.name]['cpu'] / n:.3f} CPU s per query", flush=True)
+    today = runs["today"]
+    rows = [dict(variant=v.name, cpu_s=runs[v.name]["cpu"] / n, speedup=today["cpu"] / runs[v.name]["cpu"],
+                 before_lm_s=runs[v.name]["before"] / n, features_s=runs[v.name]["network"] / n,
+                 lm_s=runs[v.name]["lm"] / n, **_differences(runs[v.name], today, metric),
+                 recalls=_recalls(runs[v.name], by_scene)) for v in variants]
+    header = ["variant", "CPU s/query", "vs today", "before the LM s", "features s", "LM s", "max |dc| mm (metric)",
+              "max |dc| % (others)", "max dR deg", "refined by one only"] + accuracy.RECALLS
+    print("\n| " + " | ".join(header) + " |\n|" + "---|" * len(header))
+    for r in rows:
+        cells = [r["variant"], f"{r['cpu_s']:.3f}", f"{r['speedup']:.2f}x", f"{r['before_lm_s']:.3f}",
+                 f"{r['features_s']:.3f}", f"{r['lm_s']:.3f}", f"{r['max_dt_mm']:.3f}", f"{r['max_dt_pct']:.4f}",
+                 f"{r['max_dR']:.4f}", str(r["unmatched"])] + [f"{x:.0f}" for x in r["recalls"]]
+        print("| " + " | ".join(cells) + " |")
+    for name, seconds in compile_s.items():
+        print(f"- {name}: compiling took {seconds:.0f} s (one-off per process and shape family)")
+    passes = search_passes(refiner, parts[0])
+    print(f"- the search prior on {parts[0][0]}: {passes['runs']:.0f} LM runs of candidate poses per query (the "
+          f"coarse screening of every start included), {passes['passes']:.1f} network passes per query "
+          f"({len(FEATURES.image_scales)} image scales)")
+    onnx = onnx_network_seconds(refiner, args.work) if args.onnx else None
+    if onnx:
+        print(f"- one network pass at 1024 x 672 px: today {onnx['today']:.3f} s, prepared {onnx['prepared']:.3f} s, "
+              f"ONNX Runtime {onnx['onnxruntime']:.3f} s")
+    (args.work / "rows.json").write_text(json.dumps({"queries": n, "rows": rows, "search": passes,
+                                                     "compile_s": compile_s, "onnx": onnx}, indent=1))
+    return 0
