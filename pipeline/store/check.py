@@ -15,12 +15,12 @@ import numpy as np
 import zarr
 
 from pipeline.store import location
+from pipeline.store.feature_groups import check_feature_group
 from pipeline.store.layout import (
     DONE,
     FAILED,
     PENDING,
     StoreError,
-    check_feature_group,
     consolidated,
     image_row_arrays,
     missing_objects,

@@ -15,9 +15,8 @@ from pipeline.store import location
 from pipeline.store.compression import dequantize_int8, reconstruct
 from pipeline.mapping.features import FeatureConfig
 from pipeline.scene import CameraRecord
-from pipeline.store.feature_groups import feature_key, pca_bases
-from pipeline.store.layout import (DONE, FAILED, StoreError, StoreReadError, check_feature_group, consolidated,
-                                   missing_objects, open_store, stored_dims)
+from pipeline.store.feature_groups import check_feature_group, feature_key, pca_bases, stored_dims
+from pipeline.store.layout import DONE, FAILED, StoreError, StoreReadError, consolidated, missing_objects, open_store
 from pipeline.store.layout import read as store_read
 
 logger = logging.getLogger(__name__)
@@ -96,7 +95,6 @@ class MapReader:
         # a query's reference blocks and point rows are read concurrently: against object storage
         # a read is a few round trips, and one at a time they would add up (docs/cluster.md)
         self._read_threads = read_threads
-        self._pool: Optional[ThreadPoolExecutor] = None
         # each image scale's arrays, opened once (opening one reads its metadata)
         names = ["features", "scales", "confidences", "valid"] if conf.dtype == "int8" else [
             "features", "confidences", "valid"]
@@ -234,9 +232,7 @@ class MapReader:
         """``[fn(a) for a in args]``, run on the reader's threads."""
         if self._read_threads <= 1 or len(args) <= 1:
             return [fn(a) for a in args]
-        if self._pool is None:
-            self._pool = ThreadPoolExecutor(self._read_threads, thread_name_prefix="map-store-read")
-        return list(self._pool.map(fn, args))
+        return list(_read_pool(self._read_threads).map(fn, args))
 
     def block(self, i: int, scale: int):
         """The cached block of image i at ``scale`` (see ``_read_block``); counts cache hits."""
@@ -275,6 +271,13 @@ class MapReader:
             for level, (F, W, V) in enumerate(out):
                 F[sel], W[sel], V[sel] = f[level][local], w[local, level], v[local, level]
         return out
+
+
+@functools.lru_cache(maxsize=None)
+def _read_pool(threads: int) -> ThreadPoolExecutor:
+    """The threads that the readers of this process read on: one pool per size, however many
+    readers a process opens (a worker opens one per map it localizes against)."""
+    return ThreadPoolExecutor(threads, thread_name_prefix="map-store-read")
 
 
 def _nbytes(block) -> int:
