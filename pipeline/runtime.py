@@ -43,11 +43,12 @@ def keep_freed_memory() -> bool:
     every block over 32 MiB (the largest mmap threshold its dynamic rule reaches) with a new
     mmap whose pages fault in on first write, and Dask's nannies, which start workers with
     ``MALLOC_TRIM_THRESHOLD_=65536``, make that every block over 128 KiB. With mmap off and no
-    trimming, freed blocks stay in the heap and are reused: a third of a query's CPU time at
-    Cambridge settings (docs/benchmarks.md, "The CPU query"). The price: a process's resident
-    memory stays at its high-water mark (1.37 GB after three 1024 px queries, against a peak of
-    1.20 GB and 0.66 GB held before) instead of falling between queries. A user's ``MALLOC_MMAP_MAX_`` or ``MALLOC_MMAP_THRESHOLD_`` is left
-    alone. Returns whether it changed anything (not on other C libraries).
+    trimming, freed blocks stay in the heap and are reused: a fifth of a query's CPU time at
+    Cambridge settings (docs/benchmarks.md, "The CPU query at Cambridge settings"). The price: a
+    process's resident memory stays at its high-water mark (1.37 GB after three 1024 px queries,
+    against a peak of 1.20 GB and 0.66 GB held before) instead of falling between queries. A
+    user's ``MALLOC_MMAP_MAX_`` or ``MALLOC_MMAP_THRESHOLD_`` is left alone. Returns whether it
+    changed anything (not on other C libraries).
     """
     if any(name in os.environ for name in USER_SETTINGS):
         return False
