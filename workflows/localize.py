@@ -45,7 +45,8 @@ from pipeline.queries import QueryRecord
 from pipeline.regions import camera_centres, region_order
 from pipeline.store import location
 from pipeline.store.feature_groups import feature_key
-from pipeline.store.layout import StoreError, store_fingerprint
+from pipeline.store.check import store_fingerprint
+from pipeline.store.layout import StoreError
 from pipeline.textfiles import InputError, read_json, write_atomic
 
 from . import executor
@@ -214,7 +215,7 @@ def plan_localization(job: LocalizationJob, queries: List[QueryRecord], output, 
                       workers: int = 2, keep_failures: bool = False, overwrite: bool = False,
                       order: str = "auto", allow_partial_map: bool = False) -> LocalizationPlan:
     """Plan a run into ``output``; writes nothing. A folder holding another job, a run against
-    another map (``pipeline.store.layout.store_fingerprint``), or files of no run, is refused (the first
+    another map (``pipeline.store.check.store_fingerprint``), or files of no run, is refused (the first
     two unless ``overwrite``, which redoes everything); so is a store with images not built yet,
     unless ``allow_partial_map``. Without ``shard_size``, a run of the same
     job and queries keeps its shard size, and a new one gets ``auto_shard_size``. ``order``:

@@ -2,10 +2,12 @@
 
 Each chunk is read and decoded, which checks its CRC-32C (and that of its shard's index); a
 chunk (or shard: one file) that is corrupt, truncated or missing where it should hold data is
-reported with its array and the reference images whose rows it holds.
+reported with its array and the reference images whose rows it holds. Also the store's
+fingerprint that localization runs record (``store_fingerprint``).
 """
 
 import itertools
+import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -15,12 +17,12 @@ import numpy as np
 import zarr
 
 from pipeline.store import location
-from pipeline.store.feature_groups import check_feature_group
 from pipeline.store.layout import (
     DONE,
     FAILED,
     PENDING,
     StoreError,
+    check_feature_group,
     consolidated,
     image_row_arrays,
     missing_objects,
@@ -204,3 +206,30 @@ def mark_pending(path, images: List[str]) -> int:
                 group["status"][i] = PENDING
                 marked += 1
     return marked
+
+
+def store_fingerprint(path, key: str) -> Dict:
+    """What localization results depend on, for ``job.json``: a digest of the map's content (image
+    names and poses, points, the map counts) and of feature group ``key`` (its config and model
+    digest), and how many of its images are not built yet (``pending``). A store rebuilt from
+    other images or with another model gets another digest; finishing a build does not."""
+    import hashlib
+
+    root = open_store(path)
+    meta = root.attrs["pixloc_map"]
+    h = hashlib.sha256(json.dumps({k: meta[k] for k in ("num_images", "num_points", "num_observations")},
+                                  sort_keys=True).encode())
+    for name in ("images/name", "images/cam_from_world", "points/xyz"):
+        values = read(root, name, meta)
+        h.update("\n".join(map(str, values)).encode() if values.dtype.kind in "UOT" else
+                 np.ascontiguousarray(values).tobytes())
+    group = f"features/{key}"
+    pending = None
+    if group in root:
+        attrs = root[group].attrs
+        h.update(json.dumps([attrs.get("config"), attrs.get("model_digest"), attrs.get("dims")], sort_keys=True,
+                            default=str).encode())
+        # a finished build's one-chunk copy: the per-image array is one read per image
+        status = read(root[group], "status_all" if consolidated(root[group], meta) else "status", meta)
+        pending = int((status == PENDING).sum())
+    return {"digest": h.hexdigest()[:16], "features": key, "pending": pending}

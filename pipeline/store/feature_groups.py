@@ -14,8 +14,8 @@ from pipeline.store.compression import project, quantize_int8
 from pipeline.mapping.features import FeatureConfig, ImageFeatures
 from pipeline.images import file_sha256
 from pipeline.keypoints import DESCRIPTOR_DIM
-from pipeline.store.layout import (DONE, FAILED, PENDING, StoreError, get_array, image_rows, missing_objects,
-                                   new_array, new_rows_array, padded_rows, write_rows)
+from pipeline.store.layout import (DONE, FAILED, PENDING, StoreError, image_rows, new_array, new_rows_array,
+                                   padded_rows, write_rows)
 
 
 @functools.lru_cache(maxsize=16)
@@ -148,43 +148,3 @@ def write_image_features(group: zarr.Group, root: zarr.Group, i: int, feats: Ima
 def mark_failed(group: zarr.Group, i: int, reason: str) -> None:
     group["reason"][i] = reason
     group["status"][i] = FAILED
-
-
-def check_feature_group(group: zarr.Group, meta: Dict, path) -> None:
-    """Refuse a feature group whose arrays are missing or disagree with its config and dims."""
-    try:
-        dims = [int(d) for d in group.attrs["dims"]]
-        scales = len(group.attrs["config"]["image_scales"])
-    except (KeyError, TypeError, ValueError) as e:
-        raise StoreError(f"{path}: feature group {group.path} has no readable config or dims ({e}).") from None
-    I, R, L = meta["num_images"], meta["num_rows"], len(dims)  # noqa: E741
-    stored = stored_dims(group)
-    expected = {"status": (I,), "reason": (I,)}
-    for k in range(scales):
-        expected.update({f"s{k}/features": (R, sum(stored)), f"s{k}/confidences": (R, L), f"s{k}/valid": (R, L)})
-        if group.attrs["config"].get("dtype") == "int8":
-            expected[f"s{k}/scales"] = (R, L)
-        for level, (d, kept) in enumerate(zip(dims, stored)):
-            if kept < d:
-                expected[f"s{k}/pca_mean_{level}"] = (d,)
-                expected[f"s{k}/pca_basis_{level}"] = (d, kept)
-    if group.attrs["config"].get("sift"):
-        expected["sift"] = (R, DESCRIPTOR_DIM)
-    for name, shape in expected.items():
-        array = get_array(group, name, path)
-        if tuple(array.shape[1:]) != shape[1:] or array.shape[0] < shape[0] or (
-                "pca_" in name and tuple(array.shape) != shape):
-            raise StoreError(f"{path}: array {group.path}/{name} has shape {tuple(array.shape)}, expected {shape}.")
-    bases = [get_array(group, name, path) for name in expected if "pca_" in name]
-    missing = missing_objects(bases, slice(0, 1)) if bases else []
-    if missing:  # every feature of the group needs them: absent, they would be read as zeros
-        raise StoreError(f"{path}: {len(missing)} files of the feature group's PCA bases are missing ({missing[0]}): "
-                         "its features cannot be reconstructed; rebuild it with build-map --overwrite.")
-    if get_array(group, "global", path).shape[0] < I:
-        raise StoreError(f"{path}: array {group.path}/global has {group['global'].shape[0]} rows for {I} images.")
-
-
-def stored_dims(group: zarr.Group) -> List[int]:
-    """The channels a feature group stores per level (fewer than the network's with a PCA)."""
-    pca = int(group.attrs["config"].get("pca", 0))
-    return [min(int(d), pca) if pca else int(d) for d in group.attrs["dims"]]

@@ -30,9 +30,9 @@ disk: chunks of fill values are not written.
 Every chunk is checksummed (zstd, then a CRC-32C codec, and a CRC-32C of each shard
 index): a flipped byte or a truncated file is an error naming its array, never silent
 garbage. ``open_store`` checks the layout (every array present, shapes that agree
-with the attributes) before anything is read; feature groups (``features/<key>/``) are named,
-created, written and checked before a reader uses them (``check_feature_group``) by
-``pipeline.store.feature_groups``.
+with the attributes) before anything is read, and ``check_feature_group`` a feature group's
+(``features/<key>/``) before a reader uses it; feature groups are named, created and written
+by ``pipeline.store.feature_groups``.
 """
 
 import json
@@ -43,6 +43,7 @@ import numpy as np
 import zarr
 from zarr.codecs import Crc32cCodec, ZstdCodec
 
+from pipeline.keypoints import DESCRIPTOR_DIM
 from pipeline.store import location
 from pipeline.scene import CameraRecord, ImageRecord, Scene
 
@@ -428,31 +429,44 @@ def check_layout(root: zarr.Group, path) -> None:
                                  "with build-map --overwrite.")
 
 
-def store_fingerprint(path, key: str) -> Dict:
-    """What localization results depend on, for ``job.json``: a digest of the map's content (image
-    names and poses, points, the map counts) and of feature group ``key`` (its config and model
-    digest), and how many of its images are not built yet (``pending``). A store rebuilt from
-    other images or with another model gets another digest; finishing a build does not."""
-    import hashlib
+def check_feature_group(group: zarr.Group, meta: Dict, path) -> None:
+    """Refuse a feature group whose arrays are missing or disagree with its config and dims."""
+    try:
+        dims = [int(d) for d in group.attrs["dims"]]
+        scales = len(group.attrs["config"]["image_scales"])
+    except (KeyError, TypeError, ValueError) as e:
+        raise StoreError(f"{path}: feature group {group.path} has no readable config or dims ({e}).") from None
+    I, R, L = meta["num_images"], meta["num_rows"], len(dims)  # noqa: E741
+    stored = stored_dims(group)
+    expected = {"status": (I,), "reason": (I,)}
+    for k in range(scales):
+        expected.update({f"s{k}/features": (R, sum(stored)), f"s{k}/confidences": (R, L), f"s{k}/valid": (R, L)})
+        if group.attrs["config"].get("dtype") == "int8":
+            expected[f"s{k}/scales"] = (R, L)
+        for level, (d, kept) in enumerate(zip(dims, stored)):
+            if kept < d:
+                expected[f"s{k}/pca_mean_{level}"] = (d,)
+                expected[f"s{k}/pca_basis_{level}"] = (d, kept)
+    if group.attrs["config"].get("sift"):
+        expected["sift"] = (R, DESCRIPTOR_DIM)
+    for name, shape in expected.items():
+        array = get_array(group, name, path)
+        if tuple(array.shape[1:]) != shape[1:] or array.shape[0] < shape[0] or (
+                "pca_" in name and tuple(array.shape) != shape):
+            raise StoreError(f"{path}: array {group.path}/{name} has shape {tuple(array.shape)}, expected {shape}.")
+    bases = [get_array(group, name, path) for name in expected if "pca_" in name]
+    missing = missing_objects(bases, slice(0, 1)) if bases else []
+    if missing:  # every feature of the group needs them: absent, they would be read as zeros
+        raise StoreError(f"{path}: {len(missing)} files of the feature group's PCA bases are missing ({missing[0]}): "
+                         "its features cannot be reconstructed; rebuild it with build-map --overwrite.")
+    if get_array(group, "global", path).shape[0] < I:
+        raise StoreError(f"{path}: array {group.path}/global has {group['global'].shape[0]} rows for {I} images.")
 
-    root = open_store(path)
-    meta = root.attrs["pixloc_map"]
-    h = hashlib.sha256(json.dumps({k: meta[k] for k in ("num_images", "num_points", "num_observations")},
-                                  sort_keys=True).encode())
-    for name in ("images/name", "images/cam_from_world", "points/xyz"):
-        values = read(root, name, meta)
-        h.update("\n".join(map(str, values)).encode() if values.dtype.kind in "UOT" else
-                 np.ascontiguousarray(values).tobytes())
-    group = f"features/{key}"
-    pending = None
-    if group in root:
-        attrs = root[group].attrs
-        h.update(json.dumps([attrs.get("config"), attrs.get("model_digest"), attrs.get("dims")], sort_keys=True,
-                            default=str).encode())
-        # a finished build's one-chunk copy: the per-image array is one read per image
-        status = read(root[group], "status_all" if consolidated(root[group], meta) else "status", meta)
-        pending = int((status == PENDING).sum())
-    return {"digest": h.hexdigest()[:16], "features": key, "pending": pending}
+
+def stored_dims(group: zarr.Group) -> List[int]:
+    """The channels a feature group stores per level (fewer than the network's with a PCA)."""
+    pca = int(group.attrs["config"].get("pca", 0))
+    return [min(int(d), pca) if pca else int(d) for d in group.attrs["dims"]]
 
 
 def store_index(root: zarr.Group, scene: Scene) -> List[int]:

@@ -15,8 +15,9 @@ from pipeline.store import location
 from pipeline.store.compression import dequantize_int8, reconstruct
 from pipeline.mapping.features import FeatureConfig
 from pipeline.scene import CameraRecord
-from pipeline.store.feature_groups import check_feature_group, feature_key, pca_bases, stored_dims
-from pipeline.store.layout import DONE, FAILED, StoreError, StoreReadError, consolidated, missing_objects, open_store
+from pipeline.store.feature_groups import feature_key, pca_bases
+from pipeline.store.layout import (DONE, FAILED, StoreError, StoreReadError, check_feature_group, consolidated,
+                                   missing_objects, open_store, stored_dims)
 from pipeline.store.layout import read as store_read
 
 logger = logging.getLogger(__name__)

@@ -172,7 +172,7 @@ def test_pca_storage_reconstructs_the_features_and_keeps_its_bases(built, mauper
     reconstruct every channel, close to float16 storage (measured: median cosine 0.9994 and 0.982 at
     the two reduced levels of image scale 1), and the features take under 0.35 of float16."""
     from pipeline.store.reader import MapReader
-    from pipeline.store.feature_groups import check_feature_group, stored_dims
+    from pipeline.store.layout import check_feature_group, stored_dims
     conf = dataclasses.replace(CONF, dtype="int8", pca=48)
     assert feature_key(conf).endswith("_int8_pca48") and "pca" not in CONF.to_dict()
     path8 = tmp_path / "pca.zarr"
