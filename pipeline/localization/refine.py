@@ -49,8 +49,9 @@ class LocalizerConfig:
     Dense (RGB-D) maps put tens of thousands of points into the few hundred cells of the
     coarse levels, where they are redundant and cost nearly all the time. network_precision:
     the query's network pass in float32, or bfloat16 (autocast; the LM stays float32): a query's CPU
-    time 0.85x at Cambridge settings on a CPU with AVX512-BF16, with the same recall; not measured on
-    CPUs without native bfloat16 (docs/benchmarks.md, "The CPU query at Cambridge settings")."""
+    time 0.85x at Cambridge settings on a CPU with AVX512-BF16, with recall within a few points of
+    float32's; not measured on CPUs without native bfloat16 (docs/benchmarks.md, "The CPU query at
+    Cambridge settings")."""
 
     num_dbs: int = 5
     average_observations: bool = False
