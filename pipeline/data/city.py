@@ -17,10 +17,13 @@ from pipeline.data.synthetic import (
     POLE,
     TRUNK,
     SyntheticScene,
+    load_texture,
     box_mesh,
     look_at,
 )
 from pipeline.scene import CameraRecord
+
+TEXTURE_SIDE = 768  # pixels: photos are shrunk to this before they texture facades (memory)
 
 
 @dataclass(frozen=True)
@@ -31,7 +34,9 @@ class CityConfig:
     References stand along every street every ``spacing`` metres, one camera facing each side;
     each image's ``area`` tag is the block side it looks at (``bx-by-side``, side n/e/s/w: about
     what a GPS tag tells), and ``block`` the block (``bx-by``). ``detail``: fine stains on every
-    surface (0: none, the courtyard's look), for local features (SIFT triangulation, S4)."""
+    surface (0: none, the courtyard's look), for local features (SIFT triangulation, S4).
+    ``textures``: photos that cover every building's facades instead of procedural plaster and
+    brick, ``texture_scale`` metres per photo width."""
 
     seed: int = 0
     blocks: Tuple[int, int] = (3, 3)
@@ -39,15 +44,19 @@ class CityConfig:
     street: float = 10.0
     spacing: float = 4.0
     detail: float = 0.0
+    textures: Tuple[str, ...] = ()
+    texture_scale: float = 8.0
 
 
 class SyntheticCity(SyntheticScene):
     """The city of a CityConfig (renders like the courtyard: ``render``)."""
 
+    photo_every_facade = True  # with textures, every building's facades are photos
+
     def __init__(self, conf: CityConfig = CityConfig()):
         rng = np.random.default_rng(conf.seed)
         self.conf = conf
-        self.textures = []
+        self.textures = [load_texture(p, max_side=TEXTURE_SIDE) for p in conf.textures]
         nx, ny = conf.blocks
         pitch = conf.block_size + conf.street
         self.pitch = pitch
@@ -128,11 +137,15 @@ class SyntheticCity(SyntheticScene):
             out.append((look_at(e, e + np.array([*(facing + along), 0.15])), block))
         return out
 
-    def query_views(self, n: int, seed: int, spread: float = 1.0,
-                    block: Optional[str] = None) -> List[Tuple[np.ndarray, str]]:
+    def query_views(self, n: int, seed: int, spread: float = 1.0, block: Optional[str] = None,
+                    near_references: bool = False) -> List[Tuple[np.ndarray, str]]:
         """Other viewpoints on the streets: off the middle line (spread x 3 m), heights 1.3-2.2 m,
         headings up to spread x 0.4 rad off the facade normal; only around ``block`` (``bx-by``)
-        if given (the same queries in cities of any size: block 0-0 is built first in each)."""
+        if given (the same queries in cities of any size: block 0-0 is built first in each).
+        ``near_references``: instead, offsets like those between neighbouring mapping views,
+        around a random reference (``near_reference_views``)."""
+        if near_references:
+            return self.near_reference_views(n, seed, spread, block)
         rng = np.random.default_rng(seed)
         views = [v for v in self._street_views(1.0) if block is None or v[2].rsplit("-", 1)[0] == block]
         out = []
@@ -147,19 +160,52 @@ class SyntheticCity(SyntheticScene):
         return out
 
 
+    def near_reference_views(self, n: int, seed: int, spread: float = 1.0,
+                             block: Optional[str] = None) -> List[Tuple[np.ndarray, str]]:
+        """Viewpoints around random references (of ``block`` if given): moved spread x 2 m along
+        the street and spread x [-1.5, 2.5] m towards the facade, heights 1.3-2.2 m, turned up to
+        spread x 0.4 rad; what the demo's courtyard draws around its reference circle."""
+        rng = np.random.default_rng(seed)
+        refs = [(T, b) for T, b in self.reference_views() if block is None or b.rsplit("-", 1)[0] == block]
+        out = []
+        for k in rng.integers(0, len(refs), n):
+            T, side = refs[k]
+            R, t = T[:, :3], T[:, 3]
+            centre, forward = -R.T @ t, R[2]
+            facing = forward[:2] / np.linalg.norm(forward[:2])
+            normal = _facade_normal(facing)
+            along = np.array([normal[1], -normal[0]])
+            e = centre[:2] + along * spread * rng.uniform(-2, 2) + normal * spread * rng.uniform(-1.5, 2.5)
+            a = spread * rng.uniform(-0.4, 0.4)
+            d = np.array([facing[0] * np.cos(a) - facing[1] * np.sin(a), facing[0] * np.sin(a) + facing[1] * np.cos(a)])
+            eye = np.array([*e, rng.uniform(1.3, 2.2)])
+            out.append((look_at(eye, eye + np.array([*d, rng.uniform(0.05, 0.2)])), side))
+        return out
+
+
+def _facade_normal(facing: np.ndarray) -> np.ndarray:
+    """The street axis direction a camera faces (towards its facade), from its heading."""
+    axis = np.zeros(2)
+    axis[int(np.argmax(np.abs(facing)))] = np.sign(facing[int(np.argmax(np.abs(facing)))])
+    return axis
+
+
 def generate_city(root, conf: CityConfig = CityConfig(), queries_per_condition: int = 2,
                   camera: CameraRecord = CameraRecord("PINHOLE", 160, 120, (125.0, 125.0, 80.0, 60.0)),
-                  query_spread: float = 1.0, query_block: Optional[str] = None, progress=None) -> Path:
+                  query_spread: float = 1.0, query_block: Optional[str] = None, progress=None,
+                  queries_near_references: bool = False) -> Path:
     """Write a city dataset in the format of ``generate`` (``read_synthetic`` reads it);
     ``area`` tags are block sides, ``block`` tags blocks; queries only around ``query_block``
-    if given. Regenerated only when its settings change (``cameras.json``)."""
+    if given, around the references if ``queries_near_references`` (``query_views``).
+    Regenerated only when its settings change (``cameras.json``)."""
     import json
 
     import cv2
     root = Path(root)
     wanted = json.loads(json.dumps({"city": dict(conf.__dict__), "queries_per_condition": queries_per_condition,
                                     "camera": camera.to_json(), "query_spread": query_spread,
-                                    "query_block": query_block}))
+                                    "query_block": query_block, **({"queries_near_references": True}
+                                                                   if queries_near_references else {})}))
     meta = root / "cameras.json"
     if meta.is_file() and json.loads(meta.read_text()).get("generation") == wanted:
         return root
@@ -168,7 +214,7 @@ def generate_city(root, conf: CityConfig = CityConfig(), queries_per_condition: 
     for c, condition in enumerate(CONDITIONS):
         views += [("query", condition, j, T, block) for j, (T, block) in
                   enumerate(city.query_views(queries_per_condition, conf.seed * 100 + c, query_spread,
-                                             query_block))]
+                                             query_block, queries_near_references))]
     entries = []
     for k, (split, condition, j, T, block) in enumerate(views):
         rgb, depth = city.render(camera, T, condition, seed=conf.seed * 100003 + k)

@@ -10,7 +10,7 @@ functions of the 3D hit point, so they are consistent across views.
 import logging
 from dataclasses import dataclass
 from pathlib import Path
-from typing import List, Tuple
+from typing import List, Optional, Tuple
 
 import numpy as np
 import torch
@@ -71,6 +71,8 @@ class SyntheticConfig:
 class SyntheticScene:
     """Triangle meshes with a material and an object id per triangle, ready for ray casting."""
 
+    photo_every_facade = False  # photo textures (``textures``) on half the plaster buildings only
+
     def __init__(self, conf: SyntheticConfig = SyntheticConfig()):
         rng = np.random.default_rng(conf.seed)
         self.conf = conf
@@ -101,7 +103,7 @@ class SyntheticScene:
             parts.append((*box_mesh((*p, 4.0), (2.5, 2.5, 2.5)), FOLIAGE))
         self.parts = parts
         self.lamps = np.array([[*rng.uniform(-half + 3, half - 3, 2), 4.5] for _ in range(6)])
-        self.textures = [_load_texture(p) for p in conf.textures]
+        self.textures = [load_texture(p) for p in conf.textures]
 
     def _raycaster(self, extra: List = ()):
         import open3d as o3d
@@ -171,7 +173,8 @@ class SyntheticScene:
         if getattr(self.conf, "detail", 0.0) > 0:
             color = _weathering(color, X, normal, ok, self.conf.detail)
         if self.textures:
-            color = _photo_facades(color, X, normal, mat, oid, self.textures, self.conf.texture_scale)
+            color = _photo_facades(color, X, normal, mat, oid, self.textures, self.conf.texture_scale,
+                                   self.photo_every_facade)
         lamps = self.lamps
         if len(lamps) > 16:  # a city: the lamps near the camera light what it sees
             lamps = lamps[np.argsort(np.linalg.norm(lamps - origin, axis=1))[:16]]
@@ -198,20 +201,28 @@ def look_at(eye: np.ndarray, target: np.ndarray, up=(0.0, 0.0, 1.0)) -> np.ndarr
     return np.concatenate([R, (-R @ eye)[:, None]], 1)
 
 
-def _load_texture(path) -> np.ndarray:
-    from pipeline.images import read_image
-    return read_image(path).astype(np.float64) / 255.0
+def load_texture(path, max_side: Optional[int] = None) -> np.ndarray:
+    """A photo as a texture in [0, 1]; at most ``max_side`` pixels on its longer side if given."""
+    from pipeline.images import read_image, resize_max
+    rgb = read_image(path)
+    if max_side:
+        rgb = resize_max(rgb, max_side)[0]
+    return rgb.astype(np.float64) / 255.0
 
 
-def _photo_facades(color, X, n, mat, oid, textures, scale) -> np.ndarray:
-    """Half of the plaster buildings (by object id) take a photo as facade texture, tiled
-    along the wall (u) and the height (z), ``scale`` metres per texture width."""
+def _photo_facades(color, X, n, mat, oid, textures, scale, every_facade: bool = False) -> np.ndarray:
+    """Half of the plaster buildings (by object id), or with ``every_facade`` every building,
+    take a photo as facade texture, tiled along the wall (u) and the height (z), ``scale``
+    metres per texture width."""
     tangent = np.stack([-n[:, 1], n[:, 0], np.zeros(len(n))], 1)
     u, z = (X * tangent).sum(1), X[:, 2]
     out = color.copy()
     for k, tex in enumerate(textures):
         h, w = tex.shape[:2]
-        sel = (mat == PLASTER) & (oid % 2 == 0) & ((oid // 2) % len(textures) == k)
+        if every_facade:
+            sel = ((mat == PLASTER) | (mat == BRICK)) & (oid % len(textures) == k)
+        else:
+            sel = (mat == PLASTER) & (oid % 2 == 0) & ((oid // 2) % len(textures) == k)
         px = (np.mod(u[sel] / scale, 1.0) * (w - 1)).astype(np.int64)
         py = ((1 - np.mod(z[sel] / (scale * h / w), 1.0)) * (h - 1)).astype(np.int64)
         out[sel] = tex[py, px]

@@ -124,3 +124,33 @@ def test_a_generated_city_has_blocks_streets_and_tagged_views(tmp_path):
     mtime = (root / "cameras.json").stat().st_mtime_ns
     generate_city(tmp_path / "city", conf, queries_per_condition=1, camera=camera)  # same settings: reused
     assert (root / "cameras.json").stat().st_mtime_ns == mtime
+
+
+def test_a_photo_city_covers_every_facade_and_its_queries_stand_near_references(tmp_path):
+    """The photo city of S2: with textures, every building's facades are photos (plaster and brick);
+    its queries are drawn around the references, as the demo's are around its reference circle."""
+    import cv2
+    from pipeline.data.city import CityConfig, SyntheticCity
+    photo = np.zeros((60, 80, 3), np.uint8)
+    photo[..., 0], photo[..., 2] = 255, 255  # magenta (BGR)
+    cv2.imwrite(str(tmp_path / "photo.png"), photo)
+    city = SyntheticCity(CityConfig(seed=1, blocks=(1, 1), street=14.0, spacing=2.0,
+                                    textures=(str(tmp_path / "photo.png"),)))
+    camera = CameraRecord("PINHOLE", 80, 60, (62.5, 62.5, 40.0, 30.0))
+    refs = city.reference_views()
+    facade = []
+    for T, _ in refs[::4]:
+        img, depth = city.render(camera, T, "day")
+        img = img.astype(int)
+        magenta = (img[..., 0] > 2 * img[..., 1] + 20) & (img[..., 2] > 2 * img[..., 1] + 20)
+        facade.append(magenta.sum() / max(int((depth > 0).sum()), 1))
+    assert np.median(facade) > 0.5  # the facades, not only some buildings (the ground is not textured)
+    centres = np.stack([-T[:, :3].T @ T[:, 3] for T, _ in refs])
+    axes = np.stack([T[2, :3] for T, _ in refs])
+    queries = city.query_views(20, seed=0, spread=0.5, near_references=True)
+    for T, side in queries:
+        c, axis = -T[:, :3].T @ T[:, 3], T[2, :3]
+        d = np.linalg.norm(centres[:, :2] - c[:2], axis=1)
+        k = int(np.argmin(d))
+        assert d[k] < 2.0 and side in {tag for _, tag in refs}
+        assert np.degrees(np.arccos(np.clip(axis @ axes[k], -1, 1))) < 30

@@ -30,7 +30,9 @@ version-2 layout (one file per 256-row chunk per array, float16), computed for t
 """
 
 import argparse
+import dataclasses
 import json
+import os
 import subprocess
 import time
 from pathlib import Path
@@ -54,6 +56,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--cities", type=int, nargs="+", default=[2, 4, 10],
                    help="S2: blocks per side of each city (96, 384 and 2,400 references)")
     p.add_argument("--city-queries", type=int, default=8, help="S2: queries per condition (4 conditions)")
+    p.add_argument("--city-style", choices=["photos", "procedural"], default="photos",
+                   help="S2: photos (default): 320 px, streets 14 m wide, references every 2 m, the Strecha photos "
+                   "of --shared on every facade, queries around the references; procedural: the city before "
+                   "(160 px, 10 m streets, every 4 m, procedural facades, queries anywhere on the street)")
+    p.add_argument("--shared", type=Path, default=Path(os.environ.get("PIXLOC_SHARED", "../shared")),
+                   help="the shared data folder, for the photo city's textures (default: $PIXLOC_SHARED, "
+                   "else ../shared)")
     p.add_argument("--s1-blocks", type=int, default=10,
                    help="S1, P3: blocks per side of the city (10: 2,400 references)")
     p.add_argument("--s1-queries", type=int, default=5000, help="S1: queries (a quarter per condition)")
@@ -129,23 +138,26 @@ def v2_figures(num_obs: np.ndarray, scales: int) -> Dict:
 def city_rows(args) -> list:
     """S2: per map size, the build and the localization of the same number of queries."""
     from pipeline.mapping.depth import rgbd_scene
-    from pipeline.data.city import CityConfig, generate_city
+    from pipeline.data.city import generate_city
     from pipeline.data.synthetic import read_synthetic
     from ..build_map import plan_build, run_sync as build_sync
     rows = []
+    style = city_style(args.city_style, args.shared)
     for n in args.cities:
-        root = args.work / f"city-{n}x{n}"
+        root = args.work / f"city-{n}x{n}" if args.city_style == "procedural" else args.work / f"photo-city-{n}x{n}"
         t0 = time.perf_counter()
-        generate_city(root, CityConfig(seed=args.seed, blocks=(n, n)), queries_per_condition=args.city_queries,
-                      query_spread=0.5, query_block="0-0")
+        generate_city(root, dataclasses.replace(style["city"], seed=args.seed, blocks=(n, n)),
+                      queries_per_condition=args.city_queries, camera=style["camera"], query_spread=0.5,
+                      query_block="0-0", queries_near_references=style["near_references"])
         mapping, _ = read_synthetic(root)
         t1 = time.perf_counter()
         scene = rgbd_scene(mapping, method="frames", stride=8, min_track_length=3)
-        store = args.work / f"city-{n}x{n}.zarr"
-        conf = FeatureConfig(resize=160, image_scales=(1,), dtype="int8", descriptor="grid", pca=0)
+        store = root.with_suffix(".zarr")
+        conf = FeatureConfig(resize=style["camera"].width, image_scales=(1,), dtype="int8", descriptor="grid", pca=0)
         build_sync(plan_build(scene, store, conf))
         t2 = time.perf_counter()
-        out = subprocess.run(command("localize", root, store, args.work / f"city-{n}x{n}-run"),
+        out = subprocess.run(command("localize", root, store, root.parent / f"{root.name}-run",
+                                     style["points_per_cell"]),
                              capture_output=True, text=True, check=True)
         r = json.loads(out.stdout.strip().splitlines()[-1])
         rows.append({**r, "blocks": f"{n}x{n}", "images": len(mapping), "map_points": len(scene.points),
@@ -153,6 +165,25 @@ def city_rows(args) -> list:
         print(f"  city {n}x{n}: {len(mapping)} images, {r['s_per_query']:.2f} s/query, "
               f"peak RSS {r['peak_rss'] / 2**20:.0f} MiB", flush=True)
     return rows
+
+
+def city_style(name: str, shared: Path) -> Dict:
+    """S2's city: ``photos``, a city the method can localize (the photos of Strecha's two scenes
+    on every facade, 320 px, 14 m streets, references every 2 m, queries around the references),
+    or ``procedural``, the city before (160 px, 10 m streets, every 4 m, procedural facades,
+    queries anywhere on the street). The photo city's depth-fused map is dense: its queries run
+    the LM on one point per feature-map cell at most (``points_per_cell``, as the 7scenes preset)."""
+    from pipeline.data.city import CityConfig
+    if name == "procedural":
+        return {"city": CityConfig(), "camera": CameraRecord("PINHOLE", 160, 120, (125.0, 125.0, 80.0, 60.0)),
+                "near_references": False, "points_per_cell": 0}
+    photos = tuple(str(p) for p in sorted((shared / "data" / "strecha").glob("*/images/*.jpg")))
+    if not photos:
+        raise SystemExit(f"pixloc: error: no Strecha photos under {shared / 'data' / 'strecha'} for the photo city: "
+                         "give --shared, or --city-style procedural")
+    return {"city": CityConfig(street=14.0, spacing=2.0, textures=photos),
+            "camera": CameraRecord("PINHOLE", 320, 240, (250.0, 250.0, 160.0, 120.0)), "near_references": True,
+            "points_per_cell": 1}
 
 
 def add_rows(args) -> Dict:
