@@ -154,11 +154,9 @@ class SyntheticCity(SyntheticScene):
             side = np.array([facing[1], -facing[0]])
             e = np.array([*(eye - facing * spread * rng.uniform(0, 3.5) + side * rng.uniform(-0.5, 0.5)),
                           rng.uniform(1.3, 2.2)])
-            a = spread * rng.uniform(-0.4, 0.4)
-            d = np.array([facing[0] * np.cos(a) - facing[1] * np.sin(a), facing[0] * np.sin(a) + facing[1] * np.cos(a)])
+            d = _turned(facing, spread * rng.uniform(-0.4, 0.4))
             out.append((look_at(e, e + np.array([*d, rng.uniform(0.05, 0.2)])), block))
         return out
-
 
     def near_reference_views(self, n: int, seed: int, spread: float = 1.0,
                              block: Optional[str] = None) -> List[Tuple[np.ndarray, str]]:
@@ -176,8 +174,7 @@ class SyntheticCity(SyntheticScene):
             normal = _facade_normal(facing)
             along = np.array([normal[1], -normal[0]])
             e = centre[:2] + along * spread * rng.uniform(-2, 2) + normal * spread * rng.uniform(-1.5, 2.5)
-            a = spread * rng.uniform(-0.4, 0.4)
-            d = np.array([facing[0] * np.cos(a) - facing[1] * np.sin(a), facing[0] * np.sin(a) + facing[1] * np.cos(a)])
+            d = _turned(facing, spread * rng.uniform(-0.4, 0.4))
             eye = np.array([*e, rng.uniform(1.3, 2.2)])
             out.append((look_at(eye, eye + np.array([*d, rng.uniform(0.05, 0.2)])), side))
         return out
@@ -185,9 +182,15 @@ class SyntheticCity(SyntheticScene):
 
 def _facade_normal(facing: np.ndarray) -> np.ndarray:
     """The street axis direction a camera faces (towards its facade), from its heading."""
+    k = int(np.argmax(np.abs(facing)))
     axis = np.zeros(2)
-    axis[int(np.argmax(np.abs(facing)))] = np.sign(facing[int(np.argmax(np.abs(facing)))])
+    axis[k] = np.sign(facing[k])
     return axis
+
+
+def _turned(d: np.ndarray, a: float) -> np.ndarray:
+    """The 2D direction ``d`` turned by ``a`` radians."""
+    return np.array([d[0] * np.cos(a) - d[1] * np.sin(a), d[0] * np.sin(a) + d[1] * np.cos(a)])
 
 
 def generate_city(root, conf: CityConfig = CityConfig(), queries_per_condition: int = 2,

@@ -58,7 +58,6 @@ class DecoderBlock(nn.Module):
         self.layers = nn.Sequential(
             nn.Conv2d(previous + skip, out, kernel_size=3, padding=1, bias=False),
             nn.BatchNorm2d(out), nn.ReLU(inplace=True))
-
         self.split: Optional[nn.ModuleList] = None  # set by split_conv, for inference
 
     def split_conv(self) -> None:
@@ -74,6 +73,7 @@ class DecoderBlock(nn.Module):
                 part.bias = nn.Parameter(bias.detach().clone())
             parts.append(part)
         self.split = nn.ModuleList(parts)
+        self.layers[0] = nn.Identity()  # its weights live on in the parts
 
     def forward(self, previous: Tensor, skip: Tensor) -> Tensor:
         up = nn.functional.interpolate(previous, scale_factor=2, mode="bilinear", align_corners=False)
@@ -82,7 +82,7 @@ class DecoderBlock(nn.Module):
             return self.layers(torch.cat([up, skip[..., :h, :w]], 1))
         out = self.split[0](up)
         out += self.split[1](skip[..., :h, :w])
-        return self.layers[1:](out)
+        return self.layers(out)
 
 
 def _direct(block: nn.Module, *args: Tensor) -> Tensor:
