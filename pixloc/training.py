@@ -31,7 +31,10 @@ class TrainConfig:
     ema: decay of an exponential moving average of the weights (0: none), the model that is
     validated and saved (``Trainer.averaged``). It starts at the initial weights, so a fine-tune's
     average stays near the model it starts from until the steps have moved it (about 1 / (1 - ema)
-    steps)."""
+    steps).
+    freeze_encoder_steps: the encoder's weights stay fixed for this many steps (no gradient is
+    computed for them: those steps are cheaper), the decoder, confidences and damping train; after
+    them the encoder trains at ``lr * encoder_lr_scale``."""
 
     lr: float = 1e-5
     damping_lr_scale: float = 100.0
@@ -46,6 +49,8 @@ class TrainConfig:
     device: str = "cpu"
     amp: bool = False
     ema: float = 0.0
+    freeze_encoder_steps: int = 0
+    encoder_lr_scale: float = 1.0
 
     def lr_factor(self, step: int) -> float:
         """The learning rate of ``step`` (counted from 0) as a fraction of ``lr``."""
@@ -76,11 +81,19 @@ class Trainer:
         self.device = torch.device(conf.device)
         if conf.amp and self.device.type == "cuda":
             model.autocast_dtype = torch.bfloat16
-        damping = [p for n, p in model.named_parameters() if n.startswith("solvers.")]
-        others = [p for n, p in model.named_parameters() if not n.startswith("solvers.")]
+        named = list(model.named_parameters())
+        damping = [p for n, p in named if n.startswith("solvers.")]
+        # the encoder has a group of its own only when the config treats it apart (older
+        # checkpoints hold two groups and resume as they were)
+        self.encoder = [p for n, p in named if n.startswith("extractor.encoder.")] if (
+            conf.freeze_encoder_steps or conf.encoder_lr_scale != 1.0) else []
+        apart = {id(p) for p in damping + self.encoder}
+        others = [p for _, p in named if id(p) not in apart]
+        self.lr_scales = (1.0, conf.damping_lr_scale) + ((conf.encoder_lr_scale,) if self.encoder else ())
         self.optimizer = torch.optim.Adam([
             {"params": others, "lr": conf.lr},
-            {"params": damping, "lr": conf.lr * conf.damping_lr_scale}])
+            {"params": damping, "lr": conf.lr * conf.damping_lr_scale}]
+            + ([{"params": self.encoder, "lr": conf.lr * conf.encoder_lr_scale}] if self.encoder else []))
         if hasattr(model.extractor, "grad_checkpointing"):
             model.extractor.grad_checkpointing = conf.grad_checkpointing
         self.step_count = 0
@@ -131,8 +144,11 @@ class Trainer:
             groups.setdefault(b.shape_key(), []).append(b)
         total = sum(len(b.image_ref) for g in groups.values() for b in g)
         factor = self.conf.lr_factor(self.step_count)
-        for group, base in zip(self.optimizer.param_groups, (1.0, self.conf.damping_lr_scale)):
+        for group, base in zip(self.optimizer.param_groups, self.lr_scales):
             group["lr"] = self.conf.lr * base * factor
+        frozen = self.step_count < self.conf.freeze_encoder_steps
+        for p in self.encoder:
+            p.requires_grad_(not frozen)
         self.optimizer.zero_grad()
         sums: Dict[str, float] = {}
         finite = True

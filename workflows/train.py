@@ -32,6 +32,7 @@ import yaml
 
 from pipeline.mapping.readers.pixloc_training import read_cmu_slice, read_megadepth
 from pipeline.scene import CameraRecord, Scene
+from pipeline.data.photo_pairs import PhotoPairs
 from pipeline.data.training_data import PairConfig, PairDataset, synthetic_scene
 from pixloc.nets.registry import load_refiner, save_model
 from pixloc.training import Trainer, TrainConfig, reprojection_px
@@ -130,19 +131,33 @@ def load_config(spec: str, overrides: Optional[Dict] = None) -> TrainingRun:
 
 @dataclass
 class Source:
-    """A training or evaluation source: its Scene, sampling weight, and optionally its own
-    pairs (official MegaDepth/CMU overlaps) and initial-pose range (CMU: the reference pose)."""
+    """A training or evaluation source: its Scene (or, for self-supervised pairs, its photos),
+    sampling weight, and optionally its own pairs (official MegaDepth/CMU overlaps) and
+    initial-pose range (CMU: the reference pose)."""
 
     name: str
-    scene: Scene
+    scene: Optional[Scene]
     weight: float = 1.0
     pairs: Optional[List[Tuple[int, int]]] = None
     init_range: Optional[Tuple[float, float]] = None
+    photos: Tuple[Path, ...] = ()
 
-    def dataset(self, conf: PairConfig) -> PairDataset:
+    def dataset(self, conf: PairConfig):
+        """Its pairs: a ``PairDataset``, or ``PhotoPairs`` of its photos."""
         if self.init_range is not None:
             conf = replace(conf, init_range=tuple(self.init_range))
+        if self.photos:
+            return PhotoPairs(self.photos, conf)
         return PairDataset([(self.name, self.scene)], conf, {self.name: self.pairs} if self.pairs else None)
+
+
+def photo_files(data_root: Path, patterns: List[str], exclude: List[str] = ()) -> List[Path]:
+    """The files matching ``patterns`` (globs relative to ``data_root``) that match none of
+    ``exclude``, in name order; image files only."""
+    found = {p for pattern in patterns for p in data_root.glob(pattern)
+             if p.suffix.lower() in (".jpg", ".jpeg", ".png")}
+    dropped = {p for pattern in exclude for p in data_root.glob(pattern)}
+    return sorted(found - dropped)
 
 
 def load_sources(entries: List[Dict], data_root: Path, work_dir: Path, camera: CameraRecord
@@ -150,9 +165,10 @@ def load_sources(entries: List[Dict], data_root: Path, work_dir: Path, camera: C
     """The sources of a config's entries; sources whose data is absent are skipped with a
     warning and their names returned second.
 
-    Kinds: ``synthetic`` (seed, optional textures), ``megadepth`` (scene), ``cmu`` (slice),
-    and the map sources of ``pixloc build-map`` (colmap, sfm, strecha, kapture, 7scenes,
-    posetxt). Keys ``weight`` and ``init_range`` apply to any kind."""
+    Kinds: ``synthetic`` (seed, optional textures), ``photos`` (self-supervised pairs of every
+    photo matching the globs ``paths``, less those matching ``exclude``: ``PhotoPairs``),
+    ``megadepth`` (scene), ``cmu`` (slice), and the map sources of ``pixloc build-map`` (colmap,
+    sfm, the posed formats, 7scenes, posetxt). Keys ``weight`` and ``init_range`` apply to any kind."""
     sources, skipped = [], []
     for entry in entries:
         entry = dict(entry)
@@ -169,6 +185,18 @@ def load_sources(entries: List[Dict], data_root: Path, work_dir: Path, camera: C
                 skipped.append(name)
                 continue
             scene = synthetic_scene(work_dir / name, seed, camera, textures=textures)
+        elif kind == "photos":
+            patterns = list(entry.pop("paths"))
+            name = entry.pop("name", "photos")
+            photos = photo_files(data_root, patterns, entry.pop("exclude", []))
+            if not photos:
+                logger.warning("Training source %s matches no photo (%s): skipped.", name, ", ".join(patterns))
+                skipped.append(name)
+                continue
+            logger.info("Training source %s: %d photos, self-supervised pairs.", name, len(photos))
+            sources.append(Source(name, None, weight, None, tuple(init_range) if init_range else None,
+                                  tuple(photos)))
+            continue
         else:
             path = data_root / entry.pop("path")
             name = str(path.relative_to(data_root))

@@ -51,6 +51,13 @@ def initial_pose(query_from_ref: Pose, fraction: float) -> Pose:
     return Pose.from_Rt(lie.so3_exp(w), query_from_ref.t * fraction)
 
 
+def draw_init_fraction(conf: PairConfig, rng: np.random.Generator) -> float:
+    """Where a pair's initial pose lies between the reference pose (0) and the truth (1): in
+    ``init_range``, or in ``far_init_range`` for a share ``far_init_prob`` of pairs."""
+    far = conf.far_init_prob > 0 and rng.uniform() < conf.far_init_prob
+    return float(rng.uniform(*(conf.far_init_range if far else conf.init_range)))
+
+
 def covisible_pairs(scene: Scene, min_covisible: int) -> List[Tuple[int, int]]:
     """Ordered image pairs (reference, query) sharing at least ``min_covisible`` points."""
     seen = np.zeros((len(scene.images), len(scene.points)), dtype=np.float32)
@@ -114,11 +121,7 @@ class PairDataset:
         p3d_pad[:len(pick)] = p3d
         mask = torch.arange(n) < len(pick)
         query_from_ref = T_q @ T_ref.inv()
-        if init_fraction is not None:
-            fraction = init_fraction
-        else:
-            far = self.conf.far_init_prob > 0 and rng.uniform() < self.conf.far_init_prob
-            fraction = float(rng.uniform(*(self.conf.far_init_range if far else self.conf.init_range)))
+        fraction = init_fraction if init_fraction is not None else draw_init_fraction(self.conf, rng)
         init = initial_pose(query_from_ref, fraction)
         image_ref, cam_ref = self.image(k, i)
         image_q, cam_q = self.image(k, j)

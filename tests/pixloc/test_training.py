@@ -155,3 +155,19 @@ def test_training_steps_on_the_gpu_in_mixed_precision(pairs, device):
         trainer.step(list(pairs))
     last = trainer.step(list(pairs))
     assert last["total"] < 0.8 * first[0] and last["grad_norm"] > 0
+
+
+def test_a_frozen_encoder_stays_put_then_trains_at_its_own_rate(pairs):
+    torch.manual_seed(0)
+    trainer = Trainer(load_refiner("lite0-imagenet"),
+                      TrainConfig(lr=1e-3, num_iters=5, freeze_encoder_steps=2, encoder_lr_scale=0.25))
+    encoder = {n: p.detach().clone() for n, p in trainer.model.named_parameters() if n.startswith("extractor.encoder.")}
+    decoder = {n: p.detach().clone() for n, p in trainer.model.named_parameters() if n.startswith("extractor.decoder.")}
+    now = lambda names: {n: p for n, p in trainer.model.named_parameters() if n in names}
+    for p in pairs[:2]:
+        trainer.step(p)
+    assert all(torch.equal(v, encoder[n]) for n, v in now(encoder).items())
+    assert any(not torch.equal(v, decoder[n]) for n, v in now(decoder).items())
+    trainer.step(pairs[2])
+    assert any(not torch.equal(v, encoder[n]) for n, v in now(encoder).items())
+    assert [g["lr"] for g in trainer.optimizer.param_groups] == pytest.approx([1e-3, 1e-1, 2.5e-4])

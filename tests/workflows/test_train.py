@@ -107,3 +107,25 @@ def test_contact_sheet_shows_pairs_of_every_source(config, tmp_path):
     red = (sheet[..., 0] > 170) & (sheet[..., 1] < 90) & (sheet[..., 2] < 90)
     assert green.sum() > 50 and red.sum() > 20  # points at the truth, and at the initial pose
     assert not (tmp_path / "s" / "checkpoint.pt").exists()  # nothing trained
+
+
+def test_photos_train_as_self_supervised_pairs(tmp_path):
+    import cv2
+    import numpy as np
+    rng = np.random.default_rng(0)
+    (tmp_path / "data" / "pics").mkdir(parents=True)
+    for k in range(2):  # textured photos: smoothed noise
+        image = cv2.GaussianBlur(rng.uniform(0, 255, (96, 128, 3)).astype(np.uint8), (0, 0), 2)
+        cv2.imwrite(str(tmp_path / "data" / "pics" / f"p{k}.jpg"), image)
+    config = dict(CONFIG, steps=2, val_every=2, checkpoint_every=2,
+                  data=[{"kind": "photos", "paths": ["pics/*.jpg"], "exclude": ["pics/p1.jpg"]},
+                        {"kind": "photos", "name": "nothing", "paths": ["none/*.jpg"]}],
+                  validation=[{"kind": "photos", "name": "held", "paths": ["pics/p1.jpg"]}])
+    path = tmp_path / "photos.yaml"
+    path.write_text(yaml.safe_dump(config))
+    out = tmp_path / "run"
+    assert main(["train", "--config", str(path), "--output", str(out), "--data-root", str(tmp_path / "data")]) == 0
+    assert [r["source"] for r in rows(out / "metrics.csv")] == ["photos", "photos"]
+    val = rows(out / "validation.csv")
+    assert len(val) == 2 and float(val[0]["error_px_init_median"]) > 0.5
+    assert torch.load(out / "model.pt", weights_only=False)["info"]["skipped_data"] == ["nothing"]
