@@ -57,3 +57,22 @@ def test_a_work_folder_of_other_feature_settings_is_refused(run, shared, capsys)
     with pytest.raises(SystemExit, match="--resize, --sift"):
         main(["benchmark", "accuracy", "--shared", str(shared), "--work", str(work), "--scenes", "kermit",
               "--resize", "640", "--limit", "1"])
+
+
+def test_paired_counts_closer_farther_gained_and_lost():
+    from workflows.benchmarks.accuracy import paired
+    base = [{"scene": "s", "prior": "sift", "errors": {"a": [0.02, 0.5], "b": [0.002, 0.2], "c": None, "d": [0.5, 9]}}]
+    mine = [{"scene": "s", "prior": "sift", "errors": {"a": [0.005, 0.5], "b": [0.03, 0.2], "c": [0.004, 0.1],
+                                                       "d": [0.5, 9]}}]
+    s, pooled = paired(mine, base)
+    assert (s["queries"], s["closer"], s["farther"]) == (4, 2, 1) and pooled["scene"] == "all"
+    assert s["1 %, 1 deg"] == (2, 1) and s["5 %, 2 deg"] == (1, 0) and s["10 %, 5 deg"] == (1, 0)
+    assert s["sign_test_p"] == 1.0
+
+
+def test_a_run_paired_with_itself_has_no_difference(run, shared, capsys):
+    _, _, work = run
+    main(["benchmark", "accuracy", "--shared", str(shared), "--work", str(work), "--scenes", "kermit", "berlin",
+          "--priors", "top1", "sift", "--limit", "1", "--paired", str(work)])
+    out = capsys.readouterr().out
+    assert "| all | sift | 2 | 0 | 0 | 1.000 | 0 / 0 | 0 / 0 | 0 / 0 |" in out

@@ -16,12 +16,15 @@ thresholds relative to the scene's scale, its median camera-to-point distance (1
 2 deg; 10 %, 5 deg), and at (5 cm, 1 deg) and (25 cm, 2 deg) where the scene is metric; median
 errors; the poses reported as successes and how many of them are wrong (beyond 10 %, 5 deg); and
 time per query (the wall time of the runs; the peer's is the sift runs' time before the LM: image,
-retrieval, SIFT and PnP). Runs are kept in ``--work``: a rerun reprints.
+retrieval, SIFT and PnP). Runs are kept in ``--work``: a rerun reprints. ``--model`` runs another feature
+model (its own ``--work``), and ``--paired WORK`` compares the run query by query with another one (how a
+candidate model is judged against the shipped one: docs/model_card.md).
 """
 
 import argparse
 import dataclasses
 import json
+import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -38,6 +41,7 @@ from pipeline.store.reader import MapReader
 from pixloc.nets.registry import DEFAULT_MODEL
 
 from ..build_map import plan_build, run_sync as build_sync
+from ..evaluate_model import sign_test
 from ..sources import POSED_FORMATS, MapSource, as_query, load_scene, pose_txt_images, posed_images
 from .sacre_coeur import sacre_coeur
 from .search import SACRE_COEUR_FEATURES, localize_priors, virtual_gallery_map
@@ -107,6 +111,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--against", type=Path, metavar="WORK",
                    help="another work folder of this benchmark (other feature storage): its rows and its maps' bytes "
                         "per observation side by side with this run's")
+    p.add_argument("--model", default=DEFAULT_MODEL,
+                   help=f"the feature model of the maps and queries (default {DEFAULT_MODEL}; one --work per model)")
+    p.add_argument("--paired", type=Path, metavar="WORK",
+                   help="another work folder of this benchmark (e.g. another model's): query by query against it, "
+                        "per scene and prior, with the sign test and the queries gained and lost")
     p.add_argument("--limit", type=int, default=0,
                    help="at most this many queries per scene and fold (a quick look; runs kept apart)")
 
@@ -154,8 +163,8 @@ def scene_parts(key: str, args, fconf: FeatureConfig) -> List[Tuple[str, Path, L
     if key == "7scenes":
         parts = list(seven_scenes_map(args.shared, args.work, fconf))
     elif key == "sacre_coeur":
-        parts = sacre_coeur(args.shared, args.work, dataclasses.replace(SACRE_COEUR_FEATURES, dtype=fconf.dtype,
-                                                                         pca=fconf.pca))
+        features = dataclasses.replace(SACRE_COEUR_FEATURES, model=fconf.model, dtype=fconf.dtype, pca=fconf.pca)
+        parts = sacre_coeur(args.shared, args.work, features)
     elif key == "virtual_gallery":
         parts = list(virtual_gallery_map(args.shared, args.work, fconf))
     else:
@@ -200,7 +209,57 @@ def row(scene: str, prior: str, records: List[Dict], gt: Dict, scale: float, met
             "median_t_pct": None if med_t is None else 100 * med_t / scale, "median_R": median(result, 1),
             "accepted": None if prior in ("sift-pnp", "reference") else sum(bool(r.get("success")) for r in records),
             "wrong": None if prior in ("sift-pnp", "reference") else wrong,
-            "s_per_query": None if seconds is None else seconds / max(len(records), 1)}
+            "s_per_query": None if seconds is None else seconds / max(len(records), 1),
+            # per query: translation error as a fraction of the scale, rotation error (None: no pose)
+            "errors": {n: [e["result"][0] / scale, e["result"][1]] if np.isfinite(e["result"]).all() else None
+                       for n, e in errors.items()}}
+
+
+TIE = 1e-4  # translation errors closer than this fraction of the scene's scale are a tie
+
+
+def paired(rows: List[Dict], baseline: List[Dict]) -> List[Dict]:
+    """Query by query against ``baseline`` (the rows of another run, e.g. another model), per scene and
+    prior and pooled per prior: queries that end closer or farther (translation, relative to the scale;
+    no pose counts as the worst), the sign test of the two, and queries gained or lost at each relative
+    threshold."""
+    base = {(r["scene"], r["prior"]): r.get("errors") for r in baseline}
+    out, pools = [], {}
+    for r in rows:
+        theirs = base.get((r["scene"], r["prior"]))
+        if not r.get("errors") or not theirs or r["scene"] == "all":
+            continue
+        names = sorted(set(r["errors"]) & set(theirs))
+        worst = [math.inf, math.inf]
+        pair = [(theirs[n] or worst, r["errors"][n] or worst) for n in names]
+        pools.setdefault(r["prior"], []).extend(pair)
+        out.append(_compare(r["scene"], r["prior"], pair))
+    return out + [_compare("all", prior, pair) for prior, pair in pools.items()]
+
+
+def _compare(scene: str, prior: str, pair: List) -> Dict:
+    closer = sum(b[0] < a[0] - TIE for a, b in pair)
+    farther = sum(b[0] > a[0] + TIE for a, b in pair)
+    out = {"scene": scene, "prior": prior, "queries": len(pair), "closer": closer, "farther": farther,
+           "sign_test_p": sign_test(closer, farther)}
+    for f, deg in RELATIVE:
+        within = lambda e: e[0] < f and e[1] < deg
+        out[f"{100 * f:g} %, {deg:g} deg"] = (sum(within(b) and not within(a) for a, b in pair),
+                                             sum(within(a) and not within(b) for a, b in pair))
+    return out
+
+
+def paired_table(comparison: List[Dict], baseline: str) -> str:
+    keys = [f"{100 * f:g} %, {r:g} deg" for f, r in RELATIVE]
+    lines = [f"Query by query against {baseline} (closer / farther: translation error, ties within "
+             f"{100 * TIE:g} % of the scale; gained / lost: queries brought within or taken out of a threshold):", "",
+             "| scene | prior | queries | closer | farther | sign test p | "
+             + " | ".join(f"gained / lost {k}" for k in keys) + " |",
+             "| --- | --- | ---: | ---: | ---: | ---: | " + " | ".join("---:" for _ in keys) + " |"]
+    for c in comparison:
+        lines.append(f"| {c['scene']} | {c['prior']} | {c['queries']} | {c['closer']} | {c['farther']} | "
+                     f"{c['sign_test_p']:.3f} | " + " | ".join("{} / {}".format(*c[k]) for k in keys) + " |")
+    return "\n".join(lines)
 
 
 RECALLS = [f"{100 * f:g} %, {r:g} deg" for f, r in RELATIVE] + [f"{t:g} m, {r:g} deg" for t, r in METRIC]
@@ -273,7 +332,7 @@ def goals(rows: List[Dict]) -> List[str]:
 
 
 def main(args: argparse.Namespace) -> int:
-    fconf = FeatureConfig(model=DEFAULT_MODEL, resize=args.resize, image_scales=(1,), sift=args.sift,
+    fconf = FeatureConfig(model=args.model, resize=args.resize, image_scales=(1,), sift=args.sift,
                           dtype=args.dtype, pca=args.pca)
     lconf = LocalizerConfig(num_dbs=3, num_iters=50)
     args.work.mkdir(parents=True, exist_ok=True)
@@ -315,6 +374,9 @@ def main(args: argparse.Namespace) -> int:
     if args.against:
         print()
         print(storage_table(args.work, args.against, args.scenes))
+    if args.paired:
+        print()
+        print(paired_table(paired(rows, json.loads((args.paired / "rows.json").read_text())), str(args.paired)))
     return 1 if any(": no map (" in line for line in remarks) else 0
 
 
