@@ -96,6 +96,7 @@ def build_parser() -> argparse.ArgumentParser:
     from .benchmarks import lm as bench_lm
     from .benchmarks import localize as bench_localize
     from .benchmarks import query_cpu as bench_query_cpu
+    from .benchmarks import train_step as bench_train_step
     from .benchmarks import rgbd as bench_rgbd
     from .benchmarks import scale as bench_scale
     from .benchmarks import search as bench_search
@@ -107,6 +108,7 @@ def build_parser() -> argparse.ArgumentParser:
             ("build-map", bench_build_map, "map building: images/s and bytes per observation, 1 vs 2 workers"),
             ("localize", bench_localize, "queries/s with stored features vs the official re-extraction"),
             ("query-cpu", bench_query_cpu, "CPU seconds per query at Cambridge settings per speed-up, with its poses"),
+            ("train-step", bench_train_step, "training steps per CPU hour per change, and what is not the model"),
             ("verification", bench_verification, "precision and rejections of pose verification per threshold"),
             ("rgbd", bench_rgbd,
              "time per 7-Scenes query: gradient maps and points per cell against the official sampler"),

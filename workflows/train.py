@@ -30,6 +30,7 @@ import numpy as np
 import torch
 import yaml
 
+from pipeline.runtime import keep_freed_memory
 from pipeline.mapping.readers.pixloc_training import read_cmu_slice, read_megadepth
 from pipeline.scene import CameraRecord, Scene
 from pipeline.data.photo_pairs import PhotoPairs
@@ -384,6 +385,7 @@ def train(run, out: Path, data_root: Path, resume: bool = True, threads: int = 0
     if not isinstance(run, TrainingRun):
         run = TrainingRun.from_dict(run)
     out.mkdir(parents=True, exist_ok=True)
+    keep_freed_memory()  # a step frees and allocates the same large blocks: reuse them
     if threads:
         torch.set_num_threads(threads)
     (out / "config.yaml").write_text(yaml.safe_dump(run.to_dict(), sort_keys=False))

@@ -171,3 +171,15 @@ def test_a_frozen_encoder_stays_put_then_trains_at_its_own_rate(pairs):
     trainer.step(pairs[2])
     assert any(not torch.equal(v, encoder[n]) for n, v in now(encoder).items())
     assert [g["lr"] for g in trainer.optimizer.param_groups] == pytest.approx([1e-3, 1e-1, 2.5e-4])
+
+
+def test_channels_last_training_steps_like_the_default_layout(pairs):
+    losses = []
+    for channels_last in (False, True):
+        torch.manual_seed(0)
+        trainer = Trainer(load_refiner("lite0-imagenet"), TrainConfig(lr=1e-3, num_iters=5),
+                          channels_last=channels_last)
+        losses.append([trainer.step(p)["total"] for p in pairs])
+        conv = next(m for m in trainer.model.extractor.modules() if isinstance(m, torch.nn.Conv2d))
+        assert conv.weight.is_contiguous(memory_format=torch.channels_last) == channels_last
+    assert losses[1] == pytest.approx(losses[0], rel=1e-3)
