@@ -60,8 +60,10 @@ class PairBatch:
 
 
 def masked_mean(x: Tensor, mask: Tensor, dim: int) -> Tensor:
-    mask = mask.to(x.dtype)
-    return (mask * x).sum(dim) / mask.sum(dim).clamp(min=1)
+    """Mean of ``x`` where ``mask`` holds; a masked-out value never reaches it, not even an inf or
+    NaN (official PixLoc multiplies by the mask: a point far outside a RADIAL camera's valid radius
+    made a whole pair's loss NaN)."""
+    return torch.where(mask, x, torch.zeros_like(x)).sum(dim) / mask.to(x.dtype).sum(dim).clamp(min=1)
 
 
 class TwoViewRefiner(nn.Module):

@@ -4,7 +4,7 @@ import torch
 from pipeline.scene import CameraRecord
 from pipeline.data.training_data import PairConfig, PairDataset, synthetic_scene
 from pixloc.nets.registry import load_refiner
-from pixloc.training import TrainConfig, Trainer
+from pixloc.training import TrainConfig, Trainer, reprojection_px
 
 CAMERA = CameraRecord("PINHOLE", 160, 128, (125.0, 125.0, 80.0, 64.0))
 
@@ -183,3 +183,20 @@ def test_channels_last_training_steps_like_the_default_layout(pairs):
         conv = next(m for m in trainer.model.extractor.modules() if isinstance(m, torch.nn.Conv2d))
         assert conv.weight.is_contiguous(memory_format=torch.channels_last) == channels_last
     assert losses[1] == pytest.approx(losses[0], rel=1e-3)
+
+
+def test_a_point_outside_a_radial_cameras_valid_radius_leaves_the_pair_finite():
+    # opensfm_berlin's camera (k2 < 0): a point far off the axis distorts to inf; it is masked out
+    # and must not make the pair's error NaN (27 training steps were lost to it)
+    from pixloc.geometry import Camera, Pose
+    from pixloc.refiner import PairBatch, masked_mean
+    assert masked_mean(torch.tensor([[1.0, float("nan"), float("inf"), 3.0]]),
+                       torch.tensor([[True, False, False, True]]), -1).item() == 2.0
+    cam = Camera.from_colmap("RADIAL", 320, 240, [278.0, 160.0, 120.0, 0.0885, -0.2324]).reshape(1)
+    p3d = torch.tensor([[[0.0, 0.0, 5.0], [0.2, 0.1, 4.0], [-0.3, 0.2, 6.0], [1e9, 1e9, 1.0]]])
+    gt = Pose.from_Rt(torch.eye(3), torch.zeros(3)).reshape(1)
+    init = Pose.from_Rt(torch.eye(3), torch.tensor([0.05, 0.0, 0.0])).reshape(1)
+    image = torch.zeros(1, 3, 240, 320)
+    batch = PairBatch(image, image, cam, cam, p3d, init, gt, torch.ones(1, 4, dtype=torch.bool))
+    error = reprojection_px(init, batch)
+    assert torch.isfinite(error).all() and error.item() > 0
