@@ -109,21 +109,29 @@ def paired(pair_errors: Errors, baseline: str) -> Dict[str, Dict[str, Dict[str, 
     return out
 
 
+def comparison_lines(columns: Sequence[str], keys: Sequence[str], rows) -> List[str]:
+    """A Markdown table of paired comparisons: ``columns`` name the first three cells (e.g. model,
+    data, pairs); each row is those three, closer, farther, the sign test's p and a (gained, lost)
+    pair per threshold of ``keys``."""
+    lines = ["| " + " | ".join(columns) + " | closer | farther | sign test p | "
+             + " | ".join(f"gained / lost {k}" for k in keys) + " |",
+             "| --- | --- | ---: | ---: | ---: | ---: | " + " | ".join("---:" for _ in keys) + " |"]
+    for *first, closer, farther, p, changes in rows:
+        lines.append("| " + " | ".join(str(x) for x in first) + f" | {closer} | {farther} | {p:.3f} | "
+                     + " | ".join(f"{g} / {lost}" for g, lost in changes) + " |")
+    return lines
+
+
 def paired_markdown(comparison: Dict[str, Dict[str, Dict[str, float]]], baseline: str) -> str:
     if not comparison:
         return ""
     keys = [f"{t}m,{r}deg" for t, r in THRESHOLDS]
-    lines = [f"Pair by pair against {baseline} (same pairs; closer / farther: translation error, ties within "
-             f"{1000 * TIE_M:.0f} mm; gained / lost: pairs brought within or taken out of each threshold):", "",
-             "| model | data | pairs | closer | farther | sign test p | "
-             + " | ".join(f"gained / lost {k}" for k in keys) + " |",
-             "| --- | --- | ---: | ---: | ---: | ---: | " + " | ".join("---:" for _ in keys) + " |"]
-    for model, per in comparison.items():
-        for data, c in per.items():
-            lines.append(f"| {model} | {data} | {c['pairs']} | {c['closer']} | {c['farther']} | "
-                         f"{c['sign_test_p']:.3f} | "
-                         + " | ".join(f"{c['gained@' + k]} / {c['lost@' + k]}" for k in keys) + " |")
-    return "\n".join(lines) + "\n"
+    rows = [(model, data, c["pairs"], c["closer"], c["farther"], c["sign_test_p"],
+             [(c["gained@" + k], c["lost@" + k]) for k in keys])
+            for model, per in comparison.items() for data, c in per.items()]
+    return "\n".join([f"Pair by pair against {baseline} (same pairs; closer / farther: translation error, ties "
+                      f"within {1000 * TIE_M:.0f} mm; gained / lost: pairs brought within or taken out of each "
+                      "threshold):", ""] + comparison_lines(("model", "data", "pairs"), keys, rows)) + "\n"
 
 
 def markdown(results: Dict[str, Dict[str, Dict[str, float]]]) -> str:

@@ -41,7 +41,7 @@ from pipeline.store.reader import MapReader
 from pixloc.nets.registry import DEFAULT_MODEL
 
 from ..build_map import plan_build, run_sync as build_sync
-from ..evaluate_model import sign_test
+from ..evaluate_model import comparison_lines, sign_test
 from ..sources import POSED_FORMATS, MapSource, as_query, load_scene, pose_txt_images, posed_images
 from .sacre_coeur import sacre_coeur
 from .search import SACRE_COEUR_FEATURES, localize_priors, virtual_gallery_map
@@ -251,15 +251,11 @@ def _compare(scene: str, prior: str, pair: List) -> Dict:
 
 def paired_table(comparison: List[Dict], baseline: str) -> str:
     keys = [f"{100 * f:g} %, {r:g} deg" for f, r in RELATIVE]
-    lines = [f"Query by query against {baseline} (closer / farther: translation error, ties within "
-             f"{100 * TIE:g} % of the scale; gained / lost: queries brought within or taken out of a threshold):", "",
-             "| scene | prior | queries | closer | farther | sign test p | "
-             + " | ".join(f"gained / lost {k}" for k in keys) + " |",
-             "| --- | --- | ---: | ---: | ---: | ---: | " + " | ".join("---:" for _ in keys) + " |"]
-    for c in comparison:
-        lines.append(f"| {c['scene']} | {c['prior']} | {c['queries']} | {c['closer']} | {c['farther']} | "
-                     f"{c['sign_test_p']:.3f} | " + " | ".join("{} / {}".format(*c[k]) for k in keys) + " |")
-    return "\n".join(lines)
+    rows = [(c["scene"], c["prior"], c["queries"], c["closer"], c["farther"], c["sign_test_p"], [c[k] for k in keys])
+            for c in comparison]
+    return "\n".join([f"Query by query against {baseline} (closer / farther: translation error, ties within "
+                      f"{100 * TIE:g} % of the scale; gained / lost: queries brought within or taken out of a "
+                      "threshold):", ""] + comparison_lines(("scene", "prior", "queries"), keys, rows))
 
 
 RECALLS = [f"{100 * f:g} %, {r:g} deg" for f, r in RELATIVE] + [f"{t:g} m, {r:g} deg" for t, r in METRIC]
