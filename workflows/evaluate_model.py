@@ -158,6 +158,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-pairs", type=int, default=40, help="pairs per held-out source (seeded choice)")
     p.add_argument("--max-size", type=int, help="longer image side (default: the config's)")
     p.add_argument("--iters", type=int, default=100, help="LM iterations per level")
+    p.add_argument("--threads", type=int, default=0,
+                   help="torch threads (default: torch's choice; 1 beside another busy job, whose core the "
+                        "threads would otherwise wait on)")
     p.add_argument("--seed", type=int, default=0, help="seed of the initial poses (the same pairs for every model)")
     p.add_argument("--init-range", type=float, nargs=2, metavar=("LO", "HI"),
                    help="initial poses this fraction of the way from the reference pose to the truth "
@@ -166,6 +169,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
+    if args.threads:
+        torch.set_num_threads(args.threads)
     run = load_config(args.config)
     held_out: List[Dict] = list(run.held_out_sources)
     if not held_out:

@@ -57,3 +57,14 @@ def test_sign_test():
 def test_missing_held_out_data_is_a_clear_error(tmp_path, capsys):
     assert main(["evaluate-model", "--data-root", str(tmp_path), "--output", str(tmp_path / "o")]) == 2
     assert "Held-out data missing" in capsys.readouterr().err
+
+
+def test_threads_are_set_before_the_work(tmp_path, capsys):
+    import torch
+    before = torch.get_num_threads()
+    try:
+        assert main(["evaluate-model", "--threads", "1", "--data-root", str(tmp_path),
+                     "--output", str(tmp_path / "o")]) == 2
+        assert torch.get_num_threads() == 1
+    finally:
+        torch.set_num_threads(before)
