@@ -10,6 +10,7 @@ axis, turned and rolled a little. A reference pixel ``p`` maps to the query at `
 K_ref^-1 p``. Pixel coordinates are those of ``pixloc.geometry.Camera`` (pixel centres at integers).
 """
 
+import logging
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Dict, List, Sequence, Tuple
@@ -21,8 +22,10 @@ import torch
 from pixloc.geometry import Camera, Pose
 from pixloc.refiner import PairBatch
 
-from pipeline.images import read_image
+from pipeline.images import ImageReadError, read_image
 from pipeline.data.training_data import PairConfig, draw_init_fraction, initial_pose
+
+logger = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -40,6 +43,11 @@ class PhotoPairConfig:
     focal_ratio: Tuple[float, float] = (0.8, 1.25)
     night: float = 0.5
     occluders: float = 0.5
+
+
+def _scaled(image: np.ndarray, max_side: int) -> np.ndarray:
+    scale = min(1.0, max_side / max(image.shape[:2]))
+    return cv2.resize(image, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA) if scale < 1 else image
 
 
 def _rotation(axis: np.ndarray, angle: float) -> np.ndarray:
@@ -117,23 +125,32 @@ class PhotoPairs:
 
     def __init__(self, photos: Sequence[Path], conf: PairConfig = PairConfig(),
                  photo_conf: PhotoPairConfig = PhotoPairConfig()):
-        if not photos:
-            raise ValueError("A photos training source needs at least one photo.")
-        self.photos, self.conf, self.photo_conf = [Path(p) for p in photos], conf, photo_conf
+        """Every photo is read here, once: one that cannot be read is left out with a warning that
+        names it (``unreadable``), and a source with none left is refused."""
+        self.conf, self.photo_conf = conf, photo_conf
         self._cache: Dict[int, np.ndarray] = {}
+        self.photos: List[Path] = []
+        self.unreadable: List[str] = []
+        for path in map(Path, photos):
+            try:
+                image = _scaled(read_image(path), 2 * conf.max_size)
+            except ImageReadError as e:
+                self.unreadable.append(str(e))
+                continue
+            self._cache[len(self.photos)] = image
+            self.photos.append(path)
+        if self.unreadable:
+            logger.warning("%d photos left out: %s", len(self.unreadable), "; ".join(self.unreadable[:5]))
+        if not self.photos:
+            raise ValueError("A photos training source needs at least one readable photo"
+                             + (f" ({self.unreadable[0]})." if self.unreadable else "."))
 
     def __len__(self) -> int:
         return len(self.photos)
 
     def photo(self, i: int) -> np.ndarray:
-        """Photo ``i`` as float32 0-1 RGB, longer side at most twice the training size."""
-        if i not in self._cache:
-            image = read_image(self.photos[i])
-            scale = min(1.0, 2 * self.conf.max_size / max(image.shape[:2]))
-            if scale < 1:
-                image = cv2.resize(image, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
-            self._cache[i] = image.astype(np.float32) / 255.0
-        return self._cache[i]
+        """Photo ``i`` as float32 0-1 RGB, longer side at most twice the training size (kept as 8 bits)."""
+        return self._cache[i].astype(np.float32) / 255.0
 
     def _cameras(self, rng: np.random.Generator, size: Tuple[int, int]):
         """The plane (n, d), the reference and query intrinsics, and the query's pose (R, t)."""

@@ -109,7 +109,7 @@ def test_contact_sheet_shows_pairs_of_every_source(config, tmp_path):
     assert not (tmp_path / "s" / "checkpoint.pt").exists()  # nothing trained
 
 
-def test_photos_train_as_self_supervised_pairs(tmp_path):
+def test_photos_train_as_self_supervised_pairs(tmp_path, caplog):
     import cv2
     import numpy as np
     rng = np.random.default_rng(0)
@@ -117,6 +117,7 @@ def test_photos_train_as_self_supervised_pairs(tmp_path):
     for k in range(2):  # textured photos: smoothed noise
         image = cv2.GaussianBlur(rng.uniform(0, 255, (96, 128, 3)).astype(np.uint8), (0, 0), 2)
         cv2.imwrite(str(tmp_path / "data" / "pics" / f"p{k}.jpg"), image)
+    (tmp_path / "data" / "pics" / "broken.jpg").write_bytes(b"\xff\xd8\xff\xe0 not a jpeg")  # left out, named
     config = dict(CONFIG, steps=2, val_every=2, checkpoint_every=2,
                   data=[{"kind": "photos", "paths": ["pics/*.jpg"], "exclude": ["pics/p1.jpg"]},
                         {"kind": "photos", "name": "nothing", "paths": ["none/*.jpg"]}],
@@ -129,3 +130,4 @@ def test_photos_train_as_self_supervised_pairs(tmp_path):
     val = rows(out / "validation.csv")
     assert len(val) == 2 and float(val[0]["error_px_init_median"]) > 0.5
     assert torch.load(out / "model.pt", weights_only=False)["info"]["skipped_data"] == ["nothing"]
+    assert "photos left out" in caplog.text and "broken.jpg" in caplog.text
