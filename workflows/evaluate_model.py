@@ -31,7 +31,8 @@ from pipeline.data.training_data import PairDataset
 from pixloc.geometry import pose_error
 from pixloc.nets.registry import load_refiner
 
-from .train import default_data_root, load_config, load_sources
+from .train import load_config
+from .training_sources import default_data_root, load_sources
 
 logger = logging.getLogger(__name__)
 THRESHOLDS = ((0.05, 2.0), (0.25, 2.0))

@@ -11,7 +11,7 @@ from pipeline.mapping.readers.colmap import read_colmap
 from pipeline.mapping.readers.pixloc_training import read_cmu_slice, read_info, read_megadepth
 from pipeline.scene import SceneError
 from pipeline.data.training_data import PairConfig
-from workflows.train import load_sources
+from workflows.training_sources import load_sources
 
 
 def overlap(scene, a, b):

@@ -36,7 +36,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _setup(args_dict: Dict):
-    from workflows.train import StepSampler, load_config, load_sources
+    from workflows.train import StepSampler, load_config
+    from workflows.training_sources import load_sources
     run = load_config(args_dict["config"])
     sources, _ = load_sources(list(run.data), args_dict["data_root"], args_dict["work"], run.camera())
     datasets = [s.dataset(run.pairs) for s in sources]
@@ -103,7 +104,7 @@ def _in_fresh_process(context, fn, *args):
 
 
 def main(args: argparse.Namespace) -> int:
-    from workflows.train import default_data_root
+    from workflows.training_sources import default_data_root
     args_dict = {"config": args.config, "data_root": args.data_root or default_data_root(), "work": args.work,
                  "steps": args.steps}
     args.work.mkdir(parents=True, exist_ok=True)
