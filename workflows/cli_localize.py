@@ -66,6 +66,8 @@ FLAGS = {
                              "confidence are rejected and keep their prior (docs/verification.md)"),
     "--max-turn": Flag("localizer.verification.max_move_R", "verification: a refinement that turns the camera more "
                        "than this many degrees from its prior is rejected"),
+    "--rivals": Flag("localizer.verification.rivals", "verification: other references' poses refined to check a pose "
+                     "refined from a map pose; one verified elsewhere rejects it as ambiguous (0: no check)"),
     "--no-verify": Flag("localizer.verification.enabled", "report every converged refinement as a success (official "
                         "PixLoc behaviour)", value=False),
     "--network-precision": Flag("localizer.network_precision", "the query's network pass in bfloat16: a query's CPU "

@@ -15,17 +15,20 @@ with like.
 
 import dataclasses
 from dataclasses import dataclass
-from typing import List, Tuple
+from typing import List, Sequence, Tuple
 
 import numpy as np
 
 from pixloc.geometry import Pose, pose_error
 
-from pipeline.localization.refine import Localizer, QueryResult
+from pipeline.localization.refine import Candidate, Localizer, QueryResult
+from pipeline.localization.verify import VerificationConfig
 from pipeline.store.reader import MapReader
 
 
 RANKS = ("cost", "confidence")
+RIVAL = "rival: "  # the label of a rival start (``rival_starts``)
+AMBIGUOUS = "rejected: ambiguous: "  # the reason of a verified pose that a rival contradicts (``check_rivals``)
 
 
 @dataclass(frozen=True)
@@ -187,16 +190,46 @@ def rank_results(results: List[QueryResult]) -> List[int]:
     return sorted(done, key=lambda j: (results[j].confidence, results[j].evidence["weighted_inliers"]), reverse=True)
 
 
+def refine_and_pick(localizer: Localizer, prepared: List) -> List[Tuple]:
+    """Refine every query's candidates through every level (one batch: ``solve``) and pick its result:
+    (prepared, its refined candidates, their start labels, the index of the result) per query, or
+    (the failure, None, None, None). The result is the best of the query's own starts (``rank_results``,
+    a verified one first; with a search's top-1 refinement, if it ran first), checked against all the
+    others (``check_rivals``): its rival starts (``rival_starts``, labelled ``RIVAL``...) and a search's
+    other starts."""
+    out = []
+    for p, candidates in solve(localizer, prepared):
+        if candidates is None:
+            out.append((p, None, None, None))
+            continue
+        labels = [c.origin for c in p]
+        if isinstance(p, Hypotheses) and p.first is not None:  # the top-1 start, refined before the search
+            candidates, labels = [p.first] + candidates, [p.first_label] + labels
+        # a rival start never wins: it is ranked as if it had not been refined
+        ranked = rank_results([c if not label.startswith(RIVAL) else dataclasses.replace(c, refined=None)
+                               for c, label in zip(candidates, labels)])
+        # the best verified one (a top-1 refinement rejected as ambiguous keeps its confidence), else the best
+        j = next((i for i in ranked if candidates[i].success), ranked[0] if ranked else 0)
+        check_rivals(candidates[j], [(labels[i], c) for i, c in enumerate(candidates) if i != j],
+                     localizer.conf.verification)
+        out.append((p, candidates, labels, j))
+    return out
+
+
 def top1_first(localizer: Localizer, prepared: List, conf: SearchConfig) -> List:
-    """With ``conf.first``: refine every query's top-1 start through every level (one batch); a
-    verified refinement is the query's result, the others go on to the search with it."""
+    """With ``conf.first``: refine every query's top-1 start through every level, with its rival
+    starts (``rival_starts``), as one batch; a verified refinement that no rival contradicts is the
+    query's result, the others go on to the search with it."""
     if not conf.first:
         return prepared
     searches = [k for k, p in enumerate(prepared) if isinstance(p, Hypotheses)]
-    solved = localizer.localize_batch([prepared[k][0] for k in searches]) if searches else []
+    batches = [[prepared[k][0]] + rival_starts(localizer.reader, prepared[k][:1], localizer.conf.verification)
+               for k in searches]
+    solved = iter(localizer.localize_batch([c for b in batches for c in b]) if searches else ())
     out = list(prepared)
-    for k, result in zip(searches, solved):
-        p = prepared[k]
+    for k, batch in zip(searches, batches):
+        p, result = prepared[k], next(solved)
+        check_rivals(result, [(c.origin, next(solved)) for c in batch[1:]], localizer.conf.verification)
         if result.success:
             result.notes.append(f"search: the top-1 start was verified (confidence {result.confidence:.2f}); "
                                 f"the other {len(p) - 1} starts were not needed")
@@ -204,6 +237,49 @@ def top1_first(localizer: Localizer, prepared: List, conf: SearchConfig) -> List
         else:
             p.first, p.first_label = result, p.labels[0]
     return out
+
+
+def rival_starts(reader: MapReader, starts: Sequence[Candidate], conf: VerificationConfig) -> List[Candidate]:
+    """Rival starts (``check_rivals``) for a query whose starts are the map's own poses: the poses of
+    its next references (``starts[0].dbs``, in retrieval order) that are none of ``starts``' poses, at
+    most ``conf.rivals``; against the same references, sharing the query's image and cache. (A rival
+    next to the start converges with it and checks little; one that ends at the same pose agrees.)"""
+    if not conf.enabled or conf.rivals == 0 or not starts:
+        return []
+    first = starts[0]
+    others = [i for i in first.dbs if not any(np.array_equal(reader.cam_from_world[i], c.prior) for c in starts)]
+    return [dataclasses.replace(first, prior=np.asarray(reader.cam_from_world[i], np.float64),
+                                origin=f"{RIVAL}reference {reader.names[i]}") for i in others[:conf.rivals]]
+
+
+def check_rivals(result: QueryResult, rivals: List[Tuple[str, QueryResult]], conf: VerificationConfig) -> None:
+    """Reject a verified ``result`` as ambiguous where one of ``rivals`` ((its start's label, its
+    refinement) of the same query, against the same references) is verified too at another pose:
+    beyond ``conf.agree_t`` x the median point depth or ``conf.agree_R`` degrees. A note per rival. A
+    rival rejected as ambiguous itself (a search's top-1 start) counts as verified.
+
+    Where the map's images lie a few degrees apart around an object or along a repeated facade, the
+    refinement from a reference's pose can stay there, as sharp as at the truth, and be verified; the
+    next reference's pose then stays at *its* place, verified too. Neither can be told from the
+    other: both are left out (docs/verification.md, "Rival starts")."""
+    if not result.success or not rivals:
+        return
+    depth = float(result.evidence.get("depth", float("nan")))
+    depth = depth if np.isfinite(depth) and depth > 0 else 1.0
+    for label, rival in rivals:
+        name = label[len(RIVAL):] if label.startswith(RIVAL) else label
+        if not (rival.success or rival.reason.startswith(AMBIGUOUS)):  # an ambiguous pose was verified too
+            result.notes.append(f"rival start {name}: not verified ({rival.reason or 'failed'})")
+            continue
+        dR, dt = pose_error(Pose.from_matrix(rival.refined), Pose.from_matrix(result.refined))
+        dt, dR = float(dt) / depth, float(dR)
+        if dt <= conf.agree_t and dR <= conf.agree_R:
+            result.notes.append(f"rival start {name}: converged to the same pose ({dR:.2f} deg, {dt:.3f} depths)")
+            continue
+        result.success = False
+        result.reason = (f"{AMBIGUOUS}the start from {name} is verified too (confidence "
+                         f"{rival.confidence:.2f}) at a pose {dR:.1f} deg and {dt:.2f} scene depths away")
+        return
 
 
 def screen(localizer: Localizer, reader: MapReader, prepared: List, conf: SearchConfig) -> List:

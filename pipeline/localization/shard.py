@@ -25,7 +25,7 @@ from pipeline.queries import QueryRecord
 from pipeline.localization.results import read_records, result_to_record, write_records
 from pipeline.localization.retrieval import RETRIEVERS, RetrievalConfig, pairs_file, retrieve
 from pipeline.localization.sift import SiftConfig
-from pipeline.localization.search import Hypotheses, SearchConfig, rank_results, screen, solve, top1_first
+from pipeline.localization.search import Hypotheses, SearchConfig, refine_and_pick, rival_starts, screen, top1_first
 from pipeline.runtime import keep_freed_memory, torch_threads
 from pipeline.store.layout import StoreError
 from pipeline.textfiles import InputError, write_atomic
@@ -195,6 +195,9 @@ def localize_queries(job: LocalizationJob, reader: MapReader, localizer: Localiz
             logger.warning("Query %s failed: %s", q.name, e)
             prepared.append(failure(q, f"{type(e).__name__}: {e}"))
         own[q.name] = time.perf_counter() - t0
+    for k, p in enumerate(prepared):  # rival starts after the query's own (search.check_rivals)
+        if job.prior in FROM_MAP_POSES and isinstance(p, list) and not isinstance(p, Hypotheses):
+            prepared[k] = p + rival_starts(reader, p, job.localizer.verification)
     searches = [k for k, p in enumerate(prepared) if isinstance(p, Hypotheses)]
     if searches:  # the search prior, or the sift prior's fallback where PnP failed
         t0 = time.perf_counter()
@@ -205,16 +208,11 @@ def localize_queries(job: LocalizationJob, reader: MapReader, localizer: Localiz
         share = (time.perf_counter() - t0) / max(len(queries), 1)  # the screening runs as batches
         own = {name: t + share for name, t in own.items()}
     results = []
-    for p, candidates in solve(localizer, prepared):
+    for p, candidates, labels, j in refine_and_pick(localizer, prepared):
         if candidates is None:
             _add_time(p, [p], own)
             results.append(p)
             continue
-        labels = getattr(p, "labels", None)
-        if isinstance(p, Hypotheses) and p.first is not None:  # the top-1 start, refined before the search
-            candidates, labels = [p.first] + candidates, [p.first_label] + labels
-        ranked = rank_results(candidates)
-        j = ranked[0] if ranked else 0
         best = candidates[j]
         _add_time(best, candidates, own)
         if isinstance(p, Hypotheses):  # a search: report the top-1 reference's pose when rejected
@@ -225,6 +223,9 @@ def localize_queries(job: LocalizationJob, reader: MapReader, localizer: Localiz
                               f"{len(candidates)} refined{merged}; the winner started from {labels[j]}")
         results.append(best)
     return results
+
+
+FROM_MAP_POSES = ("top1", "average", "hypotheses")  # priors whose starts are the map's own poses (and the search's)
 
 
 def _add_time(result: QueryResult, candidates: List[QueryResult], own: Dict[str, float]) -> None:

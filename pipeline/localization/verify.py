@@ -43,6 +43,11 @@ class VerificationConfig:
     max_last_turn: rotation (degrees) of the finest level above which the confidence is scaled down.
     max_move_R: rotation (degrees) from the prior above which a refinement is rejected.
     max_move_t: camera motion from the prior, in median point depths, above which it is rejected.
+    rivals: other retrieved references' poses refined to check a pose refined from the map's own
+        poses (``pipeline.localization.search.check_rivals``; 0: no check); one verified at another pose
+        rejects it as ambiguous.
+    agree_t, agree_R: two poses agree when their camera centres lie within ``agree_t`` x the median
+        point depth and their rotations within ``agree_R`` degrees.
     """
 
     enabled: bool = True
@@ -53,6 +58,13 @@ class VerificationConfig:
     max_last_turn: float = 3.0
     max_move_R: float = 45.0
     max_move_t: float = 2.0
+    rivals: int = 1
+    agree_t: float = 0.10
+    agree_R: float = 5.0
+
+    def __post_init__(self):
+        if self.rivals < 0 or self.agree_t <= 0 or self.agree_R <= 0:
+            raise ValueError("verification: rivals must not be negative, agree_t and agree_R must be positive.")
 
     def to_dict(self) -> Dict:
         return asdict(self)

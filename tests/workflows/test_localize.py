@@ -275,7 +275,7 @@ def test_shard_batches_queries_like_one_at_a_time(seven_scenes, sync_records):
     original = localizer.localize_batch
     localizer.localize_batch = lambda items: calls.append(len(items)) or original(items)
     batched = localize_queries(job, reader, localizer, queries)
-    assert calls == [6]  # one batch for the six 640x480 queries
+    assert calls == [12]  # one batch for the six 640x480 queries and their rival starts (one each)
     solo = {r["name"]: r for r in sync_records}  # shards of 2
     for r in batched:
         np.testing.assert_allclose(r.refined, np.asarray(solo[r.name]["refined"]), atol=1e-4)

@@ -446,7 +446,8 @@ def test_search_refines_the_top1_start_first_and_searches_only_where_it_is_not_v
         calls.clear()
         search = localize_queries(dataclasses.replace(job, localizer=lconf, prior="search"), reader, localizer,
                                   queries[:2])
-        assert calls[0] == 2  # the two top-1 starts, first, in one batch
+        # the two top-1 starts, first, in one batch, with their rival starts (verification.rivals) where verifying
+        assert calls[0] == 2 * (1 + (lconf.verification.rivals if lconf.verification.enabled else 0))
         if not searched:
             assert calls == [2] and all(r.success for r in search)
             for a, b in zip(top1, search):
