@@ -79,7 +79,12 @@ def run_demo(output: Path, model: str = "pixloc-lite0", num_references: int = 30
                           RetrievalConfig("global", k=5, same_tag="area"), prior=prior)
     t = _stage(3, f"retrieval and localization of {len(queries)} queries "
                   f"({'in-process' if sync else f'{workers} Dask workers'})")
-    plan = localize.plan_localization(job, queries, output / "localization", workers=1 if sync else workers)
+    try:
+        plan = localize.plan_localization(job, queries, output / "localization", workers=1 if sync else workers)
+    except localize.AnotherRun as e:  # the demo's own folder, from another version or map: redone
+        print(f"      {e.args[0].split(':')[0]}; the demo redoes it")
+        plan = localize.plan_localization(job, queries, output / "localization", workers=1 if sync else workers,
+                                          overwrite=True)
     plan.thresholds = DEMO_THRESHOLDS  # recorded in job.json: `pixloc evaluate` and `report` use them too
     if not plan.todo:
         records = localize.run_sync(plan)  # merges the finished shards, runs nothing

@@ -59,6 +59,10 @@ RETRIEVAL_PART = 32  # queries per task of the retrieval stage
 LOST = "no record: its shard file had lost it; run again to localize it"
 
 
+class AnotherRun(ValueError):
+    """The output folder holds a finished or partial run of another job, query list, order or map."""
+
+
 class OutputLocked(ValueError):
     """Another run is writing to the output folder."""
 
@@ -234,7 +238,7 @@ def plan_localization(job: LocalizationJob, queries: List[QueryRecord], output, 
                          "interrupted): finish it with the same build-map command, or pass --allow-partial-map to "
                          "localize against the images done so far.")
     if stored is not None and not overwrite and "store" in stored and stored["store"]["digest"] != store["digest"]:
-        raise ValueError(f"{output} holds results against another map (the store {job.store} was rebuilt or "
+        raise AnotherRun(f"{output} holds results against another map (the store {job.store} was rebuilt or "
                          "changed since): use another --output, or --overwrite to redo the run against this map.")
     if shard_size is None:
         same = stored is not None and not overwrite and stored.get("queries") == names \
@@ -249,7 +253,7 @@ def plan_localization(job: LocalizationJob, queries: List[QueryRecord], output, 
     output = Path(output)
     if stored is not None and not overwrite and {k: v for k, v in stored.items() if k not in RECORDED} != _job_json(
             job, names, shard_size, order):
-        raise ValueError(f"{output} holds a run with another job, query list or order: use another --output, "
+        raise AnotherRun(f"{output} holds a run with another job, query list or order: use another --output, "
                          "or --overwrite to redo it.")
     shards = [queries[i:i + shard_size] for i in range(0, len(queries), shard_size)]
     plan = LocalizationPlan(job, shards, output, overwrite=overwrite, shard_size=shard_size,

@@ -2,6 +2,7 @@
 
 import base64
 import io
+import json
 import re
 import shutil
 import subprocess
@@ -118,6 +119,20 @@ def test_a_rerun_of_the_finished_demo_leaves_every_output_untouched(demo, demo_d
     after = {p: (p.stat().st_mtime_ns, p.read_bytes()) for p in files}
     assert after == before
     assert (out / "localization" / "evaluation.json").is_file() and not (out / "evaluation.json").exists()
+
+
+def test_a_demo_folder_of_another_job_is_redone_not_refused(demo, demo_dir, tmp_path, capsys):
+    """The demo owns its folder: a localization of another job (an earlier version's settings, here
+    other LM iterations) is redone, where ``pixloc localize`` would refuse it; the map is reused."""
+    out = tmp_path / "demo"
+    shutil.copytree(demo_dir, out, ignore=shutil.ignore_patterns("report*", "evaluation.json"))
+    summary = run_demo(out, queries_per_condition=3, workers=1, sync=True, num_iters=40)
+    text = capsys.readouterr().out
+    assert "holds a run with another job, query list or order; the demo redoes it" in text
+    assert "every image already had its features" in text
+    assert summary["all"]["refined"]["count"] == 12
+    job = json.loads((out / "localization" / "job.json").read_text())
+    assert job["job"]["localizer"]["num_iters"] == 40
 
 
 def test_the_demo_output_can_be_evaluated_and_reported_again(demo, demo_dir, tmp_path):
