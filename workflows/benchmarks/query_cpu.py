@@ -15,8 +15,9 @@ layout, float32) and glibc mapping every block over 32 MiB afresh (as a worker r
 Variants, each adding to the one above: ``BatchNorm folded`` (into the preceding convs),
 ``channels-last`` activations, ``split convs, 1x1 by oneDNN`` (the decoder's convs of a concatenation
 as a sum of convs, and 1x1 convs through oneDNN: ``pixloc.nets.unet.prepare_for_inference`` is these
-four), ``freed memory reused`` (``pipeline.runtime.keep_freed_memory``: the default now),
-``bfloat16 network`` (``--network-precision bfloat16``: reduced precision, held to the same recall
+four), ``freed memory reused`` (``pipeline.runtime.keep_freed_memory``), ``rival starts`` (verification's
+rival starts, ``--rivals 1``: the default since 2026-12-04; the rows above run without them, as the code
+did), ``bfloat16 network`` (``--network-precision bfloat16``: reduced precision, held to the same recall
 at every threshold); with ``--compile``, ``torch.compile`` of the default network (inductor, dynamic
 shapes), in float32 and bfloat16, its one-off compile time printed apart. Also measured: the
 ``search`` prior's network passes per query against its LM runs (one pass per image scale serves
@@ -64,6 +65,7 @@ class Variant:
     network: Callable[[nn.Module], nn.Module]  # from a fresh copy of the loaded network
     keep_freed: bool = True  # glibc keeps freed blocks for reuse (pipeline.runtime.set_malloc)
     precision: str = "float32"
+    rivals: int = 0  # verification's rival starts (the default since 2026-12-04 is 1)
 
 
 def _channels_last(net: nn.Module) -> nn.Module:
@@ -83,9 +85,11 @@ VARIANTS = [Variant("today", lambda net: net, keep_freed=False),
             Variant("BatchNorm folded", fold_batchnorm, keep_freed=False),
             Variant("channels-last", _channels_last, keep_freed=False),
             Variant("split convs, 1x1 by oneDNN", prepare_for_inference, keep_freed=False),
-            Variant("freed memory reused (default)", prepare_for_inference),
-            Variant("bfloat16 network", prepare_for_inference, precision="bfloat16")]
-COMPILED = [Variant("torch.compile", _compiled), Variant("torch.compile, bfloat16", _compiled, precision="bfloat16")]
+            Variant("freed memory reused", prepare_for_inference),
+            Variant("rival starts (default)", prepare_for_inference, rivals=1),
+            Variant("bfloat16 network", prepare_for_inference, precision="bfloat16", rivals=1)]
+COMPILED = [Variant("torch.compile", _compiled, rivals=1),
+            Variant("torch.compile, bfloat16", _compiled, precision="bfloat16", rivals=1)]
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -109,7 +113,8 @@ def _run(variant: Variant, refiner, parts, compile_s: Dict[str, float]) -> Dict:
     """The variant's records per part, its CPU seconds and its network passes' and LM's shares."""
     net = variant.network(copy.deepcopy(refiner.extractor).eval())
     set_malloc(variant.keep_freed)
-    conf = dataclasses.replace(CAMBRIDGE, network_precision=variant.precision)
+    conf = dataclasses.replace(CAMBRIDGE, network_precision=variant.precision,
+                               verification=dataclasses.replace(CAMBRIDGE.verification, rivals=variant.rivals))
     out = {"records": [], "results": [], "cpu": 0.0, "before": 0.0, "network": 0.0, "lm": 0.0}
     for name, store, queries, gt in parts:
         reader = MapReader(store, store_feature_config(store), refiner.feature_digest())
