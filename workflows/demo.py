@@ -82,7 +82,7 @@ def run_demo(output: Path, model: str = "pixloc-lite0", num_references: int = 30
     try:
         plan = localize.plan_localization(job, queries, output / "localization", workers=1 if sync else workers)
     except localize.AnotherRun as e:  # the demo's own folder, from another version or map: redone
-        print(f"      {e.args[0].split(':')[0]}; the demo redoes it")
+        print(f"      {str(e).split(': use another --output')[0]}; the demo redoes it")
         plan = localize.plan_localization(job, queries, output / "localization", workers=1 if sync else workers,
                                           overwrite=True)
     plan.thresholds = DEMO_THRESHOLDS  # recorded in job.json: `pixloc evaluate` and `report` use them too

@@ -396,15 +396,15 @@ def evidence_summary(per_level: List[Dict], at_prior: Dict[str, float], contrast
     depth = float(np.median(depth[:, 2])) if len(depth) else float("nan")
     scale = depth if np.isfinite(depth) and depth > 0 else 1.0
     out["depth"] = depth
-    out["move_t"], out["move_R"] = relative_motion(prior, refined, scale)
+    out["move_t"], out["move_R"] = _relative_motion(prior, refined, scale)
     if len(per_level) > 1:
-        out["last_t"], out["last_R"] = relative_motion(np.asarray(per_level[-2]["pose"]), refined, scale)
+        out["last_t"], out["last_R"] = _relative_motion(np.asarray(per_level[-2]["pose"]), refined, scale)
     else:
         out["last_t"], out["last_R"] = out["move_t"], out["move_R"]
     return out
 
 
-def relative_motion(a: np.ndarray, b: np.ndarray, scale: float) -> Tuple[float, float]:
+def _relative_motion(a: np.ndarray, b: np.ndarray, scale: float) -> Tuple[float, float]:
     """Camera-centre distance over ``scale`` and rotation angle (degrees) between two poses."""
     dR, dt = pose_error(Pose.from_matrix(a), Pose.from_matrix(b))  # the one pose difference (pixloc.geometry)
     return float(dt) / scale, float(dR)
