@@ -14,6 +14,7 @@ from typing import Dict, List, Sequence, Union
 import torch
 
 from .geometry import Pose
+from .nets.unet import UNet
 from .refiner import PairBatch, TwoViewRefiner, masked_mean
 
 
@@ -80,9 +81,8 @@ class Trainer:
         """channels_last: the network's activations in channels-last layout (the same gradients to
         rounding; 1.1x the steps per CPU hour: docs/model_card.md, "Steps per CPU hour")."""
         self.model, self.conf = model.to(conf.device), conf
-        if channels_last and hasattr(model.extractor, "memory_format"):
-            model.extractor.memory_format = torch.channels_last
-            model.extractor.to(memory_format=torch.channels_last)
+        if channels_last and isinstance(model.extractor, UNet):
+            model.extractor.channels_last()
         self.device = torch.device(conf.device)
         if conf.amp and self.device.type == "cuda":
             model.autocast_dtype = torch.bfloat16

@@ -13,7 +13,7 @@ K_ref^-1 p``. Pixel coordinates are those of ``pixloc.geometry.Camera`` (pixel c
 import logging
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Dict, List, Sequence, Tuple
+from typing import List, Sequence, Tuple
 
 import cv2
 import numpy as np
@@ -128,7 +128,7 @@ class PhotoPairs:
         """Every photo is read here, once: one that cannot be read is left out with a warning that
         names it (``unreadable``), and a source with none left is refused."""
         self.conf, self.photo_conf = conf, photo_conf
-        self._cache: Dict[int, np.ndarray] = {}
+        self._images: List[np.ndarray] = []  # 8-bit RGB, longer side at most twice the training size
         self.photos: List[Path] = []
         self.unreadable: List[str] = []
         for path in map(Path, photos):
@@ -137,7 +137,7 @@ class PhotoPairs:
             except ImageReadError as e:
                 self.unreadable.append(str(e))
                 continue
-            self._cache[len(self.photos)] = image
+            self._images.append(image)
             self.photos.append(path)
         if self.unreadable:
             logger.warning("%d photos left out: %s", len(self.unreadable), "; ".join(self.unreadable[:5]))
@@ -150,7 +150,7 @@ class PhotoPairs:
 
     def photo(self, i: int) -> np.ndarray:
         """Photo ``i`` as float32 0-1 RGB, longer side at most twice the training size (kept as 8 bits)."""
-        return self._cache[i].astype(np.float32) / 255.0
+        return self._images[i].astype(np.float32) / 255.0
 
     def _cameras(self, rng: np.random.Generator, size: Tuple[int, int]):
         """The plane (n, d), the reference and query intrinsics, and the query's pose (R, t)."""

@@ -141,8 +141,14 @@ def hypotheses(reader: MapReader, dbs: List[int], conf: SearchConfig, average=No
 def same_basin(a: np.ndarray, b: np.ndarray, depth: float, conf: SearchConfig) -> bool:
     """Whether two coarse poses (cam_from_world) lie within ``conf.merge_t`` x ``depth`` (camera
     centres) and ``conf.merge_R`` degrees of each other."""
+    dt, dR = distance(a, b, depth)
+    return dt <= conf.merge_t and dR <= conf.merge_R
+
+
+def distance(a: np.ndarray, b: np.ndarray, depth: float) -> Tuple[float, float]:
+    """(camera-centre distance over ``depth``, rotation in degrees) between two cam_from_world poses."""
     dR, dt = pose_error(Pose.from_matrix(a), Pose.from_matrix(b))  # the one pose difference (pixloc.geometry)
-    return bool(float(dt) <= conf.merge_t * depth and float(dR) <= conf.merge_R)
+    return float(dt) / depth, float(dR)
 
 
 def screening_order(results: List[QueryResult], conf: SearchConfig, skip=()) -> List[int]:
@@ -205,9 +211,7 @@ def refine_and_pick(localizer: Localizer, prepared: List) -> List[Tuple]:
         labels = [c.origin for c in p]
         if isinstance(p, Hypotheses) and p.first is not None:  # the top-1 start, refined before the search
             candidates, labels = [p.first] + candidates, [p.first_label] + labels
-        # a rival start never wins: it is ranked as if it had not been refined
-        ranked = rank_results([c if not label.startswith(RIVAL) else dataclasses.replace(c, refined=None)
-                               for c, label in zip(candidates, labels)])
+        ranked = rank_results(candidates[:sum(not label.startswith(RIVAL) for label in labels)])  # rivals come last
         # the best verified one (a top-1 refinement rejected as ambiguous keeps its confidence), else the best
         j = next((i for i in ranked if candidates[i].success), ranked[0] if ranked else 0)
         check_rivals(candidates[j], [(labels[i], c) for i, c in enumerate(candidates) if i != j],
@@ -271,8 +275,7 @@ def check_rivals(result: QueryResult, rivals: List[Tuple[str, QueryResult]], con
         if not (rival.success or rival.reason.startswith(AMBIGUOUS)):  # an ambiguous pose was verified too
             result.notes.append(f"rival start {name}: not verified ({rival.reason or 'failed'})")
             continue
-        dR, dt = pose_error(Pose.from_matrix(rival.refined), Pose.from_matrix(result.refined))
-        dt, dR = float(dt) / depth, float(dR)
+        dt, dR = distance(rival.refined, result.refined, depth)
         if dt <= conf.agree_t and dR <= conf.agree_R:
             result.notes.append(f"rival start {name}: converged to the same pose ({dR:.2f} deg, {dt:.3f} depths)")
             continue

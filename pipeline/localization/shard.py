@@ -176,6 +176,9 @@ def prepare_query(job: LocalizationJob, reader: MapReader, localizer: Localizer,
                                             lambda: retrieve(job.retrieval, reader, query, describe)))
 
 
+FROM_MAP_POSES = ("top1", "average", "hypotheses")  # priors whose starts are the map's own poses (and the search's)
+
+
 def localize_queries(job: LocalizationJob, reader: MapReader, localizer: Localizer,
                      queries: List[QueryRecord]) -> List[QueryResult]:
     """Localize ``queries`` together: one LM batch per level and group of compatible queries.
@@ -223,9 +226,6 @@ def localize_queries(job: LocalizationJob, reader: MapReader, localizer: Localiz
                               f"{len(candidates)} refined{merged}; the winner started from {labels[j]}")
         results.append(best)
     return results
-
-
-FROM_MAP_POSES = ("top1", "average", "hypotheses")  # priors whose starts are the map's own poses (and the search's)
 
 
 def _add_time(result: QueryResult, candidates: List[QueryResult], own: Dict[str, float]) -> None:

@@ -140,9 +140,15 @@ class UNet(nn.Module):
         self.strides = tuple(2 ** s for s in output_scales)
         self.output_dims = tuple(output_dims)
         self.grad_checkpointing = False  # recompute block activations in backward (less memory)
-        self.memory_format = torch.contiguous_format  # of the input, set by prepare_for_inference
+        self.memory_format = torch.contiguous_format  # of the input and weights: ``channels_last``
         self.register_buffer("mean", torch.tensor(mean).view(3, 1, 1), persistent=False)
         self.register_buffer("std", torch.tensor(std).view(3, 1, 1), persistent=False)
+
+    def channels_last(self) -> "UNet":
+        """In place: channels-last weights and activations, on which oneDNN's convolutions and the
+        bilinear upsampling are faster on CPU (the same maps to float rounding)."""
+        self.memory_format = torch.channels_last
+        return self.to(memory_format=torch.channels_last)
 
     @property
     def compute_confidence(self) -> bool:
@@ -222,8 +228,7 @@ def prepare_for_inference(net: nn.Module, device: str = "cpu") -> nn.Module:
     for block in net.decoder:
         block.split_conv()
     if torch.device(device).type == "cpu":
-        net.memory_format = torch.channels_last
-        net.to(memory_format=torch.channels_last)
+        net.channels_last()
         if torch.backends.mkldnn.is_available():
             _pointwise_convs(net)
     return net

@@ -71,8 +71,7 @@ class Variant:
 def _channels_last(net: nn.Module) -> nn.Module:
     """Folded and channels-last, without ``prepare_for_inference``'s 1x1 convs through oneDNN."""
     fold_batchnorm(net)
-    net.memory_format = torch.channels_last
-    return net.to(memory_format=torch.channels_last)
+    return net.channels_last()
 
 
 def _compiled(net: nn.Module) -> nn.Module:
