@@ -68,6 +68,8 @@ FLAGS = {
                        "than this many degrees from its prior is rejected"),
     "--rivals": Flag("localizer.verification.rivals", "verification: other references' poses refined to check a pose "
                      "refined from a map pose; one verified elsewhere rejects it as ambiguous (0: no check)"),
+    "--rival-join": Flag("localizer.verification.join", "verification: a rival stops at a coarser level where it "
+                         "lies within this fraction of the agreement thresholds of the query's start (0: never)"),
     "--no-verify": Flag("localizer.verification.enabled", "report every converged refinement as a success (official "
                         "PixLoc behaviour)", value=False),
     "--network-precision": Flag("localizer.network_precision", "the query's network pass in bfloat16: a query's CPU "

@@ -34,6 +34,7 @@ logger = logging.getLogger(__name__)
 CONTRAST_SHIFTS = (3.0,)
 MIN_SUBSET = 1024  # the fewest points a level is subsampled to (points_per_cell)
 NETWORK_PRECISIONS = {"float32": torch.float32, "bfloat16": torch.bfloat16}
+JOINED = "joined: "  # the reason of a rival start stopped where it reached its query's own start
 
 
 @dataclass(frozen=True)
@@ -100,7 +101,9 @@ class Candidate:
     pose ``prior`` (cam_from_world, 3 x 4) and where it came from (``origin``, e.g. "top-1
     reference"). The starts of one query share its image ``rgb`` and ``cache`` (scale index ->
     network prediction, and the references' features); ``selected``: (point, reference) pairs that
-    restrict the observations (hloc's PnP inliers)."""
+    restrict the observations (hloc's PnP inliers); ``rival``: a rival start of verification
+    (``pipeline.localization.search.rival_starts``), stopped where it joins one of its query's own
+    starts (those sharing its ``cache``; ``Localizer.localize_batch``)."""
 
     query: QueryRecord
     dbs: List[int]
@@ -109,13 +112,15 @@ class Candidate:
     cache: Optional[Dict] = None
     selected: Optional[np.ndarray] = None
     origin: str = "prior"
+    rival: bool = False
 
 
 @dataclass
 class LevelState:
     """A candidate while ``Localizer.localize_batch`` refines it: its observations and current pose
     ``T``, the reference features of the image scale being run (``refs``), whether it is still
-    ``active``, its own seconds (``t_own``) and the result being filled."""
+    ``active``, its own seconds (``t_own``) and the result being filled; for a rival start, its
+    query's own starts (``own``)."""
 
     query: QueryRecord
     rgb: Optional[np.ndarray]
@@ -127,6 +132,7 @@ class LevelState:
     T: Optional[Pose] = None
     prior_T: Optional[Pose] = None
     refs: Optional[Tuple] = None
+    own: Optional[List["LevelState"]] = None
 
 
 class Localizer:
@@ -201,6 +207,8 @@ class Localizer:
         """Localize several candidates, solving each level as one LM batch per group of queries
         whose feature maps have the same shape and whose cameras the same model.
 
+        A rival start (``Candidate.rival``) stops at the end of a level before the last where its
+        query's own starts have all stopped, or where it lies near one of them (``_join_rivals``).
         The per-problem stopping rule of the solver makes the result of each query the same as
         localizing it alone. An error in one query (a bad reference block, a network error)
         fails that query with its reason, not the batch; an error in a group's solve fails
@@ -239,6 +247,9 @@ class Localizer:
                 result.reason = str(e)
             finally:
                 st.t_own += time.perf_counter() - t_item
+        for c, st in zip(candidates, states):  # a rival start's siblings: its query's own starts
+            if c.rival and c.cache is not None:
+                st.own = [o for d, o in zip(candidates, states) if d.cache is c.cache and not d.rival]
         for k in self.scales:
             image_scale = self.reader.conf.image_scales[k]
             active = [st for st in states if st.active]
@@ -282,6 +293,8 @@ class Localizer:
                         for st in group:
                             self._fail(st, f"LM failed at image scale {image_scale}, level {level}: "
                                            f"{type(e).__name__}: {e}")
+                if not final:
+                    self._join_rivals(active, image_scale, level)
             # the LM solves the group as one batch: each query gets an equal share of its time
             t_optim = (time.perf_counter() - t0) / max(len(active), 1)
             for st in active:
@@ -296,6 +309,30 @@ class Localizer:
                 result.reason = reason or ""
             result.timings["total"] = st.t_own  # its own work, plus its share of the batched LM
         return [st.result for st in states]
+
+    def _join_rivals(self, states: List[LevelState], image_scale: int, level: int) -> None:
+        """Stop the rival starts among ``states`` whose query's own starts have all stopped (its
+        check can reject nothing), or that lie within ``join`` x (``agree_t`` x the median point
+        depth, ``agree_R``) of one of them: from there both converge to one pose, which
+        ``check_rivals`` would call agreeing."""
+        conf = self.conf.verification
+        for st in states if conf.join > 0 else ():
+            if not (st.active and st.own is not None):
+                continue
+            own = [o for o in st.own if o.active]
+            if not own:
+                st.active, st.result.reason = False, f"{JOINED}its query's own starts stopped before it"
+                continue
+            xyz = st.refs[0].detach().double().cpu().numpy()
+            for o in own:
+                a, b = o.T.to_matrix(orthonormal=True), st.T.to_matrix(orthonormal=True)
+                depth = np.median(xyz @ a[2, :3] + a[2, 3]) if len(xyz) else np.nan
+                dt, dR = _relative_motion(a, b, float(depth) if np.isfinite(depth) and depth > 0 else 1.0)
+                if dt <= conf.join * conf.agree_t and dR <= conf.join * conf.agree_R:
+                    st.active, st.result.refined = False, b
+                    st.result.reason = (f"{JOINED}it reached the query's start at image scale {image_scale}, "
+                                        f"level {level} ({dR:.2f} deg, {dt:.3f} depths)")
+                    break
 
     @staticmethod
     def _fail(st: LevelState, reason: str) -> None:

@@ -21,7 +21,7 @@ import numpy as np
 
 from pixloc.geometry import Pose, pose_error
 
-from pipeline.localization.refine import Candidate, Localizer, QueryResult
+from pipeline.localization.refine import JOINED, Candidate, Localizer, QueryResult
 from pipeline.localization.verify import VerificationConfig
 from pipeline.store.reader import MapReader
 
@@ -247,13 +247,16 @@ def rival_starts(reader: MapReader, starts: Sequence[Candidate], conf: Verificat
     """Rival starts (``check_rivals``) for a query whose starts are the map's own poses: the poses of
     its next references (``starts[0].dbs``, in retrieval order) that are none of ``starts``' poses, at
     most ``conf.rivals``; against the same references, sharing the query's image and cache. (A rival
-    next to the start converges with it and checks little; one that ends at the same pose agrees.)"""
+    next to the start converges with it and checks little; one that ends at the same pose agrees.
+    A rival stops at a coarser level where it has joined one of the query's own starts:
+    ``Localizer.localize_batch``.)"""
     if not conf.enabled or conf.rivals == 0 or not starts:
         return []
     first = starts[0]
     others = [i for i in first.dbs if not any(np.array_equal(reader.cam_from_world[i], c.prior) for c in starts)]
     return [dataclasses.replace(first, prior=np.asarray(reader.cam_from_world[i], np.float64),
-                                origin=f"{RIVAL}reference {reader.names[i]}") for i in others[:conf.rivals]]
+                                origin=f"{RIVAL}reference {reader.names[i]}", rival=True)
+            for i in others[:conf.rivals]]
 
 
 def check_rivals(result: QueryResult, rivals: List[Tuple[str, QueryResult]], conf: VerificationConfig) -> None:
@@ -272,6 +275,9 @@ def check_rivals(result: QueryResult, rivals: List[Tuple[str, QueryResult]], con
     depth = depth if np.isfinite(depth) and depth > 0 else 1.0
     for label, rival in rivals:
         name = label[len(RIVAL):] if label.startswith(RIVAL) else label
+        if rival.reason.startswith(JOINED):  # stopped early (Localizer._join_rivals)
+            result.notes.append(f"rival start {name}: {rival.reason[len(JOINED):]}")
+            continue
         if not (rival.success or rival.reason.startswith(AMBIGUOUS)):  # an ambiguous pose was verified too
             result.notes.append(f"rival start {name}: not verified ({rival.reason or 'failed'})")
             continue

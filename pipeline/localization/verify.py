@@ -48,6 +48,9 @@ class VerificationConfig:
         rejects it as ambiguous.
     agree_t, agree_R: two poses agree when their camera centres lie within ``agree_t`` x the median
         point depth and their rotations within ``agree_R`` degrees.
+    join: a rival start stops at the end of a coarser level where it lies within ``join`` x
+        (``agree_t``, ``agree_R``) of one of its query's own starts: it has joined that start's basin,
+        and agrees (0: every rival runs through every level).
     """
 
     enabled: bool = True
@@ -61,10 +64,13 @@ class VerificationConfig:
     rivals: int = 1
     agree_t: float = 0.10
     agree_R: float = 5.0
+    join: float = 0.5
 
     def __post_init__(self):
         if self.rivals < 0 or self.agree_t <= 0 or self.agree_R <= 0:
             raise ValueError("verification: rivals must not be negative, agree_t and agree_R must be positive.")
+        if not 0 <= self.join <= 1:
+            raise ValueError(f"verification: join must lie in [0, 1], not {self.join}.")
 
     def to_dict(self) -> Dict:
         return asdict(self)

@@ -72,24 +72,30 @@ def test_a_rival_verified_at_another_pose_rejects_the_result():
 def test_on_the_temple_ring_no_neighbouring_view_is_accepted(shared, tmp_path):
     """The first fold of the accuracy benchmark's temple ring, 5 queries, ``top1``: without the
     check, refinements that stayed at a neighbour's pose are accepted; with it, none is, and each
-    is rejected as ambiguous, naming the rival's reference."""
+    is rejected as ambiguous, naming the rival's reference. A rival that stops where it joins the
+    query's start (``join``, the default) gives the verdicts of one run through every level."""
     fconf = FeatureConfig(resize=512, image_scales=(1,))
     parts = list(split_parts("templeRing", SPLITS["templeRing"], shared, tmp_path, fconf, limit=5))[:1]
     scale = scene_scale(parts[0][1])
     (t_max, R_max), runs = RELATIVE[2], {}
-    for rivals in (0, 1):
-        lconf = LocalizerConfig(num_dbs=3, num_iters=50, verification=VerificationConfig(rivals=rivals))
-        per_prior, gt = localize_priors(parts, ["top1"], tmp_path / f"runs-{rivals}", lconf, RetrievalConfig(k=5))
+    for rivals, join in ((0, 0.5), (1, 0.5), (1, 0.0)):
+        lconf = LocalizerConfig(num_dbs=3, num_iters=50, verification=VerificationConfig(rivals=rivals, join=join))
+        per_prior, gt = localize_priors(parts, ["top1"], tmp_path / f"runs-{rivals}-{join}", lconf,
+                                        RetrievalConfig(k=5))
         records = {r["name"]: r for r in per_prior["top1"]["records"]}
         assert len(records) == 5
         far = [n for n, r in records.items()
                if (lambda t, R: t > t_max * scale or R > R_max)(*record_errors(r, gt[n])["refined"])]
-        runs[rivals] = records, [n for n in far if records[n]["success"]]
-    (_, wrong_before), (after, wrong_after) = runs[0], runs[1]
+        runs[rivals, join] = records, [n for n in far if records[n]["success"]]
+    (_, wrong_before), (after, wrong_after), (full, _) = runs[0, 0.5], runs[1, 0.5], runs[1, 0.0]
     assert len(wrong_before) >= 3, wrong_before  # the fault the check removes
     assert wrong_after == []
     for name in wrong_before:
         assert after[name]["reason"].startswith("rejected: ambiguous: the start from reference templeR")
+    assert {n: (r["success"], r["reason"][:40]) for n, r in after.items()} == \
+        {n: (r["success"], r["reason"][:40]) for n, r in full.items()}
+    for name, record in after.items():
+        assert np.allclose(record["refined"], full[name]["refined"], atol=1e-6)
 
 
 def test_a_pose_rejected_as_ambiguous_still_counts_as_a_verified_rival():
@@ -100,3 +106,39 @@ def test_a_pose_rejected_as_ambiguous_still_counts_as_a_verified_rival():
     winner = _result(_pose(8), _pose(0))
     check_rivals(winner, [("a.png: reference", top1)], conf)
     assert not winner.success and winner.reason.startswith("rejected: ambiguous: the start from a.png: reference")
+
+
+def test_a_rival_stops_where_it_joins_its_querys_start():
+    """``Localizer._join_rivals``: after a coarser level, a rival within ``join`` x (agree_t, agree_R) of
+    one of its query's own starts stops (it would end at the same pose), one farther goes on, and
+    one whose query's own starts have all stopped stops too; ``check_rivals`` notes it as agreeing."""
+    import torch
+
+    from pixloc.geometry import Pose
+    from pipeline.localization.refine import JOINED, LevelState, Localizer
+
+    xyz = torch.tensor([[0.0, 0.0, 1.0], [0.1, 0.0, 1.0], [0.0, 0.1, 1.0]])  # median depth 1
+
+    def state(T, own=None):
+        st = LevelState(SimpleNamespace(name="q.jpg"), None, {}, _result(None, T, success=False), active=True,
+                        T=Pose.from_matrix(T).float(), refs=(xyz, []))
+        st.own = own
+        return st
+
+    start = state(_pose(0))
+    near, far, mover = state(_pose(2), [start]), state(_pose(3), [start]), state(_pose(0, x=0.03), [start])
+    localizer = SimpleNamespace(conf=LocalizerConfig())  # join 0.5: within 5 % of the depth and 2.5 deg
+    Localizer._join_rivals(localizer, [start, near, far, mover], image_scale=1, level=0)
+    assert start.active and far.active and not near.active and not mover.active
+    assert near.result.reason.startswith(JOINED + "it reached the query's start at image scale 1, level 0 (2.00 deg")
+    here = _result(_pose(0), _pose(0))
+    check_rivals(here, [("rival: reference b.png", near.result)], VerificationConfig())
+    assert here.success and here.notes[-1].startswith("rival start reference b.png: it reached the query's start")
+    start.active = False  # the query's start failed: its rival can reject nothing
+    Localizer._join_rivals(localizer, [start, far], image_scale=1, level=1)
+    assert not far.active and far.result.reason == JOINED + "its query's own starts stopped before it"
+    # join 0: every rival runs through every level
+    alone = state(_pose(0), [state(_pose(0))])
+    off = SimpleNamespace(conf=LocalizerConfig(verification=VerificationConfig(join=0.0)))
+    Localizer._join_rivals(off, [alone], image_scale=1, level=0)
+    assert alone.active

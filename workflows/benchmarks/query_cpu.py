@@ -15,13 +15,15 @@ layout, float32) and glibc mapping every block over 32 MiB afresh (as a worker r
 Variants, each adding to the one above: ``BatchNorm folded`` (into the preceding convs),
 ``channels-last`` activations, ``split convs, 1x1 by oneDNN`` (the decoder's convs of a concatenation
 as a sum of convs, and 1x1 convs through oneDNN: ``pixloc.nets.unet.prepare_for_inference`` is these
-four), ``freed memory reused`` (``pipeline.runtime.keep_freed_memory``), ``rival starts`` (verification's
-rival starts, ``--rivals 1``: the default since 2026-12-04; the rows above run without them, as the code
-did), ``bfloat16 network`` (``--network-precision bfloat16``: reduced precision, held to the same recall
-at every threshold); with ``--compile``, ``torch.compile`` of the default network (inductor, dynamic
-shapes), in float32 and bfloat16, its one-off compile time printed apart. Also measured: the
-``search`` prior's network passes per query against its LM runs (one pass per image scale serves
-every start). With ``--onnx``, one network pass is also timed in ONNX Runtime (not a dependency).
+four), ``freed memory reused`` (``pipeline.runtime.keep_freed_memory``), ``rival starts, every level``
+(verification's rival starts, ``--rivals 1``: the default since 2026-12-04; the rows above run without
+them, as the code did), ``rival starts, stopped where they join`` (the default since 2026-12-05: a rival
+stops at a coarser level where it has reached the query's start, ``--rival-join``), ``bfloat16 network``
+(``--network-precision bfloat16``: reduced precision, held to the same recall at every threshold);
+with ``--compile``, ``torch.compile`` of the default network (inductor, dynamic shapes), in float32
+and bfloat16, its one-off compile time printed apart. Also measured: the ``search`` prior's network
+passes per query against its LM runs (one pass per image scale serves every start). With ``--onnx``,
+one network pass is also timed in ONNX Runtime (not a dependency).
 """
 
 import argparse
@@ -66,6 +68,7 @@ class Variant:
     keep_freed: bool = True  # glibc keeps freed blocks for reuse (pipeline.runtime.set_malloc)
     precision: str = "float32"
     rivals: int = 0  # verification's rival starts (the default since 2026-12-04 is 1)
+    join: float = 0.5  # a rival stops where it joins the query's start (verification.join; 0: never)
 
 
 def _channels_last(net: nn.Module) -> nn.Module:
@@ -85,7 +88,8 @@ VARIANTS = [Variant("today", lambda net: net, keep_freed=False),
             Variant("channels-last", _channels_last, keep_freed=False),
             Variant("split convs, 1x1 by oneDNN", prepare_for_inference, keep_freed=False),
             Variant("freed memory reused", prepare_for_inference),
-            Variant("rival starts (default)", prepare_for_inference, rivals=1),
+            Variant("rival starts, every level", prepare_for_inference, rivals=1, join=0.0),
+            Variant("rival starts, stopped where they join (default)", prepare_for_inference, rivals=1),
             Variant("bfloat16 network", prepare_for_inference, precision="bfloat16", rivals=1)]
 COMPILED = [Variant("torch.compile", _compiled, rivals=1),
             Variant("torch.compile, bfloat16", _compiled, precision="bfloat16", rivals=1)]
@@ -113,7 +117,8 @@ def _run(variant: Variant, refiner, parts, compile_s: Dict[str, float]) -> Dict:
     net = variant.network(copy.deepcopy(refiner.extractor).eval())
     set_malloc(variant.keep_freed)
     conf = dataclasses.replace(CAMBRIDGE, network_precision=variant.precision,
-                               verification=dataclasses.replace(CAMBRIDGE.verification, rivals=variant.rivals))
+                               verification=dataclasses.replace(CAMBRIDGE.verification, rivals=variant.rivals,
+                                                                join=variant.join))
     out = {"records": [], "results": [], "cpu": 0.0, "before": 0.0, "network": 0.0, "lm": 0.0}
     for name, store, queries, gt in parts:
         reader = MapReader(store, store_feature_config(store), refiner.feature_digest())
