@@ -66,6 +66,9 @@ FLAGS = {
                              "confidence are rejected and keep their prior (docs/verification.md)"),
     "--max-turn": Flag("localizer.verification.max_move_R", "verification: a refinement that turns the camera more "
                        "than this many degrees from its prior is rejected"),
+    "--max-sigma": Flag("localizer.verification.max_sigma", "verification: a refinement whose pose the cost pins "
+                        "down less (standard deviation along its least-determined direction, in 1 %% of the depth "
+                        "and 1 deg) is rejected (0: no limit)"),
     "--rivals": Flag("localizer.verification.rivals", "verification: other references' poses refined to check a pose "
                      "refined from a map pose; one verified elsewhere rejects it as ambiguous (0: no check)"),
     "--rival-join": Flag("localizer.verification.join", "verification: a rival stops at a coarser level where it "

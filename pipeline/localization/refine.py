@@ -19,7 +19,8 @@ import torch
 from torch.nn.functional import normalize
 
 from pixloc.geometry import Camera, Pose, pose_error
-from pixloc.optim import FeaturemetricProblem, LevenbergMarquardt, alignment_contrast, alignment_evidence
+from pixloc.optim import (FeaturemetricProblem, LevenbergMarquardt, alignment_contrast, alignment_evidence,
+                          alignment_uncertainty)
 from pixloc.optim.cost import new_query_maps
 from pixloc.nets.unet import UNet
 
@@ -393,6 +394,7 @@ class Localizer:
             at_prior = alignment_evidence(problem, prior, solver.loss_fn, solver.interpolator)
             contrast = {f"contrast_{px:g}px": alignment_contrast(problem, lm.pose, solver.loss_fn,
                                                                  solver.interpolator, px) for px in CONTRAST_SHIFTS}
+            contrast.update(alignment_uncertainty(problem, lm.pose, solver.loss_fn, solver.interpolator))
         for b, st in enumerate(group):
             failed = bool(lm.failed[b])
             result = st.result

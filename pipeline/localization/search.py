@@ -22,7 +22,7 @@ import numpy as np
 from pixloc.geometry import Pose, pose_error
 
 from pipeline.localization.refine import JOINED, Candidate, Localizer, QueryResult
-from pipeline.localization.verify import VerificationConfig
+from pipeline.localization.verify import NOT_PINNED, VerificationConfig
 from pipeline.store.reader import MapReader
 
 
@@ -263,7 +263,8 @@ def check_rivals(result: QueryResult, rivals: List[Tuple[str, QueryResult]], con
     """Reject a verified ``result`` as ambiguous where one of ``rivals`` ((its start's label, its
     refinement) of the same query, against the same references) is verified too at another pose:
     beyond ``conf.agree_t`` x the median point depth or ``conf.agree_R`` degrees. A note per rival. A
-    rival rejected as ambiguous itself (a search's top-1 start) counts as verified.
+    rival rejected as ambiguous itself (a search's top-1 start), or as not pinned down (``max_sigma``:
+    its cost is sharp for image shifts there, a minimum all the same), counts as verified.
 
     Where the map's images lie a few degrees apart around an object or along a repeated facade, the
     refinement from a reference's pose can stay there, as sharp as at the truth, and be verified; the
@@ -278,7 +279,8 @@ def check_rivals(result: QueryResult, rivals: List[Tuple[str, QueryResult]], con
         if rival.reason.startswith(JOINED):  # stopped early (Localizer._join_rivals)
             result.notes.append(f"rival start {name}: {rival.reason[len(JOINED):]}")
             continue
-        if not (rival.success or rival.reason.startswith(AMBIGUOUS)):  # an ambiguous pose was verified too
+        # a pose rejected as ambiguous was verified too; one not pinned down is sharp there all the same
+        if not (rival.success or rival.reason.startswith((AMBIGUOUS, NOT_PINNED))):
             result.notes.append(f"rival start {name}: not verified ({rival.reason or 'failed'})")
             continue
         dt, dR = distance(rival.refined, result.refined, depth)

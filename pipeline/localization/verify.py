@@ -13,6 +13,12 @@ evidence at the finest level supports it (``pixloc.optim.evidence``):
 - ``move``: how far the pose moved from the prior, relative to the median depth of the
   points: a jump of many scene depths or tens of degrees is not a refinement.
 
+- ``sigma``: how far the pose could slide along its least-determined direction, from the Hessian of
+  the cost at the refined pose (``pixloc.optim.alignment_uncertainty``), in units of 1 % of the
+  median point depth and 1 degree. Around a
+  texture-poor object the cost can be sharp for image shifts and still leave the camera free to
+  move along the ring of views while turning to keep the object in view: it stops near where it
+  started, often a neighbouring reference's pose.
 - ``valid``: the fraction of the map points that project into the image at the refined pose;
   a pose turned away from the map sees few of them.
 - ``last turn``: the rotation of the finest level; a correct refinement is settled by then.
@@ -31,6 +37,9 @@ from dataclasses import asdict, dataclass
 from typing import Dict, Optional, Tuple
 
 
+NOT_PINNED = "rejected: the pose is not pinned down: "  # the reason of the ``max_sigma`` gate
+
+
 @dataclass(frozen=True)
 class VerificationConfig:
     """When a refined pose is reported as a success.
@@ -43,6 +52,9 @@ class VerificationConfig:
     max_last_turn: rotation (degrees) of the finest level above which the confidence is scaled down.
     max_move_R: rotation (degrees) from the prior above which a refinement is rejected.
     max_move_t: camera motion from the prior, in median point depths, above which it is rejected.
+    max_sigma: the standard deviation of the pose along its least-determined direction (units of 1 % of
+        the median point depth and 1 degree) above which a refinement is rejected as not pinned
+        down (0: no limit).
     rivals: other retrieved references' poses refined to check a pose refined from the map's own
         poses (``pipeline.localization.search.check_rivals``; 0: no check); one verified at another pose
         rejects it as ambiguous.
@@ -61,12 +73,15 @@ class VerificationConfig:
     max_last_turn: float = 3.0
     max_move_R: float = 45.0
     max_move_t: float = 2.0
+    max_sigma: float = 0.06
     rivals: int = 1
     agree_t: float = 0.10
     agree_R: float = 5.0
     join: float = 0.5
 
     def __post_init__(self):
+        if self.max_sigma < 0:
+            raise ValueError(f"verification: max_sigma must not be negative, not {self.max_sigma}.")
         if self.rivals < 0 or self.agree_t <= 0 or self.agree_R <= 0:
             raise ValueError("verification: rivals must not be negative, agree_t and agree_R must be positive.")
         if not 0 <= self.join <= 1:
@@ -115,4 +130,9 @@ def verify(evidence: Dict[str, float], conf: VerificationConfig = VerificationCo
                    f"{lower} at the pose than 3 px around it, "
                    f"{100 * evidence.get('valid', 0.0):.0f}% of the points in view, finest level turned "
                    f"{evidence.get('last_R', 0.0):.1f} deg)")
+    sigma = evidence.get("sigma", 0.0)
+    if conf.max_sigma > 0 and not sigma <= conf.max_sigma:  # a NaN sigma is not pinned down either
+        return c, (f"{NOT_PINNED}sigma {sigma:.3f} > {conf.max_sigma:g} along its "
+                   f"least-determined direction (alone: {evidence.get('sigma_R', float('nan')):.3f} deg, "
+                   f"{100 * evidence.get('sigma_t', float('nan')):.3f} % of the depth)")
     return c, None

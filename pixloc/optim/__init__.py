@@ -2,9 +2,9 @@
 
 from .cost import FeaturemetricProblem, Linearization, build_system, linearize
 from .damping import ConstantDamping, LearnedDamping
-from .evidence import alignment_contrast, alignment_depth_contrast, alignment_evidence
+from .evidence import alignment_contrast, alignment_depth_contrast, alignment_evidence, alignment_uncertainty
 from .solver import LevenbergMarquardt, LMResult, StoppingRule, solve_damped
 
 __all__ = ["ConstantDamping", "FeaturemetricProblem", "LearnedDamping", "LevenbergMarquardt",
            "Linearization", "LMResult", "StoppingRule", "alignment_contrast", "alignment_depth_contrast",
-           "alignment_evidence", "build_system", "linearize", "solve_damped"]
+           "alignment_evidence", "alignment_uncertainty", "build_system", "linearize", "solve_damped"]

@@ -15,7 +15,7 @@ from torch import Tensor
 
 from ..geometry import Pose
 from ..interpolation import Interpolator
-from .cost import FeaturemetricProblem
+from .cost import FeaturemetricProblem, build_system, linearize
 
 
 def _costs(problem: FeaturemetricProblem, cam_from_world: Pose, loss_fn: Callable, interpolator: Interpolator):
@@ -116,3 +116,40 @@ def alignment_depth_contrast(problem: FeaturemetricProblem, cam_from_world: Pose
     steps = [Pose.from_aa(torch.zeros(len(dz), 3, dtype=dz.dtype, device=dz.device),
                           torch.stack([zero, zero, sign * dz], -1)) for sign in (1.0, -1.0)]
     return _contrast_around(problem, cam_from_world, steps, loss_fn, interpolator)
+
+
+@torch.no_grad()
+def alignment_uncertainty(problem: FeaturemetricProblem, cam_from_world: Pose, loss_fn: Callable,
+                          interpolator: Interpolator, unit_t: float = 0.01, unit_R: float = 1.0) -> Dict[str, Tensor]:
+    """(B,) how well the featuremetric cost pins the pose down, from the Gauss-Newton Hessian H of the
+    robust, confidence-weighted cost at ``cam_from_world``: the covariance s^2 H^-1 of the left
+    update (dt, dw), s^2 the weighted residual variance per channel. ``sigma``: the standard deviation
+    along the least-determined direction of the pose, in units of ``unit_t`` x the median point depth
+    (camera centre) and ``unit_R`` degrees (rotation); ``sigma_t``: that of the camera centre alone,
+    over the median point depth; ``sigma_R``: that of the rotation alone, in degrees.
+
+    A pose that can slide (a camera on a ring around a texture-poor object, turning to keep it in
+    view) has a large ``sigma`` even where the cost is sharp for image shifts (the contrast).
+    Residuals of neighbouring points are correlated, so these are not calibrated probabilities:
+    thresholds are measured (docs/verification.md, where pixel units separated worse)."""
+    lin = linearize(cam_from_world, problem, interpolator)
+    _, w_loss, _ = loss_fn((lin.res ** 2).sum(-1))
+    weights = w_loss * lin.valid
+    if lin.confidence is not None:
+        weights = weights * lin.confidence
+    _, H = build_system(lin, weights)
+    m = lin.valid.sum(-1) * lin.res.shape[-1]
+    s2 = (weights * (lin.res ** 2).sum(-1)).sum(-1).double() / (m - 6).clamp(min=1)
+    cov = s2[:, None, None] * torch.linalg.pinv(H.double())
+    p3d = cam_from_world.transform(problem.p3d_world)
+    z = torch.where(lin.valid, p3d[..., 2], torch.full_like(p3d[..., 2], float("nan")))
+    depth = torch.nan_to_num(z.nanmedian(-1).values.double(), nan=1.0).clamp(min=1e-9)
+    unit = torch.cat([(unit_t * depth)[:, None].expand(-1, 3),
+                      torch.full_like(depth, unit_R * torch.pi / 180)[:, None].expand(-1, 3)], -1)
+
+    def top(c: Tensor) -> Tensor:  # the standard deviation along the least-determined direction
+        return torch.linalg.eigvalsh(c)[..., -1].clamp(min=0).sqrt()
+
+    return {"sigma": top(cov / unit[:, :, None] / unit[:, None, :]).float(),
+            "sigma_t": (top(cov[:, :3, :3]) / depth).float(),
+            "sigma_R": torch.rad2deg(top(cov[:, 3:, 3:])).float()}
