@@ -132,18 +132,10 @@ def alignment_uncertainty(problem: FeaturemetricProblem, cam_from_world: Pose, l
     view) has a large ``sigma`` even where the cost is sharp for image shifts (the contrast).
     Residuals of neighbouring points are correlated, so these are not calibrated probabilities:
     thresholds are measured (docs/verification.md, where pixel units separated worse)."""
-    lin = linearize(cam_from_world, problem, interpolator)
-    _, w_loss, _ = loss_fn((lin.res ** 2).sum(-1))
-    weights = w_loss * lin.valid
-    if lin.confidence is not None:
-        weights = weights * lin.confidence
-    _, H = build_system(lin, weights)
-    m = lin.valid.sum(-1) * lin.res.shape[-1]
-    s2 = (weights * (lin.res ** 2).sum(-1)).sum(-1).double() / (m - 6).clamp(min=1)
-    cov = s2[:, None, None] * torch.linalg.pinv(H.double())
-    p3d = cam_from_world.transform(problem.p3d_world)
-    z = torch.where(lin.valid, p3d[..., 2], torch.full_like(p3d[..., 2], float("nan")))
-    depth = torch.nan_to_num(z.nanmedian(-1).values.double(), nan=1.0).clamp(min=1e-9)
+    # one problem at a time: the Jacobians of a whole batch of dense problems would double the peak memory
+    covs, depths = zip(*(_covariance(problem.index(b), cam_from_world[b:b + 1], loss_fn, interpolator)
+                         for b in range(problem.batch_size)))
+    cov, depth = torch.cat(covs), torch.cat(depths)
     unit = torch.cat([(unit_t * depth)[:, None].expand(-1, 3),
                       torch.full_like(depth, unit_R * torch.pi / 180)[:, None].expand(-1, 3)], -1)
 
@@ -153,3 +145,19 @@ def alignment_uncertainty(problem: FeaturemetricProblem, cam_from_world: Pose, l
     return {"sigma": top(cov / unit[:, :, None] / unit[:, None, :]).float(),
             "sigma_t": (top(cov[:, :3, :3]) / depth).float(),
             "sigma_R": torch.rad2deg(top(cov[:, 3:, 3:])).float()}
+
+
+def _covariance(problem: FeaturemetricProblem, cam_from_world: Pose, loss_fn: Callable, interpolator: Interpolator):
+    """(covariance s^2 H^-1 of the left update (dt, dw), median depth of the valid points), float64, per problem."""
+    lin = linearize(cam_from_world, problem, interpolator)
+    _, w_loss, _ = loss_fn((lin.res ** 2).sum(-1))
+    weights = w_loss * lin.valid
+    if lin.confidence is not None:
+        weights = weights * lin.confidence
+    _, H = build_system(lin, weights)
+    m = lin.valid.sum(-1) * lin.res.shape[-1]
+    s2 = (weights * (lin.res ** 2).sum(-1)).sum(-1).double() / (m - 6).clamp(min=1)
+    p3d = cam_from_world.transform(problem.p3d_world)
+    z = torch.where(lin.valid, p3d[..., 2], torch.full_like(p3d[..., 2], float("nan")))
+    depth = torch.nan_to_num(z.nanmedian(-1).values.double(), nan=1.0).clamp(min=1e-9)
+    return s2[:, None, None] * torch.linalg.pinv(H.double()), depth
