@@ -328,7 +328,7 @@ class Localizer:
             for o in own:
                 a, b = o.T.to_matrix(orthonormal=True), st.T.to_matrix(orthonormal=True)
                 depth = np.median(xyz @ a[2, :3] + a[2, 3]) if len(xyz) else np.nan
-                dt, dR = _relative_motion(a, b, float(depth) if np.isfinite(depth) and depth > 0 else 1.0)
+                dt, dR = relative_motion(a, b, float(depth) if np.isfinite(depth) and depth > 0 else 1.0)
                 if dt <= conf.join * conf.agree_t and dR <= conf.join * conf.agree_R:
                     st.active, st.result.refined = False, b
                     st.result.reason = (f"{JOINED}it reached the query's start at image scale {image_scale}, "
@@ -435,15 +435,16 @@ def evidence_summary(per_level: List[Dict], at_prior: Dict[str, float], contrast
     depth = float(np.median(depth[:, 2])) if len(depth) else float("nan")
     scale = depth if np.isfinite(depth) and depth > 0 else 1.0
     out["depth"] = depth
-    out["move_t"], out["move_R"] = _relative_motion(prior, refined, scale)
+    out["move_t"], out["move_R"] = relative_motion(prior, refined, scale)
     if len(per_level) > 1:
-        out["last_t"], out["last_R"] = _relative_motion(np.asarray(per_level[-2]["pose"]), refined, scale)
+        out["last_t"], out["last_R"] = relative_motion(np.asarray(per_level[-2]["pose"]), refined, scale)
     else:
         out["last_t"], out["last_R"] = out["move_t"], out["move_R"]
     return out
 
 
-def _relative_motion(a: np.ndarray, b: np.ndarray, scale: float) -> Tuple[float, float]:
-    """Camera-centre distance over ``scale`` and rotation angle (degrees) between two poses."""
+def relative_motion(a: np.ndarray, b: np.ndarray, scale: float) -> Tuple[float, float]:
+    """Camera-centre distance over ``scale`` and rotation angle (degrees) between two cam_from_world poses:
+    the one pose difference of verification, the rival check and the search."""
     dR, dt = pose_error(Pose.from_matrix(a), Pose.from_matrix(b))  # the one pose difference (pixloc.geometry)
     return float(dt) / scale, float(dR)

@@ -19,9 +19,7 @@ from typing import List, Sequence, Tuple
 
 import numpy as np
 
-from pixloc.geometry import Pose, pose_error
-
-from pipeline.localization.refine import JOINED, Candidate, Localizer, QueryResult
+from pipeline.localization.refine import JOINED, Candidate, Localizer, QueryResult, relative_motion
 from pipeline.localization.verify import NOT_PINNED, VerificationConfig
 from pipeline.store.reader import MapReader
 
@@ -141,14 +139,8 @@ def hypotheses(reader: MapReader, dbs: List[int], conf: SearchConfig, average=No
 def same_basin(a: np.ndarray, b: np.ndarray, depth: float, conf: SearchConfig) -> bool:
     """Whether two coarse poses (cam_from_world) lie within ``conf.merge_t`` x ``depth`` (camera
     centres) and ``conf.merge_R`` degrees of each other."""
-    dt, dR = distance(a, b, depth)
+    dt, dR = relative_motion(a, b, depth)
     return dt <= conf.merge_t and dR <= conf.merge_R
-
-
-def distance(a: np.ndarray, b: np.ndarray, depth: float) -> Tuple[float, float]:
-    """(camera-centre distance over ``depth``, rotation in degrees) between two cam_from_world poses."""
-    dR, dt = pose_error(Pose.from_matrix(a), Pose.from_matrix(b))  # the one pose difference (pixloc.geometry)
-    return float(dt) / depth, float(dR)
 
 
 def screening_order(results: List[QueryResult], conf: SearchConfig, skip=()) -> List[int]:
@@ -208,10 +200,10 @@ def refine_and_pick(localizer: Localizer, prepared: List) -> List[Tuple]:
         if candidates is None:
             out.append((p, None, None, None))
             continue
-        labels = [c.origin for c in p]
+        labels, own = [c.origin for c in p], sum(not c.rival for c in p)  # rivals come last (rival_starts)
         if isinstance(p, Hypotheses) and p.first is not None:  # the top-1 start, refined before the search
-            candidates, labels = [p.first] + candidates, [p.first_label] + labels
-        ranked = rank_results(candidates[:sum(not label.startswith(RIVAL) for label in labels)])  # rivals come last
+            candidates, labels, own = [p.first] + candidates, [p.first_label] + labels, own + 1
+        ranked = rank_results(candidates[:own])
         # the best verified one (a top-1 refinement rejected as ambiguous keeps its confidence), else the best
         j = next((i for i in ranked if candidates[i].success), ranked[0] if ranked else 0)
         check_rivals(candidates[j], [(labels[i], c) for i, c in enumerate(candidates) if i != j],
@@ -283,7 +275,7 @@ def check_rivals(result: QueryResult, rivals: List[Tuple[str, QueryResult]], con
         if not (rival.success or rival.reason.startswith((AMBIGUOUS, NOT_PINNED))):
             result.notes.append(f"rival start {name}: not verified ({rival.reason or 'failed'})")
             continue
-        dt, dR = distance(rival.refined, result.refined, depth)
+        dt, dR = relative_motion(rival.refined, result.refined, depth)
         if dt <= conf.agree_t and dR <= conf.agree_R:
             result.notes.append(f"rival start {name}: converged to the same pose ({dR:.2f} deg, {dt:.3f} depths)")
             continue
