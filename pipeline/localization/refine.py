@@ -18,7 +18,7 @@ import numpy as np
 import torch
 from torch.nn.functional import normalize
 
-from pixloc.geometry import Camera, Pose, pose_error
+from pixloc.geometry import Camera, Pose, relative_motion
 from pixloc.optim import (FeaturemetricProblem, LevenbergMarquardt, alignment_contrast, alignment_evidence,
                           alignment_uncertainty)
 from pixloc.optim.cost import new_query_maps
@@ -441,10 +441,3 @@ def evidence_summary(per_level: List[Dict], at_prior: Dict[str, float], contrast
     else:
         out["last_t"], out["last_R"] = out["move_t"], out["move_R"]
     return out
-
-
-def relative_motion(a: np.ndarray, b: np.ndarray, scale: float) -> Tuple[float, float]:
-    """Camera-centre distance over ``scale`` and rotation angle (degrees) between two cam_from_world poses:
-    the one pose difference of verification, the rival check and the search."""
-    dR, dt = pose_error(Pose.from_matrix(a), Pose.from_matrix(b))  # the one pose difference (pixloc.geometry)
-    return float(dt) / scale, float(dR)

@@ -19,7 +19,9 @@ from typing import List, Sequence, Tuple
 
 import numpy as np
 
-from pipeline.localization.refine import JOINED, Candidate, Localizer, QueryResult, relative_motion
+from pixloc.geometry import relative_motion
+
+from pipeline.localization.refine import JOINED, Candidate, Localizer, QueryResult
 from pipeline.localization.verify import NOT_PINNED, VerificationConfig
 from pipeline.store.reader import MapReader
 

@@ -163,3 +163,10 @@ def pose_error(T_a: Pose, T_b: Pose) -> Tuple[Tensor, Tensor]:
     dR, _ = (T_a @ T_b.inv()).magnitude()
     dt = (T_a.center - T_b.center).norm(dim=-1)
     return dR, dt
+
+
+def relative_motion(a, b, scale: float) -> Tuple[float, float]:
+    """(camera-centre distance over ``scale``, rotation in degrees) between two cam_from_world poses
+    given as 3 x 4 matrices: ``pose_error`` in the scale-free terms of pose verification."""
+    dR, dt = pose_error(Pose.from_matrix(a), Pose.from_matrix(b))
+    return float(dt) / scale, float(dR)
