@@ -206,7 +206,8 @@ class Localizer:
     @torch.no_grad()
     def localize_batch(self, candidates: List[Candidate]) -> List[QueryResult]:
         """Localize several candidates, solving each level as one LM batch per group of queries
-        whose feature maps have the same shape and whose cameras the same model.
+        whose feature maps have the same shape and whose cameras the same model, rival starts
+        apart (after the others: a batch's memory holds a copy of each problem's query maps).
 
         A rival start (``Candidate.rival``) stops at the end of a level before the last where its
         query's own starts have all stopped, or where it lies near one of them (``_join_rivals``).
@@ -278,8 +279,9 @@ class Localizer:
             for st in active:
                 if st.active:
                     pred = st.cache[k][0]
-                    key = (tuple(pred["features"][0].shape), st.query.camera.to_pixloc().distortion)
+                    key = (st.own is not None, tuple(pred["features"][0].shape), st.query.camera.to_pixloc().distortion)
                     groups.setdefault(key, []).append(st)
+            groups = dict(sorted(groups.items(), key=lambda kv: kv[0][0]))
             t0 = time.perf_counter()
             for level in self.levels:
                 final = k == self.scales[-1] and level == self.levels[-1]

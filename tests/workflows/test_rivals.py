@@ -69,13 +69,20 @@ def test_a_rival_verified_at_another_pose_rejects_the_result():
     assert rejected.reason == "rejected: y" and rejected.notes == []
 
 
-def test_on_the_temple_ring_no_neighbouring_view_is_accepted(shared, tmp_path):
+def test_on_the_temple_ring_no_neighbouring_view_is_accepted(shared, tmp_path, monkeypatch):
     """The first fold of the accuracy benchmark's temple ring, 5 queries, ``top1``: without the
     check, refinements that stayed at a neighbour's pose are accepted; with it, none is, and each
     is rejected as ambiguous, naming the rival's reference. A rival that stops where it joins the
     query's start (``join``, the default) gives the verdicts of one run through every level. The
     ``max_sigma`` gate is off here, to see the rival check alone (the gate alone leaves 1 of these wrong
-    poses accepted; tests/workflows/test_pinned_down.py tests it)."""
+    poses accepted; tests/workflows/test_pinned_down.py tests it). The rivals are solved in LM batches
+    of their own (a batch's peak memory holds a copy of each problem's query maps), and the queries'
+    own refinements are those of a run without rivals."""
+    from pipeline.localization.refine import Localizer
+    batches = []
+    solve = Localizer._solve_level
+    monkeypatch.setattr(Localizer, "_solve_level", lambda self, group, *a: batches.append(
+        {st.own is not None for st in group}) or solve(self, group, *a))
     fconf = FeatureConfig(resize=512, image_scales=(1,))
     parts = list(split_parts("templeRing", SPLITS["templeRing"], shared, tmp_path, fconf, limit=5))[:1]
     scale = scene_scale(parts[0][1])
@@ -99,6 +106,8 @@ def test_on_the_temple_ring_no_neighbouring_view_is_accepted(shared, tmp_path):
         {n: (r["success"], r["reason"][:40]) for n, r in full.items()}
     for name, record in after.items():
         assert np.allclose(record["refined"], full[name]["refined"], atol=1e-6)
+        assert np.allclose(record["refined"], runs[0, 0.5][0][name]["refined"], atol=1e-6)
+    assert {True} in batches and all(len(b) == 1 for b in batches)  # rivals in batches of their own
 
 
 def test_a_pose_rejected_as_ambiguous_still_counts_as_a_verified_rival():
