@@ -121,7 +121,7 @@ class LevelState:
     """A candidate while ``Localizer.localize_batch`` refines it: its observations and current pose
     ``T``, the reference features of the image scale being run (``refs``), whether it is still
     ``active``, its own seconds (``t_own``) and the result being filled; for a rival start, its
-    query's own starts (``own``)."""
+    query's own starts' poses at the end of each level (``own``: (image scale, level) -> 3 x 4 pose)."""
 
     query: QueryRecord
     rgb: Optional[np.ndarray]
@@ -133,7 +133,7 @@ class LevelState:
     T: Optional[Pose] = None
     prior_T: Optional[Pose] = None
     refs: Optional[Tuple] = None
-    own: Optional[List["LevelState"]] = None
+    own: Optional[List[Dict[Tuple[int, int], np.ndarray]]] = None
 
 
 class Localizer:
@@ -206,16 +206,40 @@ class Localizer:
     @torch.no_grad()
     def localize_batch(self, candidates: List[Candidate]) -> List[QueryResult]:
         """Localize several candidates, solving each level as one LM batch per group of queries
-        whose feature maps have the same shape and whose cameras the same model, rival starts
-        apart (after the others: a batch's memory holds a copy of each problem's query maps).
+        whose feature maps have the same shape and whose cameras the same model.
 
-        A rival start (``Candidate.rival``) stops at the end of a level before the last where its
-        query's own starts have all stopped, or where it lies near one of them (``_join_rivals``).
-        The per-problem stopping rule of the solver makes the result of each query the same as
-        localizing it alone. An error in one query (a bad reference block, a network error)
-        fails that query with its reason, not the batch; an error in a group's solve fails
-        that group's queries.
+        Rival starts (``Candidate.rival``) run after the others, and only for a query with a
+        verified start: ``check_rivals`` can reject nothing else. A rival stops at the end of a
+        level before the last where it lies near one of its query's own starts at the end of that
+        level (``_join_rivals``). The per-problem stopping rule of the solver makes the result of
+        each query the same as localizing it alone. An error in one query (a bad reference block,
+        a network error) fails that query with its reason, not the batch; an error in a group's
+        solve fails that group's queries.
         """
+        results: List[Optional[QueryResult]] = [None] * len(candidates)
+        owns = [i for i, c in enumerate(candidates) if not (c.rival and c.cache is not None)]
+        for i, r in zip(owns, self._refine([candidates[i] for i in owns])):
+            results[i] = r
+        tracks: Dict[int, List[Dict]] = {}  # per query (its cache): its own starts' poses per level
+        verified = {id(candidates[i].cache) for i in owns if results[i].success}
+        for i in owns:
+            tracks.setdefault(id(candidates[i].cache), []).append(
+                {(p["scale"], p["level"]): np.asarray(p["pose"]) for p in results[i].per_level if not p["failed"]})
+        rivals = [i for i, r in enumerate(results) if r is None and id(candidates[i].cache) in verified]
+        for i, r in zip(rivals, self._refine([candidates[i] for i in rivals],
+                                             [tracks[id(candidates[i].cache)] for i in rivals])):
+            results[i] = r
+        for i, r in enumerate(results):
+            if r is None:
+                c = candidates[i]
+                results[i] = QueryResult(c.query.name, False, np.asarray(c.prior, np.float64), None,
+                                         [self.reader.names[j] for j in c.dbs], notes=list(c.query.notes),
+                                         reason=f"{JOINED}none of its query's own starts was verified")
+        return results
+
+    def _refine(self, candidates: List[Candidate], own: Optional[List[List[Dict]]] = None) -> List[QueryResult]:
+        """``localize_batch`` for candidates of one kind: the query's own starts, or rival starts with
+        their queries' own starts' poses per (image scale, level) (``own``)."""
         states = []
         for c in candidates:
             t_item = time.perf_counter()
@@ -249,9 +273,8 @@ class Localizer:
                 result.reason = str(e)
             finally:
                 st.t_own += time.perf_counter() - t_item
-        for c, st in zip(candidates, states):  # a rival start's siblings: its query's own starts
-            if c.rival and c.cache is not None:
-                st.own = [o for d, o in zip(candidates, states) if d.cache is c.cache and not d.rival]
+        for st, tracks in zip(states, own or ()):  # a rival start's siblings: its query's own starts
+            st.own = tracks
         for k in self.scales:
             image_scale = self.reader.conf.image_scales[k]
             active = [st for st in states if st.active]
@@ -279,9 +302,8 @@ class Localizer:
             for st in active:
                 if st.active:
                     pred = st.cache[k][0]
-                    key = (st.own is not None, tuple(pred["features"][0].shape), st.query.camera.to_pixloc().distortion)
+                    key = (tuple(pred["features"][0].shape), st.query.camera.to_pixloc().distortion)
                     groups.setdefault(key, []).append(st)
-            groups = dict(sorted(groups.items(), key=lambda kv: kv[0][0]))
             t0 = time.perf_counter()
             for level in self.levels:
                 final = k == self.scales[-1] and level == self.levels[-1]
@@ -314,21 +336,21 @@ class Localizer:
         return [st.result for st in states]
 
     def _join_rivals(self, states: List[LevelState], image_scale: int, level: int) -> None:
-        """Stop the rival starts among ``states`` whose query's own starts have all stopped (its
-        check can reject nothing), or that lie within ``join`` x (``agree_t`` x the median point
-        depth, ``agree_R``) of one of them: from there both converge to one pose, which
+        """Stop the rival starts among ``states`` whose query's own starts had all stopped by the end
+        of this level, or that lie within ``join`` x (``agree_t`` x the median point depth,
+        ``agree_R``) of one of them there: from there both converge to one pose, which
         ``check_rivals`` would call agreeing."""
         conf = self.conf.verification
         for st in states if conf.join > 0 else ():
             if not (st.active and st.own is not None):
                 continue
-            own = [o for o in st.own if o.active]
+            own = [t[image_scale, level] for t in st.own if (image_scale, level) in t]
             if not own:
                 st.active, st.result.reason = False, f"{JOINED}its query's own starts stopped before it"
                 continue
             xyz = st.refs[0].detach().double().cpu().numpy()
-            for o in own:
-                a, b = o.T.to_matrix(orthonormal=True), st.T.to_matrix(orthonormal=True)
+            b = st.T.to_matrix(orthonormal=True)
+            for a in own:
                 depth = np.median(xyz @ a[2, :3] + a[2, 3]) if len(xyz) else np.nan
                 dt, dR = relative_motion(a, b, float(depth) if np.isfinite(depth) and depth > 0 else 1.0)
                 if dt <= conf.join * conf.agree_t and dR <= conf.join * conf.agree_R:

@@ -108,6 +108,12 @@ def test_on_the_temple_ring_no_neighbouring_view_is_accepted(shared, tmp_path, m
         assert np.allclose(record["refined"], full[name]["refined"], atol=1e-6)
         assert np.allclose(record["refined"], runs[0, 0.5][0][name]["refined"], atol=1e-6)
     assert {True} in batches and all(len(b) == 1 for b in batches)  # rivals in batches of their own
+    # rivals run only for a query with a verified start (an accepted one notes its rival's outcome; an
+    # ambiguous one names it); a query rejected on its own was given no rival's verdict
+    for name, record in after.items():
+        rival = [n for n in record["notes"] if n.startswith("rival start")]
+        ambiguous = record["reason"].startswith("rejected: ambiguous")
+        assert bool(rival) == record["success"] and (record["success"] or ambiguous or "rival" not in record["reason"])
 
 
 def test_a_pose_rejected_as_ambiguous_still_counts_as_a_verified_rival():
@@ -122,8 +128,9 @@ def test_a_pose_rejected_as_ambiguous_still_counts_as_a_verified_rival():
 
 def test_a_rival_stops_where_it_joins_its_querys_start():
     """``Localizer._join_rivals``: after a coarser level, a rival within ``join`` x (agree_t, agree_R) of
-    one of its query's own starts stops (it would end at the same pose), one farther goes on, and
-    one whose query's own starts have all stopped stops too; ``check_rivals`` notes it as agreeing."""
+    one of its query's own starts at the end of that level stops (it would end at the same pose), one
+    farther goes on, and one whose query's own starts had all stopped by then stops too;
+    ``check_rivals`` notes it as agreeing."""
     import torch
 
     from pixloc.geometry import Pose
@@ -137,20 +144,22 @@ def test_a_rival_stops_where_it_joins_its_querys_start():
         st.own = own
         return st
 
-    start = state(_pose(0))
+    start = {(1, 1): _pose(10), (1, 0): _pose(0)}  # the query's own start at the end of two levels
     near, far, mover = state(_pose(2), [start]), state(_pose(3), [start]), state(_pose(0, x=0.03), [start])
     localizer = SimpleNamespace(conf=LocalizerConfig())  # join 0.5: within 5 % of the depth and 2.5 deg
-    Localizer._join_rivals(localizer, [start, near, far, mover], image_scale=1, level=0)
-    assert start.active and far.active and not near.active and not mover.active
+    Localizer._join_rivals(localizer, [near, far, mover], image_scale=1, level=0)
+    assert far.active and not near.active and not mover.active
     assert near.result.reason.startswith(JOINED + "it reached the query's start at image scale 1, level 0 (2.00 deg")
     here = _result(_pose(0), _pose(0))
     check_rivals(here, [("rival: reference b.png", near.result)], VerificationConfig())
     assert here.success and here.notes[-1].startswith("rival start reference b.png: it reached the query's start")
-    start.active = False  # the query's start failed: its rival can reject nothing
-    Localizer._join_rivals(localizer, [start, far], image_scale=1, level=1)
+    at_level_1 = state(_pose(2), [start])  # the same pose, compared with where the start was after level 1
+    Localizer._join_rivals(localizer, [at_level_1], image_scale=1, level=1)
+    assert at_level_1.active
+    Localizer._join_rivals(localizer, [far], image_scale=4, level=1)  # the start had stopped before: no pose
     assert not far.active and far.result.reason == JOINED + "its query's own starts stopped before it"
     # join 0: every rival runs through every level
-    alone = state(_pose(0), [state(_pose(0))])
+    alone = state(_pose(0), [{(1, 0): _pose(0)}])
     off = SimpleNamespace(conf=LocalizerConfig(verification=VerificationConfig(join=0.0)))
     Localizer._join_rivals(off, [alone], image_scale=1, level=0)
     assert alone.active
