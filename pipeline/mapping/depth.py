@@ -92,34 +92,56 @@ def tsdf_points(images: List[ImageRecord], voxel: float = 0.02, truncation: floa
 
 
 def observe(points: np.ndarray, images: List[ImageRecord], depths: Optional[List[np.ndarray]] = None,
-            tolerance: float = 0.03) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+            tolerance: float = 0.03, cull: bool = True) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Observations of ``points`` in ``images`` by projection and a depth test.
 
     A point is observed where it projects inside the image and its depth in the
     depth sensor agrees with the depth map (nearest pixel) within ``tolerance``
     times the depth. Returns (point index, image index, xy in COLMAP pixel
-    coordinates).
+    coordinates). With ``cull``, each image tests only the points within reach of
+    its depth map (``_within_reach``, a k-d tree), not every point of the map: the
+    same observations, in time that grows with the map instead of its square.
     """
+    tree = None
+    if cull and len(images) > 1 and len(points):
+        import open3d as o3d
+        tree = o3d.geometry.KDTreeFlann(o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points)))
     obs_point, obs_image, obs_xy = [], [], []
     for i, im in enumerate(images):
         depth = depths[i] if depths is not None else load_depth(im)
-        p_depth = torch.from_numpy(_to_frame(im.depth_from_world(), points))
+        cand = _within_reach(tree, im, depth, tolerance) if tree is not None else None
+        sub = points if cand is None else points[cand]
+        p_depth = torch.from_numpy(_to_frame(im.depth_from_world(), sub))
         p2d_d, valid_d = depth_camera(im).cam2image(p_depth)
         uv = np.round(p2d_d.numpy()).astype(np.int64)
         inside = valid_d.numpy() & (uv[:, 0] >= 0) & (uv[:, 1] >= 0) & \
             (uv[:, 0] < depth.shape[1]) & (uv[:, 1] < depth.shape[0])
-        d = np.zeros(len(points))
+        d = np.zeros(len(sub))
         d[inside] = depth[uv[inside, 1], uv[inside, 0]]
         z = p_depth[:, 2].numpy()
         visible = inside & (d > 0) & (np.abs(z - d) < tolerance * d)
-        p_cam = torch.from_numpy(_to_frame(np.asarray(im.cam_from_world, np.float64), points))
+        p_cam = torch.from_numpy(_to_frame(np.asarray(im.cam_from_world, np.float64), sub))
         p2d, valid = im.camera.to_pixloc(torch.float64).cam2image(p_cam)
-        keep = visible & valid.numpy()
-        idx = np.flatnonzero(keep)
-        obs_point.append(idx)
-        obs_image.append(np.full(len(idx), i))
-        obs_xy.append(p2d.numpy()[idx] + 0.5)  # pixloc -> COLMAP pixel convention
+        keep = np.flatnonzero(visible & valid.numpy())
+        obs_point.append(keep if cand is None else cand[keep])
+        obs_image.append(np.full(len(keep), i))
+        obs_xy.append(p2d.numpy()[keep] + 0.5)  # pixloc -> COLMAP pixel convention
     return np.concatenate(obs_point), np.concatenate(obs_image), np.concatenate(obs_xy)
+
+
+def _within_reach(tree, image: ImageRecord, depth: np.ndarray, tolerance: float) -> np.ndarray:
+    """Sorted indices of the points that ``image``'s depth test could keep: a kept point has a depth
+    z < (1 + tolerance) x the map's largest depth and projects inside the image, so it lies within
+    z x the longest ray to an image corner (unit depth) of the sensor, plus a margin for distortion."""
+    h, w = depth.shape
+    corners = torch.tensor([[0.0, 0.0], [w, 0.0], [0.0, h], [w, h], [w / 2, 0.0], [0.0, h / 2]], dtype=torch.float64)
+    rays = depth_camera(image).image2cam(corners).numpy()
+    longest = float(np.sqrt(1 + (rays[:, :2] ** 2).sum(1)).max())
+    radius = float(depth.max()) * (1 + tolerance) * longest * 1.1
+    T = image.depth_from_world()
+    centre = -T[:, :3].T @ T[:, 3]
+    _, idx, _ = tree.search_radius_vector_3d(centre, radius)
+    return np.sort(np.asarray(idx, dtype=np.int64))
 
 
 def rgbd_scene(images: List[ImageRecord], method: str = "tsdf", min_track_length: int = 2,

@@ -339,3 +339,16 @@ def test_transforms_json_of_known_poses_reads_back_and_triangulates(shared, tmp_
         assert np.allclose(a.cam_from_world, b.cam_from_world, atol=1e-9) and a.camera == b.camera
     scene, errors, front = _triangulated(images, tmp_path / "scene", tmp_path / "work")
     assert len(scene.points) > 1000 and np.median(errors) < 1.0 and front.mean() > 0.99
+
+
+def test_observing_only_points_within_reach_finds_the_same_observations(shared):
+    """``observe`` tests each frame only against the points within reach of its depth map (a k-d tree):
+    the same observations as testing every point, on real RGB-D frames whose colour camera is apart from
+    the depth sensor."""
+    from pipeline.mapping.depth import frame_points, observe
+    images = read_7scenes(shared / "data" / "7scenes_stairs", [2, 3])
+    points = frame_points(images, stride=16)
+    culled, every = observe(points, images), observe(points, images, cull=False)
+    assert len(culled[0]) > 1000
+    for a, b in zip(culled, every):
+        assert np.array_equal(a, b)

@@ -154,3 +154,18 @@ def test_a_photo_city_covers_every_facade_and_its_queries_stand_near_references(
         k = int(np.argmin(d))
         assert d[k] < 2.0 and side in {tag for _, tag in refs}
         assert np.degrees(np.arccos(np.clip(axis @ axes[k], -1, 1))) < 30
+
+
+def test_a_city_map_observes_only_points_within_reach_the_same_way(tmp_path):
+    """On a city (frames far apart: most map points out of each frame's reach), observing only the points
+    within reach of each depth map gives the observations of testing every point."""
+    from pipeline.data.city import CityConfig, generate_city
+    from pipeline.mapping.depth import frame_points, observe
+    root = generate_city(tmp_path / "city", CityConfig(seed=1, blocks=(2, 2), spacing=8.0), queries_per_condition=0,
+                         camera=CameraRecord("PINHOLE", 80, 60, (62.5, 62.5, 40.0, 30.0)))
+    mapping, _ = read_synthetic(root)
+    points = frame_points(mapping, stride=8)
+    culled, every = observe(points, mapping), observe(points, mapping, cull=False)
+    assert len(mapping) > 40 and len(culled[0]) > 5000
+    for a, b in zip(culled, every):
+        assert np.array_equal(a, b)
