@@ -220,22 +220,26 @@ class Localizer:
         owns = [i for i, c in enumerate(candidates) if not (c.rival and c.cache is not None)]
         for i, r in zip(owns, self._refine([candidates[i] for i in owns])):
             results[i] = r
-        tracks: Dict[int, List[Dict]] = {}  # per query (its cache): its own starts' poses per level
         verified = {id(candidates[i].cache) for i in owns if results[i].success}
+        tracks: Dict[int, List[Dict]] = {}  # per verified query (its cache): its own starts' poses per level
         for i in owns:
-            tracks.setdefault(id(candidates[i].cache), []).append(
-                {(p["scale"], p["level"]): np.asarray(p["pose"]) for p in results[i].per_level if not p["failed"]})
+            if id(candidates[i].cache) in verified:
+                tracks.setdefault(id(candidates[i].cache), []).append(
+                    {(p["scale"], p["level"]): np.asarray(p["pose"]) for p in results[i].per_level if not p["failed"]})
         rivals = [i for i, r in enumerate(results) if r is None and id(candidates[i].cache) in verified]
         for i, r in zip(rivals, self._refine([candidates[i] for i in rivals],
                                              [tracks[id(candidates[i].cache)] for i in rivals])):
             results[i] = r
         for i, r in enumerate(results):
             if r is None:
-                c = candidates[i]
-                results[i] = QueryResult(c.query.name, False, np.asarray(c.prior, np.float64), None,
-                                         [self.reader.names[j] for j in c.dbs], notes=list(c.query.notes),
-                                         reason=f"{JOINED}none of its query's own starts was verified")
+                results[i] = self._unrefined(candidates[i])
+                results[i].reason = f"{JOINED}none of its query's own starts was verified"
         return results
+
+    def _unrefined(self, c: Candidate) -> QueryResult:
+        """A candidate's result before refinement: its prior, references and notes."""
+        return QueryResult(c.query.name, False, np.asarray(c.prior, np.float64), None,
+                           [self.reader.names[i] for i in c.dbs], notes=list(c.query.notes))
 
     def _refine(self, candidates: List[Candidate], own: Optional[List[List[Dict]]] = None) -> List[QueryResult]:
         """``localize_batch`` for candidates of one kind: the query's own starts, or rival starts with
@@ -244,8 +248,7 @@ class Localizer:
         for c in candidates:
             t_item = time.perf_counter()
             query = c.query
-            result = QueryResult(query.name, False, np.asarray(c.prior, np.float64), None,
-                                 [self.reader.names[i] for i in c.dbs], notes=list(query.notes))
+            result = self._unrefined(c)
             st = LevelState(query, c.rgb, {} if c.cache is None else c.cache, result)
             states.append(st)
             try:

@@ -2,7 +2,7 @@
 
 from dataclasses import dataclass, replace
 from functools import cached_property
-from typing import NamedTuple, Optional
+from typing import NamedTuple, Optional, Tuple
 
 import torch
 from torch import Tensor
@@ -184,6 +184,16 @@ def linearize(cam_from_world: Pose, problem: FeaturemetricProblem,
         confidence = (problem.W_ref * values[..., C]).masked_fill(~valid, 0.0)
     J_p2d_pose = problem.camera.J_cam2image(p3d_cam) @ cam_from_world.J_transform(p3d_cam)
     return Linearization(F_p2d - problem.F_ref, valid, confidence, J_f, J_p2d_pose)
+
+
+def robust_weights(lin: Linearization, loss_fn) -> Tuple[Tensor, Tensor]:
+    """Per point (B, N): the robust cost rho of its squared residual, and its weight in the normal
+    equations: rho' x validity x the product of both confidences (where there are confidences)."""
+    rho, w_loss, _ = loss_fn((lin.res ** 2).sum(-1))
+    weights = w_loss * lin.valid
+    if lin.confidence is not None:
+        weights = weights * lin.confidence
+    return rho, weights
 
 
 def build_system(lin: Linearization, weights: Tensor):

@@ -15,7 +15,7 @@ from torch import Tensor
 
 from ..geometry import Pose
 from ..interpolation import Interpolator
-from .cost import FeaturemetricProblem, build_system, linearize
+from .cost import FeaturemetricProblem, build_system, linearize, robust_weights
 
 
 def _costs(problem: FeaturemetricProblem, cam_from_world: Pose, loss_fn: Callable, interpolator: Interpolator):
@@ -150,10 +150,7 @@ def alignment_uncertainty(problem: FeaturemetricProblem, cam_from_world: Pose, l
 def _covariance(problem: FeaturemetricProblem, cam_from_world: Pose, loss_fn: Callable, interpolator: Interpolator):
     """(covariance s^2 H^-1 of the left update (dt, dw), median depth of the valid points), float64, per problem."""
     lin = linearize(cam_from_world, problem, interpolator)
-    _, w_loss, _ = loss_fn((lin.res ** 2).sum(-1))
-    weights = w_loss * lin.valid
-    if lin.confidence is not None:
-        weights = weights * lin.confidence
+    _, weights = robust_weights(lin, loss_fn)
     _, H = build_system(lin, weights)
     m = lin.valid.sum(-1) * lin.res.shape[-1]
     s2 = (weights * (lin.res ** 2).sum(-1)).sum(-1).double() / (m - 6).clamp(min=1)

@@ -14,7 +14,7 @@ from torch import Tensor, nn
 from ..geometry import Pose
 from ..interpolation import Interpolator
 from ..losses import get_loss
-from .cost import FeaturemetricProblem, build_system, linearize
+from .cost import FeaturemetricProblem, build_system, linearize, robust_weights
 from .damping import ConstantDamping
 
 logger = logging.getLogger(__name__)
@@ -156,10 +156,7 @@ class LevenbergMarquardt(nn.Module):
         for sl, part in chunks:
             lin = linearize(T[sl], part, self.interpolator)
             num_valid = lin.valid.sum(-1)
-            rho, w_loss, _ = self.loss_fn((lin.res ** 2).sum(-1))
-            weights = w_loss * lin.valid
-            if lin.confidence is not None:
-                weights = weights * lin.confidence
+            rho, weights = robust_weights(lin, self.loss_fn)
             g, H = build_system(lin, weights)
             conf = lin.confidence if lin.confidence is not None else lin.valid.to(rho.dtype)
             out.append((g, H, num_valid, (rho * conf).sum(-1) / num_valid.clamp(min=1)))
