@@ -107,15 +107,18 @@ class Interpolator:
     (linear mode): the LM samples precomputed central-difference maps
     (``append_gradient_maps``, the same gradients) rather than 5 taps per point at
     crowded levels (``pixloc.optim.cost.use_gradient_maps``); the LM solver turns
-    them on (docs/benchmarks.md, "RGB-D maps").
+    them on (docs/benchmarks.md, "RGB-D maps"). cell_products (with gradient maps): at inference, the
+    LM reads maps of few cells through the inner products of their cells
+    (``pixloc.optim.cost.CellProducts``, the same figures) instead of sampling them.
     """
 
-    def __init__(self, mode: str = "linear", pad: int = 2, gradient_maps: bool = False):
+    def __init__(self, mode: str = "linear", pad: int = 2, gradient_maps: bool = False, cell_products: bool = True):
         if mode not in _MODES:
             raise ValueError(f"Unknown interpolation mode {mode!r}; known: {sorted(_MODES)}.")
         self.mode = mode
         self.pad = pad
         self.gradient_maps = gradient_maps and mode == "linear"
+        self.cell_products = cell_products and self.gradient_maps
 
     def __call__(self, maps: Tensor, p2d: Tensor, gradients: bool = False
                  ) -> Tuple[Tensor, Tensor, Optional[Tensor]]:

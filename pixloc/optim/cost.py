@@ -8,7 +8,7 @@ import torch
 from torch import Tensor
 
 from ..geometry import Camera, Pose
-from ..interpolation import Interpolator, append_gradient_maps
+from ..interpolation import Interpolator, append_gradient_maps, mask_in_image
 
 
 @dataclass(frozen=True)
@@ -57,8 +57,10 @@ class FeaturemetricProblem:
                 raise ValueError(f"W_query must be (B, H, W) = ({B}, {Fq.shape[-2]}, {Fq.shape[-1]}), "
                                  f"got {tuple(self.W_query.shape)}.")
         if self.maps is not None and not (self.W_query is not None and self.maps.shape[1] == Fq.shape[1] + 1
-                                          and torch.equal(self.maps[:, -1], self.W_query)):
-            raise ValueError("maps must be F_query and W_query stacked, (B, C + 1, H, W).")
+                                          and _same_view(self.maps[:, -1], self.W_query)
+                                          and _same_view(self.maps[:, :-1], Fq)):
+            raise ValueError("maps must be F_query and W_query stacked, (B, C + 1, H, W), with F_query and "
+                             "W_query views of it.")
         if self.mask is not None and tuple(self.mask.shape) != (B, N):
             raise ValueError(f"mask must be (B, N) = ({B}, {N}), got {tuple(self.mask.shape)}.")
         if not torch.isfinite(p).all():
@@ -96,19 +98,36 @@ class FeaturemetricProblem:
         maps = self.query_maps
         return append_gradient_maps(maps, C, query_maps_layout(maps, maps.shape[1] + 2 * C))
 
+    @cached_property
+    def cell_products(self) -> "CellProducts":
+        """``CellProducts`` of the maps with gradients: built once per problem, read at every LM iteration."""
+        return CellProducts.of(self)
+
     @property
     def batch_size(self) -> int:
         return self.p3d_world.shape[0]
 
     def index(self, i) -> "FeaturemetricProblem":
-        """Sub-batch ``i`` (an int keeps a batch of one)."""
-        i = [i] if isinstance(i, int) else i
+        """Sub-batch ``i`` (an int keeps a batch of one). An int or a slice gives views, nothing is
+        copied (a 1,024 px query's finest maps are 90 MB); a list of indices copies."""
+        i = slice(i, i + 1) if isinstance(i, int) else i
 
         def sel(x):
             return None if x is None else x[i]
-        return replace(self, p3d_world=self.p3d_world[i], F_ref=self.F_ref[i], F_query=self.F_query[i],
-                       camera=self.camera[i], W_ref=sel(self.W_ref), W_query=sel(self.W_query),
-                       mask=sel(self.mask), maps=sel(self.maps))
+        if self.maps is not None:  # the query maps stay views of the stacked maps
+            maps = self.maps[i]
+            F_query, W_query = maps[:, :-1], maps[:, -1]
+        else:
+            maps, F_query, W_query = None, self.F_query[i], sel(self.W_query)
+        return replace(self, p3d_world=self.p3d_world[i], F_ref=self.F_ref[i], F_query=F_query,
+                       camera=self.camera[i], W_ref=sel(self.W_ref), W_query=W_query,
+                       mask=sel(self.mask), maps=maps)
+
+
+def _same_view(a: Tensor, b: Tensor) -> bool:
+    """Whether ``a`` and ``b`` are the same view of one storage (not only equal values)."""
+    return a.shape == b.shape and a.stride() == b.stride() and a.data_ptr() == b.data_ptr() \
+        and a.dtype == b.dtype and a.device == b.device
 
 
 def query_maps_layout(like: Tensor, channels: Optional[int] = None) -> torch.memory_format:
@@ -137,19 +156,23 @@ def new_query_maps(shape, like: Tensor, with_confidence: bool = True) -> Tensor:
 
 
 class Linearization(NamedTuple):
-    """Residuals and Jacobian factors at one pose.
+    """Residuals and Jacobian factors at one pose, reduced over the C feature channels.
 
-    res: (B, N, C); valid: (B, N); confidence: (B, N) product of both
-    confidences (None without confidences); J_f: (B, N, C, 2) feature
-    gradients in the query map; J_p2d_pose: (B, N, 2, 6) projection Jacobian.
-    The full Jacobian is J_f @ J_p2d_pose, never formed by the solver.
+    sq: (B, N) squared residual norms |r|^2; valid: (B, N); confidence: (B, N) product of both
+    confidences (None without confidences); Jf_r: (B, N, 2) J_f^T r and Jf_Jf: (B, N, 2, 2) J_f^T J_f,
+    for J_f (B, N, C, 2) the feature gradients in the query map; J_p2d_pose: (B, N, 2, 6) the
+    projection Jacobian. The full Jacobian J_f @ J_p2d_pose is never formed by the solver. Where
+    the maps were sampled, also res (B, N, C) and J_f themselves (None from ``CellProducts``).
     """
 
-    res: Tensor
+    sq: Tensor
     valid: Tensor
     confidence: Optional[Tensor]
-    J_f: Tensor
+    Jf_r: Tensor
+    Jf_Jf: Tensor
     J_p2d_pose: Tensor
+    res: Optional[Tensor] = None
+    J_f: Optional[Tensor] = None
 
 
 # Gradient maps (``append_gradient_maps``) are built when the map has at most this many cells per
@@ -157,11 +180,88 @@ class Linearization(NamedTuple):
 # (5 taps and a stack against 3 channel blocks), so they pay from the second iteration, and they
 # take no more memory than the 5-tap samples. Fine levels with few points keep the 5 taps.
 GRADIENT_MAPS_MAX_CELLS_PER_POINT = 2
+# Cell products (``CellProducts``) replace the sampling where, besides, the map has at most this many
+# cells: their cost, once per level, grows with cells x points, and they save most of an iteration's
+# sampling (docs/benchmarks.md, "The CPU query at Cambridge settings").
+CELL_PRODUCTS_MAX_CELLS = 256
 
 
 def use_gradient_maps(problem: FeaturemetricProblem, interpolator: Interpolator) -> bool:
     H, W = problem.F_query.shape[-2:]
     return interpolator.gradient_maps and H * W <= GRADIENT_MAPS_MAX_CELLS_PER_POINT * problem.p3d_world.shape[1]
+
+
+def use_cell_products(problem: FeaturemetricProblem, interpolator: Interpolator) -> bool:
+    """Where the interpolator allows it, at inference only (a training unroll differentiates the
+    sampled maps), on maps of at most ``CELL_PRODUCTS_MAX_CELLS`` cells sampled with gradient maps."""
+    H, W = problem.F_query.shape[-2:]
+    return interpolator.cell_products and not torch.is_grad_enabled() and H * W <= CELL_PRODUCTS_MAX_CELLS \
+        and use_gradient_maps(problem, interpolator)
+
+
+class CellProducts(NamedTuple):
+    """What the bilinear samples of a small map need, computed once per problem.
+
+    A bilinear sample of the maps at a point is a weighted sum of 4 cells, and its gradient maps'
+    samples too (``append_gradient_maps``): so the squared residual |v - f|^2, J_f^T r and J_f^T J_f of
+    ``linearize`` are sums of inner products of those cells with each other and with the point's
+    reference feature f. With e_0, e_1, e_2 the features and their x and y gradient maps, and the 4
+    cells j0, j0 + 1, j0 + W, j0 + W + 1 of a sample whose top-left cell is j0:
+    ``patches`` (B x HW, 16 x 9): e_p(j) . e_q(k) for the 16 pairs (j, k) of those cells and p, q;
+    ``ref`` (B x N, HW x 3): f_i . e_p(j) for every cell j; ``ref_sq`` (B, N): |f_i|^2;
+    ``confidence`` (B, HW) or None. An LM iteration then reads 144 + 12 numbers per point instead
+    of sampling 3 C + 1 channels at 4 cells: the same figures to float rounding."""
+
+    patches: Tensor
+    ref: Tensor
+    ref_sq: Tensor
+    confidence: Optional[Tensor]
+
+    @classmethod
+    def of(cls, problem: FeaturemetricProblem) -> "CellProducts":
+        C = problem.F_ref.shape[-1]
+        maps = problem.query_maps_with_gradients  # (B, K + 2 C, H, W): features [, confidence], x, y gradients
+        B, total, H, W = maps.shape
+        k = total - 2 * C
+        cells = maps.permute(0, 2, 3, 1).reshape(B, H * W, total)
+        e = torch.stack([cells[..., :C], cells[..., k:k + C], cells[..., k + C:]], 2).reshape(B, H * W * 3, C)
+        gram = (e @ e.transpose(1, 2)).reshape(B, H * W, 3, H * W, 3).permute(0, 1, 3, 2, 4)  # B x j x k x p x q
+        corners = (torch.arange(H * W, device=maps.device)[:, None]
+                   + torch.tensor([0, 1, W, W + 1], device=maps.device)).clamp(max=H * W - 1)  # HW x 4
+        patches = gram[:, corners[:, :, None], corners[:, None, :]]  # B x HW x 4 x 4 x 3 x 3
+        ref = problem.F_ref @ e.transpose(1, 2)  # B x N x (HW x 3)
+        confidence = cells[..., C].contiguous() if k > C else None
+        return cls(patches.reshape(B * H * W, 144), ref.reshape(-1, H * W * 3), (problem.F_ref ** 2).sum(-1),
+                   confidence)
+
+    def linearize(self, p2d: Tensor, size: Tuple[int, int]) -> Tuple[Tensor, Tensor, Tensor, Optional[Tensor]]:
+        """At points p2d (B, N, 2) of a map of ``size`` (H, W): |r|^2 (B, N), J_f^T r (B, N, 2),
+        J_f^T J_f (B, N, 2, 2) and the sampled query confidence (B, N) or None. Points outside the
+        map get finite values from its border cells (grid_sample gives zeros): they are not valid."""
+        H, W = size
+        B, N = p2d.shape[:2]
+        p = torch.nan_to_num(p2d, nan=0.0, posinf=0.0, neginf=0.0)
+        x, y = p[..., 0].clamp(0, W - 1), p[..., 1].clamp(0, H - 1)
+        x0, y0 = x.floor().clamp(max=max(W - 2, 0)), y.floor().clamp(max=max(H - 2, 0))
+        fx, fy = (x - x0).clamp(0, 1), (y - y0).clamp(0, 1)
+        j0 = (y0 * W + x0).long()  # B x N, the top-left cell
+        b = torch.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy], -1)  # B x N x 4
+        rows = j0 + (torch.arange(B, device=p.device) * (H * W))[:, None]
+        patch = self.patches.index_select(0, rows.reshape(-1)).reshape(B, N, 16, 9)
+        q = (patch * (b[..., :, None] * b[..., None, :]).reshape(B, N, 16, 1)).sum(2)  # s_p . s_q, B x N x 9
+        # f . s_p for the samples s_0 = v, s_1 = d v / dx, s_2 = d v / dy: cells j0, j0 + 1 and j0 + W, j0 + W + 1
+        offsets = torch.cat([torch.arange(6), torch.arange(6) + 3 * W]).to(p.device)
+        at = (torch.arange(B * N, device=p.device) * (H * W * 3)).reshape(B, N, 1) + 3 * j0[..., None] + offsets
+        r = (b[..., None] * self.ref.take(at.clamp(max=self.ref.numel() - 1)).reshape(B, N, 4, 3)).sum(2)
+        sq = (q[..., 0] - 2 * r[..., 0] + self.ref_sq).clamp(min=0)
+        Jf_r = torch.stack([q[..., 3] - r[..., 1], q[..., 6] - r[..., 2]], -1)
+        Jf_Jf = q[..., [4, 5, 7, 8]].reshape(B, N, 2, 2)
+        confidence = None
+        if self.confidence is not None:
+            corners = (rows[..., None] + torch.tensor([0, 1, W, W + 1], device=p.device)).clamp(
+                max=self.confidence.numel() - 1)
+            confidence = (b * self.confidence.take(corners)).sum(-1)
+        return sq, Jf_r, Jf_Jf, confidence
 
 
 def linearize(cam_from_world: Pose, problem: FeaturemetricProblem,
@@ -170,26 +270,37 @@ def linearize(cam_from_world: Pose, problem: FeaturemetricProblem,
     p3d_cam = cam_from_world.transform(problem.p3d_world)
     p2d, visible = problem.camera.cam2image(p3d_cam)
     C = problem.F_ref.shape[-1]
-    if use_gradient_maps(problem, interpolator):  # one sampling of maps and gradient maps: the same gradients
-        values, valid, J_f = interpolator.sample_with_gradients(problem.query_maps_with_gradients, p2d, C)
+    res = J_f = None
+    if use_cell_products(problem, interpolator):  # small maps: inner products of their cells, once per level
+        H, W = problem.F_query.shape[-2:]
+        valid = mask_in_image(p2d, p2d.new_tensor([W, H]), interpolator.pad)
+        sq, Jf_r, Jf_Jf, w_query = problem.cell_products.linearize(p2d, (H, W))
     else:
-        values, valid, grads = interpolator(problem.query_maps, p2d, gradients=True)
-        J_f = grads[..., :C, :]
-    F_p2d = values[..., :C]
+        if use_gradient_maps(problem, interpolator):  # one sampling of maps and gradient maps: the same gradients
+            values, valid, J_f = interpolator.sample_with_gradients(problem.query_maps_with_gradients, p2d, C)
+        else:
+            values, valid, grads = interpolator(problem.query_maps, p2d, gradients=True)
+            J_f = grads[..., :C, :]
+        res = values[..., :C] - problem.F_ref
+        w_query = values[..., C] if problem.W_ref is not None else None
+        J_fT = J_f.transpose(-1, -2)  # B x N x 2 x C, rows contiguous (see _bilinear)
+        sq = (res ** 2).sum(-1)
+        Jf_r = (J_fT @ res[..., None])[..., 0]  # B x N x 2
+        Jf_Jf = J_fT @ J_fT.transpose(-1, -2)  # B x N x 2 x 2
     valid = valid & visible
     if problem.mask is not None:
         valid = valid & problem.mask
     confidence = None
     if problem.W_ref is not None:
-        confidence = (problem.W_ref * values[..., C]).masked_fill(~valid, 0.0)
+        confidence = (problem.W_ref * w_query).masked_fill(~valid, 0.0)
     J_p2d_pose = problem.camera.J_cam2image(p3d_cam) @ cam_from_world.J_transform(p3d_cam)
-    return Linearization(F_p2d - problem.F_ref, valid, confidence, J_f, J_p2d_pose)
+    return Linearization(sq, valid, confidence, Jf_r, Jf_Jf, J_p2d_pose, res, J_f)
 
 
 def robust_weights(lin: Linearization, loss_fn) -> Tuple[Tensor, Tensor]:
     """Per point (B, N): the robust cost rho of its squared residual, and its weight in the normal
     equations: rho' x validity x the product of both confidences (where there are confidences)."""
-    rho, w_loss, _ = loss_fn((lin.res ** 2).sum(-1))
+    rho, w_loss, _ = loss_fn(lin.sq)
     weights = w_loss * lin.valid
     if lin.confidence is not None:
         weights = weights * lin.confidence
@@ -200,13 +311,10 @@ def build_system(lin: Linearization, weights: Tensor):
     """Gradient g = sum w J^T r (B, 6) and Gauss-Newton Hessian H = sum w J^T J (B, 6, 6).
 
     J = J_f @ J_p2d_pose is factored so that the C-dim contraction happens in
-    2D first: O(N C) instead of official PixLoc's O(N C 36) per-point 6x6.
+    2D first (``Linearization``): O(N C) instead of official PixLoc's O(N C 36) per-point 6x6.
     """
-    J_f = lin.J_f.transpose(-1, -2)  # B x N x 2 x C, rows contiguous (see _bilinear)
-    Jf_r = (J_f @ lin.res[..., None])[..., 0]  # B x N x 2
-    Jf_Jf = J_f @ J_f.transpose(-1, -2)  # B x N x 2 x 2
     B = weights.shape[0]
     Jp_w = (lin.J_p2d_pose * weights[..., None, None]).reshape(B, -1, 6)  # B x 2N x 6
-    g = (Jp_w * Jf_r.reshape(B, -1, 1)).sum(1)
-    H = Jp_w.transpose(1, 2) @ (Jf_Jf @ lin.J_p2d_pose).reshape(B, -1, 6)
+    g = (Jp_w * lin.Jf_r.reshape(B, -1, 1)).sum(1)
+    H = Jp_w.transpose(1, 2) @ (lin.Jf_Jf @ lin.J_p2d_pose).reshape(B, -1, 6)
     return g, H

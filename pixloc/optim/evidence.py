@@ -152,8 +152,8 @@ def _covariance(problem: FeaturemetricProblem, cam_from_world: Pose, loss_fn: Ca
     lin = linearize(cam_from_world, problem, interpolator)
     _, weights = robust_weights(lin, loss_fn)
     _, H = build_system(lin, weights)
-    m = lin.valid.sum(-1) * lin.res.shape[-1]
-    s2 = (weights * (lin.res ** 2).sum(-1)).sum(-1).double() / (m - 6).clamp(min=1)
+    m = lin.valid.sum(-1) * problem.F_ref.shape[-1]
+    s2 = (weights * lin.sq).sum(-1).double() / (m - 6).clamp(min=1)
     p3d = cam_from_world.transform(problem.p3d_world)
     z = torch.where(lin.valid, p3d[..., 2], torch.full_like(p3d[..., 2], float("nan")))
     depth = torch.nan_to_num(z.nanmedian(-1).values.double(), nan=1.0).clamp(min=1e-9)

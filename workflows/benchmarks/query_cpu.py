@@ -15,7 +15,9 @@ layout, float32) and glibc mapping every block over 32 MiB afresh (as a worker r
 Variants, each adding to the one above: ``BatchNorm folded`` (into the preceding convs),
 ``channels-last`` activations, ``split convs, 1x1 by oneDNN`` (the decoder's convs of a concatenation
 as a sum of convs, and 1x1 convs through oneDNN: ``pixloc.nets.unet.prepare_for_inference`` is these
-four), ``freed memory reused`` (``pipeline.runtime.keep_freed_memory``), ``rival starts, every level``
+four), ``freed memory reused`` (``pipeline.runtime.keep_freed_memory``), ``cell products`` (the LM reads
+maps of few cells, the coarsest level at 256 px, through the inner products of their cells:
+``pixloc.optim.cost.CellProducts``; the rows above sample them, as the code did), ``rival starts, every level``
 (verification's rival starts, ``--rivals 1``: the default since 2026-12-04; the rows above run without
 them, as the code did), ``rival starts, stopped where they join`` (the default since 2026-12-05: a rival
 stops at a coarser level where it has reached the query's start, ``--rival-join``), ``bfloat16 network``
@@ -69,6 +71,7 @@ class Variant:
     precision: str = "float32"
     rivals: int = 0  # verification's rival starts (the default since 2026-12-04 is 1)
     join: float = 0.5  # a rival stops where it joins the query's start (verification.join; 0: never)
+    cells: bool = True  # the LM reads the coarsest maps through their cells' inner products (2026-12-05)
 
 
 def _channels_last(net: nn.Module) -> nn.Module:
@@ -83,11 +86,12 @@ def _compiled(net: nn.Module) -> nn.Module:
     return torch.compile(_channels_last(net), dynamic=True)
 
 
-VARIANTS = [Variant("today", lambda net: net, keep_freed=False),
-            Variant("BatchNorm folded", fold_batchnorm, keep_freed=False),
-            Variant("channels-last", _channels_last, keep_freed=False),
-            Variant("split convs, 1x1 by oneDNN", prepare_for_inference, keep_freed=False),
-            Variant("freed memory reused", prepare_for_inference),
+VARIANTS = [Variant("today", lambda net: net, keep_freed=False, cells=False),
+            Variant("BatchNorm folded", fold_batchnorm, keep_freed=False, cells=False),
+            Variant("channels-last", _channels_last, keep_freed=False, cells=False),
+            Variant("split convs, 1x1 by oneDNN", prepare_for_inference, keep_freed=False, cells=False),
+            Variant("freed memory reused", prepare_for_inference, cells=False),
+            Variant("cell products", prepare_for_inference),
             Variant("rival starts, every level", prepare_for_inference, rivals=1, join=0.0),
             Variant("rival starts, stopped where they join (default)", prepare_for_inference, rivals=1),
             Variant("bfloat16 network", prepare_for_inference, precision="bfloat16", rivals=1)]
@@ -119,11 +123,14 @@ def _run(variant: Variant, refiner, parts, compile_s: Dict[str, float]) -> Dict:
     conf = dataclasses.replace(CAMBRIDGE, network_precision=variant.precision,
                                verification=dataclasses.replace(CAMBRIDGE.verification, rivals=variant.rivals,
                                                                 join=variant.join))
+    solvers = copy.deepcopy(refiner.solvers)
+    for solver in solvers:
+        solver.interpolator.cell_products = variant.cells
     out = {"records": [], "results": [], "cpu": 0.0, "before": 0.0, "network": 0.0, "lm": 0.0}
     for name, store, queries, gt in parts:
         reader = MapReader(store, store_feature_config(store), refiner.feature_digest())
         job = LocalizationJob(str(store), reader.conf, DEFAULT_MODEL, conf, RetrievalConfig(k=5), prior="top1")
-        localizer = Localizer(net, refiner.solvers, reader, conf)
+        localizer = Localizer(net, solvers, reader, conf)
         with torch_threads(1):
             if variant.name not in compile_s and variant in COMPILED:
                 t0 = time.perf_counter()
