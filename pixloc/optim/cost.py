@@ -119,9 +119,12 @@ class FeaturemetricProblem:
             F_query, W_query = maps[:, :-1], maps[:, -1]
         else:
             maps, F_query, W_query = None, self.F_query[i], sel(self.W_query)
-        return replace(self, p3d_world=self.p3d_world[i], F_ref=self.F_ref[i], F_query=F_query,
-                       camera=self.camera[i], W_ref=sel(self.W_ref), W_query=W_query,
-                       mask=sel(self.mask), maps=maps)
+        sub = replace(self, p3d_world=self.p3d_world[i], F_ref=self.F_ref[i], F_query=F_query,
+                      camera=self.camera[i], W_ref=sel(self.W_ref), W_query=W_query,
+                      mask=sel(self.mask), maps=maps)
+        if "cell_products" in self.__dict__:  # built for the whole batch: the LM's chunks share them
+            sub.__dict__["cell_products"] = CellProducts(*(sel(x) for x in self.cell_products))
+        return sub
 
 
 def _same_view(a: Tensor, b: Tensor) -> bool:
@@ -210,8 +213,8 @@ class CellProducts(NamedTuple):
     ``linearize`` are sums of inner products of those cells with each other and with the point's
     reference feature f. With e_0, e_1, e_2 the features and their x and y gradient maps, and the 4
     cells j0, j0 + 1, j0 + W, j0 + W + 1 of a sample whose top-left cell is j0:
-    ``patches`` (B x HW, 16 x 9): e_p(j) . e_q(k) for the 16 pairs (j, k) of those cells and p, q;
-    ``ref`` (B x N, HW x 3): f_i . e_p(j) for every cell j; ``ref_sq`` (B, N): |f_i|^2;
+    ``patches`` (B, HW, 16 x 9): e_p(j) . e_q(k) for the 16 pairs (j, k) of those cells and p, q;
+    ``ref`` (B, N, HW x 3): f_i . e_p(j) for every cell j; ``ref_sq`` (B, N): |f_i|^2;
     ``confidence`` (B, HW) or None. An LM iteration then reads 144 + 12 numbers per point instead
     of sampling 3 C + 1 channels at 4 cells: the same figures to float rounding."""
 
@@ -234,8 +237,7 @@ class CellProducts(NamedTuple):
         patches = gram[:, corners[:, :, None], corners[:, None, :]]  # B x HW x 4 x 4 x 3 x 3
         ref = problem.F_ref @ e.transpose(1, 2)  # B x N x (HW x 3)
         confidence = cells[..., C].contiguous() if k > C else None
-        return cls(patches.reshape(B * H * W, 144), ref.reshape(-1, H * W * 3), (problem.F_ref ** 2).sum(-1),
-                   confidence)
+        return cls(patches.reshape(B, H * W, 144), ref, (problem.F_ref ** 2).sum(-1), confidence)
 
     def linearize(self, p2d: Tensor, size: Tuple[int, int]) -> Tuple[Tensor, Tensor, Tensor, Optional[Tensor]]:
         """At points p2d (B, N, 2) of a map of ``size`` (H, W): |r|^2 (B, N), J_f^T r (B, N, 2),
@@ -250,12 +252,13 @@ class CellProducts(NamedTuple):
         j0 = (y0 * W + x0).long()  # B x N, the top-left cell
         b = torch.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy], -1)  # B x N x 4
         rows = j0 + (torch.arange(B, device=p.device) * (H * W))[:, None]
-        patch = self.patches.index_select(0, rows.reshape(-1)).reshape(B, N, 16, 9)
+        patch = self.patches.reshape(B * H * W, 144).index_select(0, rows.reshape(-1)).reshape(B, N, 16, 9)
         q = (patch * (b[..., :, None] * b[..., None, :]).reshape(B, N, 16, 1)).sum(2)  # s_p . s_q, B x N x 9
         # f . s_p for the samples s_0 = v, s_1 = d v / dx, s_2 = d v / dy: cells j0, j0 + 1 and j0 + W, j0 + W + 1
         offsets = torch.cat([torch.arange(6), torch.arange(6) + 3 * W]).to(p.device)
         at = (torch.arange(B * N, device=p.device) * (H * W * 3)).reshape(B, N, 1) + 3 * j0[..., None] + offsets
-        r = (b[..., None] * self.ref.take(at.clamp(max=self.ref.numel() - 1)).reshape(B, N, 4, 3)).sum(2)
+        ref = self.ref.contiguous()  # a sub-batch's rows of the batch's products
+        r = (b[..., None] * ref.take(at.clamp(max=ref.numel() - 1)).reshape(B, N, 4, 3)).sum(2)
         sq = (q[..., 0] - 2 * r[..., 0] + self.ref_sq).clamp(min=0)
         Jf_r = torch.stack([q[..., 3] - r[..., 1], q[..., 6] - r[..., 2]], -1)
         Jf_Jf = q[..., [4, 5, 7, 8]].reshape(B, N, 2, 2)
@@ -263,7 +266,7 @@ class CellProducts(NamedTuple):
         if self.confidence is not None:
             corners = (rows[..., None] + torch.tensor([0, 1, W, W + 1], device=p.device)).clamp(
                 max=self.confidence.numel() - 1)
-            confidence = (b * self.confidence.take(corners)).sum(-1)
+            confidence = (b * self.confidence.contiguous().take(corners)).sum(-1)
         return sq, Jf_r, Jf_Jf, confidence
 
 

@@ -14,7 +14,7 @@ from torch import Tensor, nn
 from ..geometry import Pose
 from ..interpolation import Interpolator
 from ..losses import get_loss
-from .cost import FeaturemetricProblem, build_system, linearize, robust_weights
+from .cost import FeaturemetricProblem, build_system, linearize, robust_weights, use_cell_products
 from .damping import ConstantDamping
 
 logger = logging.getLogger(__name__)
@@ -179,6 +179,8 @@ class LevenbergMarquardt(nn.Module):
         active = torch.ones(B, dtype=torch.bool, device=device)
         iterations = torch.zeros(B, dtype=torch.long, device=device)
         costs, trajectory = [], []
+        if use_cell_products(problem, self.interpolator):  # built once for the batch; its chunks share them
+            _ = problem.cell_products
         chunks, linearized = self._chunks(problem), active
         for i in range(num_iters):
             if linearized is active:

@@ -8,7 +8,8 @@ import pytest
 from workflows.cli import main
 
 VARIANTS = ["today", "BatchNorm folded", "channels-last", "split convs, 1x1 by oneDNN", "freed memory reused",
-            "cell products", "rival starts, every level", "rival starts, stopped where they join (default)", "bfloat16 network"]
+            "cell products", "rival starts, every level", "rival starts, stopped where they join (default)",
+            "bfloat16 network"]
 
 
 @pytest.fixture(scope="module")

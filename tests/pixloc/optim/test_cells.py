@@ -10,9 +10,11 @@ from pixloc.optim.cost import CELL_PRODUCTS_MAX_CELLS, use_cell_products
 from pixloc.optim.evidence import alignment_uncertainty
 
 
-def coarse_problem(B=2, N=600, C=32, H=11, W=16, seed=0, dtype=torch.float64):
+def coarse_problem(B=2, N=600, C=32, H=11, W=16, seed=0, dtype=torch.float64, basin=False):
     """A coarsest level: maps of H x W cells (a 256 px query at stride 16), many more points than
-    cells, some of them outside the map or behind the camera."""
+    cells, some of them outside the map or behind the camera. ``basin``: reference features sampled
+    where the points project at the identity pose, so that the LM converges there, the first problem
+    starting at it."""
     g = torch.Generator().manual_seed(seed)
     cam = Camera(torch.tensor([W, H, 0.9 * W, 0.9 * W, (W - 1) / 2, (H - 1) / 2])).reshape(1).expand(B)
     maps = torch.nn.functional.interpolate(torch.randn(B, C, 4, 5, generator=g), size=(H, W), mode="bilinear")
@@ -22,10 +24,15 @@ def coarse_problem(B=2, N=600, C=32, H=11, W=16, seed=0, dtype=torch.float64):
     depth[:, :10] *= -1  # behind the camera
     p3d = torch.cat([(p2d - cam.c[:, None]) / cam.f[:, None], torch.ones_like(depth)], -1) * depth
     F_ref = torch.nn.functional.normalize(torch.randn(B, N, C, generator=g), dim=-1)
+    if basin:
+        grid = (p2d / torch.tensor([W - 1.0, H - 1.0]) * 2 - 1)[:, None]
+        F_ref = torch.nn.functional.grid_sample(F_query, grid, align_corners=True)[:, :, 0].transpose(1, 2)
     problem = FeaturemetricProblem(p3d.to(dtype), F_ref.to(dtype), F_query.to(dtype), cam.to(dtype),
                                    torch.rand(B, N, generator=g).to(dtype), torch.rand(B, H, W, generator=g).to(dtype))
-    T = Pose.exp(torch.randn(B, 6, generator=g) * torch.tensor([0.05] * 3 + [0.02] * 3)).to(dtype)
-    return problem, T
+    xi = torch.randn(B, 6, generator=g) * torch.tensor([0.05] * 3 + [0.02] * 3)
+    if basin:
+        xi[0] = 0
+    return problem, Pose.exp(xi).to(dtype)
 
 
 def test_cell_products_give_the_sampled_linearization():
@@ -66,3 +73,23 @@ def test_larger_maps_are_sampled():
     with torch.no_grad():
         assert not use_cell_products(problem, Interpolator("linear", pad=2, gradient_maps=True))
         assert not use_cell_products(coarse_problem()[0], Interpolator("linear", pad=2))  # no gradient maps
+
+
+def test_chunks_and_stopped_problems_share_the_batchs_products(monkeypatch):
+    """The LM cuts a batch into chunks, and again as problems stop: their sub-problems read the
+    products built once for the whole batch, with the same result as one chunk."""
+    from pixloc.optim import cost
+    built = []
+    real = cost.CellProducts.of.__func__
+    monkeypatch.setattr(cost.CellProducts, "of", classmethod(lambda cls, p: built.append(p.batch_size) or real(cls, p)))
+    problem, T = coarse_problem(B=5, N=300, dtype=torch.float32, seed=2, basin=True)
+    with torch.no_grad():
+        whole = LevenbergMarquardt(ConstantDamping(1e-2), num_iters=40).eval()(problem, T)
+        fresh, _ = coarse_problem(B=5, N=300, dtype=torch.float32, seed=2, basin=True)
+        chunked = LevenbergMarquardt(ConstantDamping(1e-2), num_iters=40, chunk_points=600).eval()
+        assert len(chunked._chunks(fresh)) == 3
+        result = chunked(fresh, T)
+    assert built == [5, 5]  # once per batch, not per chunk or per check where problems stop
+    assert len(set(whole.iterations.tolist())) > 1  # problems stopped at different checks
+    torch.testing.assert_close(result.pose.data, whole.pose.data, atol=1e-6, rtol=0)
+    assert result.iterations.tolist() == whole.iterations.tolist()
