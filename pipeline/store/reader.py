@@ -39,9 +39,11 @@ class MapReader:
     """A map store opened for localization with one feature config.
 
     Refuses a store whose features were made by another model (``digest``)
-    or config. Reference blocks (an image's rows at one image scale, every level, as float32) are
-    read once and cached, least recently used first out, up to ``cache_images`` blocks and
-    ``cache_bytes`` bytes; ``stats`` counts the blocks read, the cache hits and the bytes read.
+    or config. Reference blocks (an image's rows at one image scale, every level) are read once and
+    cached as stored (int8 codes or float16, principal components), least recently used first out, up
+    to ``cache_images`` blocks and ``cache_bytes`` bytes, and decoded to float32 per query for the rows
+    it uses: as float32 the cache held 3.5 times the bytes (docs/scaling.md, "S2"). ``stats`` counts
+    the blocks read, the cache hits and the bytes read.
     """
 
     def __init__(self, path, conf: FeatureConfig, digest: Optional[str] = None, cache_images: int = 256,
@@ -196,10 +198,10 @@ class MapReader:
         points = {int(s): i for i, s in enumerate(self.point_source_id) if s >= 0}
         return images, points
 
-    def _read_block(self, i: int, scale: int) -> Tuple[Tuple[List[np.ndarray], np.ndarray, np.ndarray], int]:
-        """Image i's rows at one image scale: (per level features (N, C_l) float32, then
-        confidences (N, L) float32 and valid (N, L)), and the bytes read (thread-safe: the
-        callers count and cache it)."""
+    def _read_block(self, i: int, scale: int) -> Tuple[Dict[str, np.ndarray], int]:
+        """Image i's rows at one image scale as stored (features, and their int8 scales, confidences,
+        valid), and the bytes read (thread-safe: the callers count and cache it). They are decoded
+        per query, for the rows it uses (``_decode``)."""
         s = slice(int(self.row_start[i]), int(self.row_start[i] + self.num_obs[i]))
         arrays = self._block_arrays[scale]
         self._check_present(i, list(arrays.values()))
@@ -210,15 +212,21 @@ class MapReader:
             except Exception as e:  # zarr/numcodecs raise many types for a bad chunk  # noqa: BLE001
                 raise StoreReadError(f"map store {self.path}: array {array.path} cannot be read for "
                                      f"reference image {self.names[i]}: {type(e).__name__}: {e}") from None
-        if "scales" in out:
-            features = dequantize_int8(out["features"], out["scales"], self.stored_dims)
+        return out, sum(a.nbytes for a in out.values())
+
+    def _decode(self, block: Dict[str, np.ndarray], rows: np.ndarray, scale: int
+                ) -> Tuple[List[np.ndarray], np.ndarray, np.ndarray]:
+        """``rows`` of a stored block: per level features (N, C_l) float32 (int8 codes times their
+        scales, principal components reconstructed), confidences (N, L) float32, valid (N, L)."""
+        if "scales" in block:
+            features = dequantize_int8(block["features"][rows], block["scales"][rows], self.stored_dims)
         else:
             edges = np.cumsum([0] + self.stored_dims)
-            features = [out["features"][:, edges[k]:edges[k + 1]].astype(np.float32)
-                        for k in range(len(self.stored_dims))]
+            stored = block["features"][rows]
+            features = [stored[:, edges[k]:edges[k + 1]].astype(np.float32) for k in range(len(self.stored_dims))]
         features = [reconstruct(f, self.pca[(scale, level)]) if (scale, level) in self.pca else f
                     for level, f in enumerate(features)]
-        return (features, out["confidences"].astype(np.float32), out["valid"]), sum(a.nbytes for a in out.values())
+        return features, block["confidences"][rows].astype(np.float32), block["valid"][rows]
 
     def clear_cache(self) -> None:
         """Forget every block, row and object read (the next reads go to the store)."""
@@ -235,12 +243,9 @@ class MapReader:
             return [fn(a) for a in args]
         return list(_read_pool(self._read_threads).map(fn, args))
 
-    def block(self, i: int, scale: int):
-        """The cached block of image i at ``scale`` (see ``_read_block``); counts cache hits."""
-        return self.blocks([i], scale)[0]
-
     def blocks(self, images: List[int], scale: int) -> list:
-        """The blocks of ``images`` at ``scale``, the ones not cached read concurrently."""
+        """The blocks of ``images`` at ``scale`` as stored (``_read_block``), the ones not cached read
+        concurrently; counts cache hits."""
         keys = [(int(i), int(scale)) for i in images]
         todo = list(dict.fromkeys(k for k in keys if k not in self._blocks))
         read = dict(zip(todo, self._concurrently(lambda k: self._read_block(*k), todo)))
@@ -253,7 +258,7 @@ class MapReader:
         max_blocks, max_bytes = self._cache_limits
         for key, (block, nbytes) in read.items():
             self._blocks[key] = block
-            self._cached_bytes += _nbytes(block)
+            self._cached_bytes += nbytes
             while len(self._blocks) > 1 and (len(self._blocks) > max_blocks or self._cached_bytes > max_bytes):
                 self._cached_bytes -= _nbytes(self._blocks.popitem(last=False)[1])
             self.stats["blocks"] += 1
@@ -266,11 +271,11 @@ class MapReader:
         M = len(obs.rows)
         out = [(np.zeros((M, dim), np.float32), np.zeros(M, np.float32), np.zeros(M, bool)) for dim in self.dims]
         images = [int(i) for i in np.unique(obs.db)]
-        for i, (f, w, v) in zip(images, self.blocks(images, scale)):
+        for i, block in zip(images, self.blocks(images, scale)):
             sel = np.flatnonzero(obs.db == i)
-            local = obs.rows[sel] - self.row_start[i]
+            f, w, v = self._decode(block, obs.rows[sel] - self.row_start[i], scale)
             for level, (F, W, V) in enumerate(out):
-                F[sel], W[sel], V[sel] = f[level][local], w[local, level], v[local, level]
+                F[sel], W[sel], V[sel] = f[level], w[:, level], v[:, level]
         return out
 
 
@@ -281,9 +286,8 @@ def _read_pool(threads: int) -> ThreadPoolExecutor:
     return ThreadPoolExecutor(threads, thread_name_prefix="map-store-read")
 
 
-def _nbytes(block) -> int:
-    features, confidences, valid = block
-    return sum(f.nbytes for f in features) + confidences.nbytes + valid.nbytes
+def _nbytes(block: Dict[str, np.ndarray]) -> int:
+    return sum(a.nbytes for a in block.values())
 
 
 _OPEN: Dict[Tuple, Tuple[Tuple, MapReader]] = {}
