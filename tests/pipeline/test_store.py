@@ -296,9 +296,18 @@ def test_reader_block_cache_is_bounded_and_counts_hits(built):
     path, _ = built
     reader = MapReader(path, CONF)
     obs = reader.observations([0, 1], 1)
-    reader.features(obs, 1)
-    reader.features(obs, 1)
+    first = reader.features(obs, 1)
+    again = reader.features(obs, 1)
     assert reader.stats["blocks"] == 2 and reader.stats["hits"] == 2 and reader.stats["bytes"] > 0
+    # cached as stored, decoded per call: the cache holds the bytes read, not their float32 decoding
+    assert reader._cached_bytes == reader.stats["bytes"]
+    for (f, w, v), (f2, w2, v2) in zip(first, again):
+        assert f.dtype == np.float32 and np.array_equal(f, f2) and np.array_equal(w, w2) and np.array_equal(v, v2)
+    some = reader.observations([1], 1)
+    some = type(some)(some.point[::3], some.db[::3], some.rows[::3])  # a subset of an image's rows
+    for (f, w, v), (F, W, V) in zip(reader.features(some, 1), first):
+        at = np.flatnonzero(obs.db == 1)[::3]
+        assert np.array_equal(f, F[at]) and np.array_equal(w, W[at]) and np.array_equal(v, V[at])
     one = reader._cached_bytes // 2
     small = MapReader(path, CONF, cache_bytes=int(1.2 * one))  # room for about one block
     for _ in range(2):  # a call reads its missing blocks together: the last one read stays
