@@ -40,3 +40,29 @@ def test_the_exact_speed_ups_keep_todays_pose_and_recall(rows):
 def test_the_search_runs_one_network_pass_per_image_scale_for_all_its_starts(rows):
     assert rows["search"]["passes"] == 2.0  # the store's image scales [4, 1]
     assert rows["search"]["runs"] > 10  # its starts, screened and refined, share those passes
+
+
+EARLIER = "8975496"  # the code when issue 31 was filed
+
+
+def _has_commit(rev: str) -> bool:
+    import subprocess
+    from pathlib import Path
+    repo = Path(__file__).resolve().parents[2]
+    return subprocess.run(["git", "-C", str(repo), "cat-file", "-e", f"{rev}^{{commit}}"],
+                          capture_output=True).returncode == 0
+
+
+def test_the_earlier_code_runs_the_same_query_in_its_own_process(shared, tmp_path):
+    """--earlier-code: the real baseline, the commit's own code on a copy of the same map, its poses
+    compared with the default's."""
+    if not _has_commit(EARLIER):
+        pytest.skip(f"commit {EARLIER} is not in this clone (a shallow one)")
+    work = tmp_path / "query-cpu"
+    assert main(["benchmark", "query-cpu", "--shared", str(shared), "--work", str(work), "--scenes", "kermit",
+                 "--limit", "1", "--variants", "rival starts, stopped where they join (default)",
+                 "--earlier-code", EARLIER]) == 0
+    earlier = json.loads((work / "rows.json").read_text())["earlier"]
+    assert earlier["rev"] == EARLIER and earlier["cpu_s"] > 0 and earlier["default_speedup"] > 0
+    assert earlier["unmatched"] == 0 and earlier["max_dR"] < 0.05 and earlier["max_dt_pct"] < 0.05
+    assert (work / f"code-{EARLIER}" / "pipeline").is_dir()  # its checkout, beside the maps it copied

@@ -25,7 +25,9 @@ stops at a coarser level where it has reached the query's start, ``--rival-join`
 with ``--compile``, ``torch.compile`` of the default network (inductor, dynamic shapes), in float32
 and bfloat16, its one-off compile time printed apart. Also measured: the ``search`` prior's network
 passes per query against its LM runs (one pass per image scale serves every start). With ``--onnx``,
-one network pass is also timed in ONNX Runtime (not a dependency).
+one network pass is also timed in ONNX Runtime (not a dependency). With ``--earlier-code REV``, the
+same queries are also run by the code of commit REV (``earlier_code``), the real baseline that ``today``
+emulates, and the default's speed-up and pose differences are given against it.
 """
 
 import argparse
@@ -56,6 +58,7 @@ from pixloc.nets.unet import fold_batchnorm, prepare_for_inference
 from workflows.cli_localize import store_feature_config
 
 from . import accuracy
+from .earlier_code import pose_differences, run_earlier
 from .sacre_coeur import sacre_coeur
 
 CAMBRIDGE = LocalizerConfig(num_dbs=5, average_observations=True, num_iters=100)
@@ -95,6 +98,7 @@ VARIANTS = [Variant("today", lambda net: net, keep_freed=False, cells=False),
             Variant("rival starts, every level", prepare_for_inference, rivals=1, join=0.0),
             Variant("rival starts, stopped where they join (default)", prepare_for_inference, rivals=1),
             Variant("bfloat16 network", prepare_for_inference, precision="bfloat16", rivals=1)]
+DEFAULT_VARIANT = "rival starts, stopped where they join (default)"
 COMPILED = [Variant("torch.compile", _compiled, rivals=1),
             Variant("torch.compile, bfloat16", _compiled, precision="bfloat16", rivals=1)]
 
@@ -110,6 +114,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--limit", type=int, default=0, help="at most this many queries per map part (0: all)")
     p.add_argument("--onnx", action="store_true", help="also time the network pass in ONNX Runtime (needs the "
                    "onnxruntime and onnx packages, which the project does not depend on)")
+    p.add_argument("--earlier-code", metavar="REV", help="also run the queries with the code of commit REV (a git "
+                   "worktree in --work, its own process and defaults, a copy of the maps), e.g. 8975496, the code "
+                   "when issue 31 was filed: the real baseline that 'today' emulates")
 
 
 def _pose(matrix) -> Pose:
@@ -288,6 +295,29 @@ def main(args: argparse.Namespace) -> int:
     if onnx:
         print(f"- one network pass at 1024 x 672 px: today {onnx['today']:.3f} s, prepared {onnx['prepared']:.3f} s, "
               f"ONNX Runtime {onnx['onnxruntime']:.3f} s")
+    earlier = _earlier(args, parts, runs, by_scene, metric) if args.earlier_code else None
     (args.work / "rows.json").write_text(json.dumps({"queries": n, "rows": rows, "search": passes,
-                                                     "compile_s": compile_s, "onnx": onnx}, indent=1))
+                                                     "compile_s": compile_s, "onnx": onnx, "earlier": earlier},
+                                                    indent=1))
     return 0
+
+
+def _earlier(args: argparse.Namespace, parts, runs: Dict, by_scene, metric) -> Dict:
+    """The queries run by the code of ``--earlier-code`` (``earlier_code``), against the default variant."""
+    earlier = run_earlier(args.earlier_code, args.work, args.shared, args.scenes, args.limit)
+    keys = [(f"{name}/{q.name}", key) for name, _, queries, key in parts for q in queries]
+    n = len(keys)
+    out = {"rev": args.earlier_code, "cpu_s": earlier["cpu_s"] / n,
+           "today_speedup": earlier["cpu_s"] / runs["today"]["cpu"]}
+    default = runs.get(DEFAULT_VARIANT)
+    if default is not None:
+        refined = {k: r.refined for (k, _), r in zip(keys, default["results"])}
+        out.update(default_speedup=earlier["cpu_s"] / default["cpu"], **pose_differences(
+            earlier["poses"], refined, {k: metric[key] for k, key in keys}, {k: by_scene[key][1] for k, key in keys}))
+    print(f"- the code of {args.earlier_code} (its own network, settings and verification): {out['cpu_s']:.3f} CPU s "
+          f"per query (today, its emulation: {runs['today']['cpu'] / n:.3f})")
+    if default is not None:
+        print(f"  the default is {out['default_speedup']:.2f}x faster than it; its poses against the default's: "
+              f"max |dc| {out['max_dt_mm']:.3f} mm (metric), {out['max_dt_pct']:.4f} % (others), max dR "
+              f"{out['max_dR']:.4f} deg, {out['unmatched']} refined by one only")
+    return out
