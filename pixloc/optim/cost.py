@@ -189,6 +189,9 @@ GRADIENT_MAPS_MAX_CELLS_PER_POINT = 2
 # to build and 1.5-1.9 ms per linearization against 3.4-4.0 ms sampled; 21 x 32 cells took 35-45 ms
 # to build and saved nothing per linearization.
 CELL_PRODUCTS_MAX_CELLS = 256
+# ... and where its reference products (points x cells x 3, float32) take at most this many bytes per
+# problem: they are kept for the whole level, where the sampling's are transient
+CELL_PRODUCTS_MAX_BYTES = 32 * 2**20
 
 
 def use_gradient_maps(problem: FeaturemetricProblem, interpolator: Interpolator) -> bool:
@@ -199,10 +202,13 @@ def use_gradient_maps(problem: FeaturemetricProblem, interpolator: Interpolator)
 def use_cell_products(problem: FeaturemetricProblem, interpolator: Interpolator) -> bool:
     """Where the interpolator allows it, at inference only (a training unroll differentiates the
     sampled maps), on CPU only (where it was measured), on maps of at most
-    ``CELL_PRODUCTS_MAX_CELLS`` cells sampled with gradient maps."""
+    ``CELL_PRODUCTS_MAX_CELLS`` cells sampled with gradient maps, for at most ``CELL_PRODUCTS_MAX_BYTES``
+    of reference products per problem."""
     H, W = problem.F_query.shape[-2:]
+    points = problem.p3d_world.shape[1]
     return interpolator.cell_products and not torch.is_grad_enabled() and problem.F_query.device.type == "cpu" \
-        and H * W <= CELL_PRODUCTS_MAX_CELLS and use_gradient_maps(problem, interpolator)
+        and H * W <= CELL_PRODUCTS_MAX_CELLS and points * H * W * 12 <= CELL_PRODUCTS_MAX_BYTES \
+        and use_gradient_maps(problem, interpolator)
 
 
 class CellProducts(NamedTuple):

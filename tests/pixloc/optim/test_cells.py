@@ -6,7 +6,7 @@ import torch
 from pixloc.geometry import Camera, Pose
 from pixloc.interpolation import Interpolator
 from pixloc.optim import ConstantDamping, FeaturemetricProblem, LevenbergMarquardt, linearize
-from pixloc.optim.cost import CELL_PRODUCTS_MAX_CELLS, use_cell_products
+from pixloc.optim.cost import CELL_PRODUCTS_MAX_BYTES, CELL_PRODUCTS_MAX_CELLS, use_cell_products
 from pixloc.optim.evidence import alignment_uncertainty
 
 
@@ -67,12 +67,16 @@ def test_cell_products_give_the_same_solve_and_uncertainty():
         torch.testing.assert_close(sigma_cells[key], sigma[key], rtol=1e-4, atol=1e-6)
 
 
-def test_larger_maps_are_sampled():
+def test_larger_maps_and_crowds_of_points_are_sampled():
     problem, _ = coarse_problem(N=4000, H=24, W=32)  # 768 cells
     assert 24 * 32 > CELL_PRODUCTS_MAX_CELLS
+    interp = Interpolator("linear", pad=2, gradient_maps=True)
     with torch.no_grad():
-        assert not use_cell_products(problem, Interpolator("linear", pad=2, gradient_maps=True))
+        assert not use_cell_products(problem, interp)
         assert not use_cell_products(coarse_problem()[0], Interpolator("linear", pad=2))  # no gradient maps
+        crowd = coarse_problem(B=1, N=CELL_PRODUCTS_MAX_BYTES // (11 * 16 * 12) + 1)[0]
+        assert not use_cell_products(crowd, interp)  # its products would outweigh the sampling's memory
+        assert use_cell_products(coarse_problem(B=1, N=CELL_PRODUCTS_MAX_BYTES // (11 * 16 * 12))[0], interp)
 
 
 def test_chunks_and_stopped_problems_share_the_batchs_products(monkeypatch):
