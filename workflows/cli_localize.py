@@ -73,6 +73,9 @@ FLAGS = {
                      "refined from a map pose; one verified elsewhere rejects it as ambiguous (0: no check)"),
     "--rival-join": Flag("localizer.verification.join", "verification: a rival stops at a coarser level where it "
                          "lies within this fraction of the agreement thresholds of the query's start (0: never)"),
+    "--rival-sharper-by": Flag("localizer.verification.sharper_by", "verification: a rival verified elsewhere does "
+                               "not reject a pose whose cost is this many times sharper (3 px contrast) than the "
+                               "rival's (0: every such rival rejects it)"),
     "--no-verify": Flag("localizer.verification.enabled", "report every converged refinement as a success (official "
                         "PixLoc behaviour)", value=False),
     "--network-precision": Flag("localizer.network_precision", "the query's network pass in bfloat16: a query's CPU "

@@ -258,7 +258,11 @@ def check_rivals(result: QueryResult, rivals: List[Tuple[str, QueryResult]], con
     refinement) of the same query, against the same references) is verified too at another pose:
     beyond ``conf.agree_t`` x the median point depth or ``conf.agree_R`` degrees. A note per rival. A
     rival rejected as ambiguous itself (a search's top-1 start), or as not pinned down (``max_sigma``:
-    its cost is sharp for image shifts there, a minimum all the same), counts as verified.
+    its cost is sharp for image shifts there, a minimum all the same), counts as verified. A rival start
+    (``rival_starts``) whose cost is ``conf.sharper_by`` times less sharp than the result's (the 3 px
+    contrast) does not reject it: the two poses are not equally supported. The search's other starts
+    still do: among its perturbed starts, a verified pose far away marks a repeated structure however
+    sharp the winner (measured: docs/verification.md, "Rival starts").
 
     Where the map's images lie a few degrees apart around an object or along a repeated facade, the
     refinement from a reference's pose can stay there, as sharp as at the truth, and be verified; the
@@ -280,6 +284,12 @@ def check_rivals(result: QueryResult, rivals: List[Tuple[str, QueryResult]], con
         dt, dR = relative_motion(rival.refined, result.refined, depth)
         if dt <= conf.agree_t and dR <= conf.agree_R:
             result.notes.append(f"rival start {name}: converged to the same pose ({dR:.2f} deg, {dt:.3f} depths)")
+            continue
+        ours, theirs = (float(r.evidence.get("contrast_3px", float("nan"))) for r in (result, rival))
+        if label.startswith(RIVAL) and conf.sharper_by > 0 and theirs > 0 and ours >= conf.sharper_by * theirs:
+            result.notes.append(f"rival start {name}: verified too, {dR:.1f} deg and {dt:.2f} scene depths away, "
+                                f"but its cost is {ours / theirs:.1f} times less sharp (contrast {theirs:.3f} "
+                                f"against {ours:.3f})")
             continue
         result.success = False
         result.reason = (f"{AMBIGUOUS}the start from {name} is verified too (confidence "

@@ -63,6 +63,10 @@ class VerificationConfig:
     join: a rival start stops at the end of a coarser level where it lies within ``join`` x
         (``agree_t``, ``agree_R``) of one of its query's own starts: it has joined that start's basin,
         and agrees (0: every rival runs through every level).
+    sharper_by: a rival start verified at another pose leaves the result verified where the result's
+        cost is at least this many times sharper (its 3 px contrast) than the rival's: the two poses are
+        not equally supported, and the rival's is the weaker (0: any rival verified elsewhere rejects it).
+        The search's other starts reject it whatever their sharpness.
     """
 
     enabled: bool = True
@@ -78,6 +82,7 @@ class VerificationConfig:
     agree_t: float = 0.10
     agree_R: float = 5.0
     join: float = 0.5
+    sharper_by: float = 2.0
 
     def __post_init__(self):
         if self.max_sigma < 0:
@@ -86,6 +91,8 @@ class VerificationConfig:
             raise ValueError("verification: rivals must not be negative, agree_t and agree_R must be positive.")
         if not 0 <= self.join <= 1:
             raise ValueError(f"verification: join must lie in [0, 1], not {self.join}.")
+        if self.sharper_by != 0 and self.sharper_by < 1:
+            raise ValueError(f"verification: sharper_by must be 0 (off) or at least 1, not {self.sharper_by}.")
 
     def to_dict(self) -> Dict:
         return asdict(self)
