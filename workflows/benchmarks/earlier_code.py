@@ -16,7 +16,7 @@ import shutil
 import subprocess
 import sys
 from pathlib import Path
-from typing import Dict, List
+from typing import Dict, List, Optional
 
 import numpy as np
 
@@ -97,20 +97,20 @@ def run_earlier(rev: str, work: Path, shared: Path, scenes: List[str], limit: in
     return json.loads(out.read_text())
 
 
-def pose_differences(poses: Dict[str, Dict], refined: Dict[str, np.ndarray], metric: Dict[str, bool],
-                     scale: Dict[str, float]) -> Dict:
-    """Largest differences between the earlier code's refined poses and ``refined`` ({part/query: 3 x 4},
-    as ``poses``' keys), in mm where the part's scene is metric (``metric`` per key), else in % of its
-    scale; and the queries refined by one and not the other."""
+def pose_differences(theirs: Dict[str, Optional[np.ndarray]], ours: Dict[str, Optional[np.ndarray]],
+                     metric: Dict[str, bool], scale: Dict[str, float]) -> Dict:
+    """Largest differences between two runs' refined poses ({query key: 3 x 4 or None}, the same keys),
+    in mm where the query's scene is metric (``metric`` per key), else in % of its ``scale``; and the
+    queries refined by one run and not the other."""
     dt_mm, dt_pct, dR, unmatched = [0.0], [0.0], [0.0], 0
-    for key, ours in refined.items():
-        theirs = poses.get(key, {}).get("refined")
-        if (theirs is None) != (ours is None):
+    for key, mine in ours.items():
+        other = theirs.get(key)
+        if (other is None) != (mine is None):
             unmatched += 1
             continue
-        if ours is None:
+        if mine is None:
             continue
-        R, t = pose_error(Pose.from_matrix(np.asarray(theirs, np.float64)), Pose.from_matrix(np.asarray(ours)))
+        R, t = pose_error(*(Pose.from_matrix(np.asarray(x, np.float64)) for x in (other, mine)))
         (dt_mm if metric[key] else dt_pct).append(1000 * float(t) if metric[key] else 100 * float(t) / scale[key])
         dR.append(float(R))
     return {"max_dt_mm": max(dt_mm), "max_dt_pct": max(dt_pct), "max_dR": max(dR), "unmatched": unmatched}

@@ -40,7 +40,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Dict, List
 
-import numpy as np
 import torch
 from torch import nn
 
@@ -51,7 +50,6 @@ from pipeline.localization.shard import LocalizationJob, localize_queries
 from pipeline.mapping.features import FeatureConfig
 from pipeline.runtime import set_malloc, torch_threads
 from pipeline.store.reader import MapReader
-from pixloc.geometry import Pose, pose_error
 from pixloc.nets.registry import DEFAULT_MODEL, load_refiner
 from pixloc.nets.unet import fold_batchnorm, prepare_for_inference
 
@@ -119,10 +117,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "when issue 31 was filed: the real baseline that 'today' emulates")
 
 
-def _pose(matrix) -> Pose:
-    return Pose.from_matrix(np.asarray(matrix, np.float64))
-
-
 def _run(variant: Variant, refiner, parts, compile_s: Dict[str, float]) -> Dict:
     """The variant's records per part, its CPU seconds and its network passes' and LM's shares."""
     net = variant.network(copy.deepcopy(refiner.extractor).eval())
@@ -158,17 +152,11 @@ def _run(variant: Variant, refiner, parts, compile_s: Dict[str, float]) -> Dict:
 def _differences(run: Dict, today: Dict, metric: Dict[str, bool]) -> Dict:
     """Largest position (mm where the scene is metric, else % of its scale) and rotation
     differences of the refined poses from today's, and the queries refined by one and not the other."""
-    dt_mm, dt_pct, dR, unmatched = [0.0], [0.0], [0.0], 0
-    for r, base, (scene, scale) in zip(run["results"], today["results"], run["scenes"]):
-        if (r.refined is None) != (base.refined is None):
-            unmatched += 1
-            continue
-        if r.refined is None:
-            continue
-        R, t = pose_error(_pose(r.refined), _pose(base.refined))
-        (dt_mm if metric[scene] else dt_pct).append(1000 * float(t) if metric[scene] else 100 * float(t) / scale)
-        dR.append(float(R))
-    return {"max_dt_mm": max(dt_mm), "max_dt_pct": max(dt_pct), "max_dR": max(dR), "unmatched": unmatched}
+    keys = range(len(run["results"]))
+    return pose_differences({k: r.refined for k, r in zip(keys, today["results"])},
+                            {k: r.refined for k, r in zip(keys, run["results"])},
+                            {k: metric[scene] for k, (scene, _) in zip(keys, run["scenes"])},
+                            {k: scale for k, (_, scale) in zip(keys, run["scenes"])})
 
 
 def _recalls(run: Dict, by_scene) -> List[float]:
@@ -313,7 +301,8 @@ def _earlier(args: argparse.Namespace, parts, runs: Dict, by_scene, metric) -> D
     if default is not None:
         refined = {k: r.refined for (k, _), r in zip(keys, default["results"])}
         out.update(default_speedup=earlier["cpu_s"] / default["cpu"], **pose_differences(
-            earlier["poses"], refined, {k: metric[key] for k, key in keys}, {k: by_scene[key][1] for k, key in keys}))
+            {k: p["refined"] for k, p in earlier["poses"].items()}, refined,
+            {k: metric[key] for k, key in keys}, {k: by_scene[key][1] for k, key in keys}))
     print(f"- the code of {args.earlier_code} (its own network, settings and verification): {out['cpu_s']:.3f} CPU s "
           f"per query (today, its emulation: {runs['today']['cpu'] / n:.3f})")
     if default is not None:
