@@ -71,8 +71,11 @@ def test_ctrl_c_during_a_dask_localize_is_one_line_and_resumable(stairs, tmp_pat
     from .conftest import ROOT
     args = ["localize", "7scenes", stairs.root, "--query-sequences", "1", "4", "--store", stairs.job.store,
             "--output", tmp_path / "out", "--workers", "2", "--iters", "400", "--shard-size", "1"]
+    # SIGINT as a terminal's: a test run started in the background (``pytest ... &`` from a script) has it
+    # ignored, and its children would inherit that and run to the end
     p = subprocess.Popen([sys.executable, "-m", "workflows.cli", *map(str, args)], stdout=subprocess.PIPE,
                          stderr=subprocess.PIPE, text=True, start_new_session=True,
+                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
                          env={**os.environ, "PYTHONPATH": str(ROOT)})
     head = []
     for line in p.stderr:  # the tasks are running
