@@ -167,3 +167,10 @@ def test_the_scale_benchmarks_driver_processes_run_on_the_demo(demo, demo_dir, t
     assert loc.returncode == 0, loc.stderr[-2000:]
     figures = json.loads(loc.stdout.strip().splitlines()[-1])
     assert figures["queries"] == 12 and figures["s_per_query"] > 0 and figures["recall"]["recall@1.0m,5.0deg"] > 0.5
+    # the accepted poses, and those beyond (25 cm, 2 deg), counted from the run's own records
+    records = read_records(tmp_path / "run" / "records.jsonl")
+    gt = {q.name: q.cam_from_world_gt for q in read_synthetic(demo_dir / "scene")[1]}
+    errors = [pose_errors(np.asarray(r["refined"]), gt[r["name"]]) for r in records if r["success"]]
+    beyond = [e for e in errors if not (e[0] <= 0.25 and e[1] <= 2.0)]
+    assert figures["accepted"] == sum(r["success"] for r in records) > 0
+    assert figures["accepted_beyond"] == len(beyond)

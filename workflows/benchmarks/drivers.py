@@ -107,7 +107,7 @@ def read(store: str, conf: str, queries: str, seed: str) -> None:
 
 
 def localize(root: str, store: str, out: str, points_per_cell: str = "0") -> None:
-    from pipeline.evaluate import evaluate
+    from pipeline.evaluate import evaluate, record_errors
     from pipeline.data.synthetic import read_synthetic
     from workflows.localize import plan_localization, run_sync
     _, queries = read_synthetic(root)
@@ -115,13 +115,19 @@ def localize(root: str, store: str, out: str, points_per_cell: str = "0") -> Non
     t = time.perf_counter()
     records = run_sync(plan)
     elapsed = time.perf_counter() - t
-    s = evaluate(records, {q.name: q.cam_from_world_gt for q in queries}, ((0.25, 2.0), (1.0, 5.0)))["all"]["refined"]
+    gt = {q.name: q.cam_from_world_gt for q in queries}
+    s = evaluate(records, gt, ((0.25, 2.0), (1.0, 5.0)))["all"]["refined"]
+    accepted = [r for r in records if r["success"]]
+    errors = [record_errors(r, gt[r["name"]])["refined"] for r in accepted]
     io = [r["store_io"] for r in records if r.get("store_io")]
     print(json.dumps({"queries": len(records), "s_per_query": elapsed / len(records),
                       "points": float(np.mean([r["num_points"] for r in records])),
                       "iterations": float(np.mean([r["iterations"] for r in records])),
                       "peak_rss": peak_rss(),
                       "recall": {k: v for k, v in s.items() if k.startswith("recall@")},
+                      # poses reported as successes, and those of them beyond (25 cm, 2 deg): wrong ones accepted
+                      "accepted": len(accepted),
+                      "accepted_beyond": sum(not (t <= 0.25 and R <= 2.0) for t, R in errors),
                       "bytes_per_query": sum(x["bytes_read"] / x["shard_queries"] for x in io) / max(len(io), 1)}))
 
 

@@ -286,8 +286,8 @@ def main(args: argparse.Namespace) -> int:
         base = rows[0]
         print("\n| S2: city | images | points | observations | render + build s | queries | points / query | "
               "LM iterations / query | s / query | x smallest | peak RSS MiB | x smallest | store MiB read / query | "
-              "recall 25 cm, 2 deg | 1 m, 5 deg |")
-        print("| --- |" + " ---: |" * 14)
+              "recall 25 cm, 2 deg | 1 m, 5 deg | accepted (beyond 25 cm, 2 deg) |")
+        print("| --- |" + " ---: |" * 15)
         for r in rows:
             rec = list(r["recall"].values())
             print(f"| {r['blocks']} | {r['images']} | {r['map_points']} | {r['observations']} | "
@@ -295,7 +295,8 @@ def main(args: argparse.Namespace) -> int:
                   f"{r['iterations']:.0f} | {r['s_per_query']:.2f} | "
                   f"{r['s_per_query'] / base['s_per_query']:.2f} | {r['peak_rss'] / 2**20:.0f} | "
                   f"{r['peak_rss'] / base['peak_rss']:.2f} | {r['bytes_per_query'] / 2**20:.2f} | "
-                  f"{100 * (rec[0] or 0):.0f} % | {100 * (rec[1] or 0):.0f} % |")
+                  f"{100 * (rec[0] or 0):.0f} % | {100 * (rec[1] or 0):.0f} % | "
+                  f"{r['accepted']} ({r['accepted_beyond']}) |")
         print("goal: time within 1.2x of the smallest map, peak RSS <= 2048 MiB at every size")
     if "S3" in args.parts:
         store_at_scale(args)
