@@ -26,7 +26,7 @@ from pathlib import Path
 from typing import Dict, List, Optional
 
 from ..process_cluster import ProcessCluster, wait_for
-from .drivers import command
+from .drivers import CITY_THRESHOLDS, command
 
 def driver(root: Path, store: Path, out: Path, cluster: ProcessCluster, limit: int = 0, order: str = "list",
            warm: bool = False):
@@ -128,7 +128,7 @@ def reads(records: List[Dict]) -> Dict:
 
 def recall(records: List[Dict], queries) -> Dict:
     from pipeline.evaluate import evaluate
-    s = evaluate(records, {q.name: q.cam_from_world_gt for q in queries}, ((0.25, 2.0), (1.0, 5.0)))["all"]
+    s = evaluate(records, {q.name: q.cam_from_world_gt for q in queries}, CITY_THRESHOLDS)["all"]
     return {k: v for k, v in s["refined"].items() if k.startswith("recall@")}
 
 
