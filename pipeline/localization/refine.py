@@ -34,7 +34,9 @@ logger = logging.getLogger(__name__)
 # measurement of docs/verification.md also recorded 1 and 10 px and a depth contrast: none did better
 CONTRAST_SHIFTS = (3.0,)
 MIN_SUBSET = 1024  # the fewest points a level is subsampled to (points_per_cell)
-NETWORK_PRECISIONS = {"float32": torch.float32, "bfloat16": torch.bfloat16}
+# the query's network pass: float32, bfloat16 (autocast), or bfloat16 for the decoder blocks that only the
+# finest level reads (``UNet.fine_blocks``; the coarser levels exact): docs/benchmarks.md, "The CPU query"
+NETWORK_PRECISIONS = {"float32": torch.float32, "bfloat16": torch.bfloat16, "bfloat16-fine": torch.bfloat16}
 JOINED = "joined: "  # the reason of a rival start stopped where it reached its query's own start
 
 
@@ -50,10 +52,12 @@ class LocalizerConfig:
     max(``MIN_SUBSET``, points_per_cell x cells) of them (0: every point, as official PixLoc).
     Dense (RGB-D) maps put tens of thousands of points into the few hundred cells of the
     coarse levels, where they are redundant and cost nearly all the time. network_precision:
-    the query's network pass in float32, or bfloat16 (autocast; the LM stays float32): a query's CPU
-    time 0.85x at Cambridge settings on a CPU with AVX512-BF16, with recall within a few points of
-    float32's; not measured on CPUs without native bfloat16 (docs/benchmarks.md, "The CPU query at
-    Cambridge settings")."""
+    the query's network pass in float32; bfloat16 (autocast; the LM stays float32): a query's CPU
+    time 0.8x at Cambridge settings on a CPU with AVX512-BF16, with recall within a few points of
+    float32's; or ``bfloat16-fine``, only the decoder blocks that the finest level alone reads in
+    bfloat16 (``UNet.fine_blocks``), the coarser levels exact: 0.84x, its poses within 0.14 mm and
+    0.014 deg of float32's; neither measured on CPUs without native bfloat16 (docs/benchmarks.md,
+    "The CPU query at Cambridge settings")."""
 
     num_dbs: int = 5
     average_observations: bool = False
@@ -188,8 +192,11 @@ class Localizer:
         """Dense query prediction at image scale index k, and the resize factors."""
         resized, scales = resize_max(rgb, self.reader.conf.resize // self.reader.conf.image_scales[k])
         image = to_tensor(resized)[None].to(self.device)
-        if self.conf.network_precision == "float32":
-            return self.net(image), scales
+        precision = self.conf.network_precision
+        if precision == "float32" or (precision == "bfloat16-fine" and not isinstance(self.net, UNet)):
+            return self.net(image), scales  # a network without a decoder (photometric) has no finest blocks
+        if precision == "bfloat16-fine":
+            return self.net(image, fine_dtype=NETWORK_PRECISIONS[precision]), scales
         with torch.autocast(torch.device(self.device).type, dtype=NETWORK_PRECISIONS[self.conf.network_precision]):
             pred = self.net(image)
         return {key: [x.float() for x in maps] for key, maps in pred.items()}, scales

@@ -154,7 +154,19 @@ class UNet(nn.Module):
     def compute_confidence(self) -> bool:
         return hasattr(self, "uncertainty")
 
-    def forward(self, image: Tensor) -> Dict[str, List[Tensor]]:
+    @property
+    def fine_blocks(self) -> int:
+        """The last decoder blocks, whose maps only the finest output level reads (the official
+        network: the two at strides 2 and 1, most of a pass's time at 1,024 px)."""
+        if len(self.output_scales) < 2:
+            return 0
+        second = sorted(self.output_scales)[1]
+        return sum(len(self.decoder) - 1 - j < second for j in range(len(self.decoder)))
+
+    def forward(self, image: Tensor, fine_dtype: Optional[torch.dtype] = None) -> Dict[str, List[Tensor]]:
+        """``fine_dtype`` (e.g. torch.bfloat16, for inference): the ``fine_blocks`` in that precision
+        (autocast), their map cast back to float32 for the finest level's heads; every coarser level's
+        maps are exactly those of the float32 pass."""
         if image.dim() != 4 or image.shape[1] != 3:
             raise ValueError(f"Expected images (B, 3, H, W), got {tuple(image.shape)}.")
         min_size = 2 ** (len(self.encoder) - 1)
@@ -170,8 +182,16 @@ class UNet(nn.Module):
             x = run(block, x)
             skips.append(x)
         pre = [skips[-1]]
-        for block, skip in zip(self.decoder, skips[:-1][::-1]):
+        exact = len(self.decoder) - (self.fine_blocks if fine_dtype is not None else 0)
+        for block, skip in zip(self.decoder[:exact], skips[:-1][::-1]):
             pre.append(run(block, pre[-1], skip))
+        if exact < len(self.decoder):
+            fine = [pre[-1].to(fine_dtype)]
+            with torch.autocast(image.device.type, dtype=fine_dtype):
+                for block, skip in zip(self.decoder[exact:], skips[:-1][::-1][exact:]):
+                    fine.append(run(block, fine[-1], skip))
+            pre += [x.float() if len(self.decoder) - exact - k in self.output_scales else x
+                    for k, x in enumerate(fine[1:], 1)]
         pre = pre[::-1]  # fine to coarse, index = log2 stride
         out = {"features": [adapt(pre[i]) for adapt, i in zip(self.adaptation, self.output_scales)]}
         if self.compute_confidence:

@@ -9,7 +9,7 @@ from workflows.cli import main
 
 VARIANTS = ["today", "BatchNorm folded", "channels-last", "split convs, 1x1 by oneDNN", "freed memory reused",
             "cell products", "rival starts, every level", "rival starts, stopped where they join (default)",
-            "bfloat16 network"]
+            "bfloat16 network", "bfloat16 finest blocks", "bfloat16 finest blocks, without rival starts"]
 
 
 @pytest.fixture(scope="module")
@@ -29,12 +29,14 @@ def test_a_row_per_speed_up_with_real_times(rows):
 
 
 def test_the_exact_speed_ups_keep_todays_pose_and_recall(rows):
-    today, *exact, bf16 = rows["rows"]
+    today, *exact, bf16, fine, fine_alone = rows["rows"]
     for r in exact:
         # kermit is in Bundler units: its position differences are a percentage of the scene's scale
         assert r["max_dt_pct"] < 0.01 and r["max_dR"] < 0.01, r
         assert r["recalls"] == today["recalls"]
     assert bf16["max_dR"] < 0.1  # reduced precision: close, not the same
+    for r in (fine, fine_alone):  # only the finest level in reduced precision: closer still
+        assert r["max_dR"] < 0.05 and r["recalls"] == today["recalls"], r
 
 
 def test_the_search_runs_one_network_pass_per_image_scale_for_all_its_starts(rows):

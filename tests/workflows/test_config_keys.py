@@ -1,6 +1,7 @@
 """A misspelt key of a dataset preset or a training config is refused with the nearest valid
 name, instead of passing unnoticed while its setting keeps the default."""
 
+import dataclasses
 from pathlib import Path
 
 import pytest
@@ -69,5 +70,7 @@ def test_the_network_precision_is_checked_and_recorded_only_where_it_is_not_the_
     half = LocalizationJob("map.zarr", FeatureConfig(), "pixloc-lite0", LocalizerConfig(network_precision="bfloat16"),
                            RetrievalConfig())
     assert half.to_dict()["localizer"]["network_precision"] == "bfloat16"
+    fine = dataclasses.replace(half, localizer=LocalizerConfig(network_precision="bfloat16-fine"))
+    assert fine.to_dict()["localizer"]["network_precision"] == "bfloat16-fine"
     with pytest.raises(ValueError, match="network_precision must be one of"):
         LocalizerConfig(network_precision="float16")

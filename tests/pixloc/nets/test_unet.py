@@ -98,3 +98,26 @@ def test_the_pipeline_loads_the_prepared_network_with_the_weights_digest():
     refiner, digest = localization_model("pixloc-lite0")
     assert digest == load_refiner("pixloc-lite0").feature_digest()  # stores built before still match
     assert refiner.extractor.memory_format == torch.channels_last
+
+
+def test_the_finest_blocks_in_bfloat16_leave_the_coarser_levels_exact():
+    # --network-precision bfloat16-fine: the two decoder blocks that only the finest level reads run in
+    # bfloat16; the coarser levels are the float32 pass's bit for bit, the finest level float32 and close
+    from pipeline.images import to_tensor
+    from pixloc.nets.registry import load_refiner
+    from pixloc.nets.unet import prepare_for_inference
+    net = prepare_for_inference(load_refiner("pixloc-lite0").extractor.eval())
+    assert net.fine_blocks == 2  # the blocks at strides 2 and 1
+    rgb = np.asarray(np.random.default_rng(0).integers(0, 256, (200, 300, 3)), np.uint8)
+    with torch.no_grad():
+        exact, fine = net(to_tensor(rgb)[None]), net(to_tensor(rgb)[None], fine_dtype=torch.bfloat16)
+    for key in ("features", "confidences"):
+        for level, (a, b) in enumerate(zip(exact[key], fine[key])):
+            assert b.dtype == torch.float32 and b.is_contiguous(memory_format=torch.channels_last)
+            if level > 0:
+                assert torch.equal(a, b), (key, level)
+    a, b = (torch.nn.functional.normalize(x[0][0], dim=0) for x in (exact["features"], fine["features"]))
+    cosine = (a * b).sum(0)
+    assert float(cosine.min()) > 0.9995 and float(cosine.mean()) > 0.99995  # what the LM compares (0.99998, 0.999995)
+    assert not torch.equal(exact["features"][0], fine["features"][0])  # it did run in bfloat16
+    torch.testing.assert_close(fine["confidences"][0], exact["confidences"][0], atol=0.01, rtol=0)
