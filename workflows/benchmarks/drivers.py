@@ -7,8 +7,9 @@ prints its figures as one JSON line.
   N, no Dask); ``WARM`` 1 loads the network and opens the store first (``city_run``).
 - ``read STORE CONF QUERIES SEED``: open a store and read the observations and features of
   ``QUERIES`` random 3-image windows (``scale``: open time, read latency, memory).
-- ``localize ROOT STORE OUT [POINTS_PER_CELL]``: localize a generated scene's queries in-process
-  (``scale``: time and memory per query, recall, bytes read).
+- ``localize ROOT STORE OUT [POINTS_PER_CELL [PRIOR [ITERS]]]``: localize a generated scene's queries
+  in-process (``scale``: time and memory per query, recall, bytes read; the prior, default top1, and the LM
+  iterations per level, default 30, for experiments).
 """
 
 import json
@@ -31,17 +32,18 @@ def rss() -> int:
     return int(Path("/proc/self/status").read_text().split("VmRSS:")[1].split()[0]) * 1024
 
 
-def _job(store: str, points_per_cell: float = 0.0):
+def _job(store: str, points_per_cell: float = 0.0, prior: str = "top1", num_iters: int = 30):
     """The benchmarks' localization job: 3 references, 30 LM iterations, retrieval within the area;
-    ``points_per_cell`` as the localizer's (1 for the dense maps of the photo city)."""
+    ``points_per_cell`` as the localizer's (1 for the dense maps of the photo city); another ``prior`` or
+    ``num_iters`` per level for the S2 driver's experiments."""
     from pipeline.localization.refine import LocalizerConfig
     from pipeline.localization.retrieval import RetrievalConfig
     from pipeline.localization.shard import LocalizationJob
     from workflows.cli_localize import store_feature_config
     conf = store_feature_config(Path(store))
-    return LocalizationJob(store, conf, conf.model, LocalizerConfig(num_dbs=3, num_iters=30,
+    return LocalizationJob(store, conf, conf.model, LocalizerConfig(num_dbs=3, num_iters=num_iters,
                                                                     points_per_cell=points_per_cell),
-                           RetrievalConfig(k=5, same_tag="area"))
+                           RetrievalConfig(k=5, same_tag="area"), prior=prior)
 
 
 def warm_up(job) -> None:
@@ -108,12 +110,14 @@ def read(store: str, conf: str, queries: str, seed: str) -> None:
                       "bytes_read": reader.stats["bytes"], "blocks": reader.stats["blocks"]}))
 
 
-def localize(root: str, store: str, out: str, points_per_cell: str = "0") -> None:
+def localize(root: str, store: str, out: str, points_per_cell: str = "0", prior: str = "top1",
+             num_iters: str = "30") -> None:
     from pipeline.evaluate import evaluate, record_errors
     from pipeline.data.synthetic import read_synthetic
     from workflows.localize import plan_localization, run_sync
     _, queries = read_synthetic(root)
-    plan = plan_localization(_job(store, float(points_per_cell)), queries, Path(out), shard_size=8, overwrite=True)
+    plan = plan_localization(_job(store, float(points_per_cell), prior, int(num_iters)), queries, Path(out),
+                             shard_size=8, overwrite=True)
     t = time.perf_counter()
     records = run_sync(plan)
     elapsed = time.perf_counter() - t
