@@ -55,9 +55,9 @@ class LocalizerConfig:
     the query's network pass in float32; bfloat16 (autocast; the LM stays float32): a query's CPU
     time 0.8x at Cambridge settings on a CPU with AVX512-BF16, with recall within a few points of
     float32's; or ``bfloat16-fine``, only the decoder blocks that the finest level alone reads in
-    bfloat16 (``UNet.fine_blocks``), the coarser levels exact: 0.84x, its poses within 0.14 mm and
-    0.014 deg of float32's; neither measured on CPUs without native bfloat16 (docs/benchmarks.md,
-    "The CPU query at Cambridge settings")."""
+    bfloat16 (``UNet.fine_blocks``), the coarser levels exact: 0.84-0.88x, the same recall at every
+    threshold on 159 queries of ten scenes, poses up to 0.4 mm and 0.3 deg from float32's; neither
+    measured on CPUs without native bfloat16 (docs/benchmarks.md, "The CPU query at Cambridge settings")."""
 
     num_dbs: int = 5
     average_observations: bool = False
