@@ -22,7 +22,7 @@ from pixloc.geometry import Camera, Pose, relative_motion
 from pixloc.optim import (FeaturemetricProblem, LevenbergMarquardt, alignment_contrast, alignment_evidence,
                           alignment_uncertainty)
 from pixloc.optim.cost import new_query_maps
-from pixloc.nets.unet import UNet
+from pixloc.nets.unet import NETWORK_PRECISIONS, UNet, predict_in_precision
 
 from pipeline.images import ImageReadError, read_image_for, resize_max, to_tensor
 from pipeline.store.reader import MapReader, Observations, StoreReadError
@@ -34,9 +34,6 @@ logger = logging.getLogger(__name__)
 # measurement of docs/verification.md also recorded 1 and 10 px and a depth contrast: none did better
 CONTRAST_SHIFTS = (3.0,)
 MIN_SUBSET = 1024  # the fewest points a level is subsampled to (points_per_cell)
-# the query's network pass: float32, bfloat16 (autocast), or bfloat16 for the decoder blocks that only the
-# finest level reads (``UNet.fine_blocks``; the coarser levels exact): docs/benchmarks.md, "The CPU query"
-NETWORK_PRECISIONS = {"float32": torch.float32, "bfloat16": torch.bfloat16, "bfloat16-fine": torch.bfloat16}
 JOINED = "joined: "  # the reason of a rival start stopped where it reached its query's own start
 
 
@@ -192,14 +189,7 @@ class Localizer:
         """Dense query prediction at image scale index k, and the resize factors."""
         resized, scales = resize_max(rgb, self.reader.conf.resize // self.reader.conf.image_scales[k])
         image = to_tensor(resized)[None].to(self.device)
-        precision = self.conf.network_precision
-        if precision == "float32" or (precision == "bfloat16-fine" and not isinstance(self.net, UNet)):
-            return self.net(image), scales  # a network without a decoder (photometric) has no finest blocks
-        if precision == "bfloat16-fine":
-            return self.net(image, fine_dtype=NETWORK_PRECISIONS[precision]), scales
-        with torch.autocast(torch.device(self.device).type, dtype=NETWORK_PRECISIONS[self.conf.network_precision]):
-            pred = self.net(image)
-        return {key: [x.float() for x in maps] for key, maps in pred.items()}, scales
+        return predict_in_precision(self.net, image, self.conf.network_precision), scales
 
     @torch.no_grad()
     def localize(self, query: QueryRecord, dbs: List[int], prior: np.ndarray,

@@ -200,6 +200,25 @@ class UNet(nn.Module):
         return out
 
 
+# a network pass's precision (the maps it returns are float32 in every case): float32, bfloat16 autocast over
+# the whole pass, or over ``UNet.fine_blocks`` only (the coarser levels exact)
+NETWORK_PRECISIONS = {"float32": torch.float32, "bfloat16": torch.bfloat16, "bfloat16-fine": torch.bfloat16}
+
+
+def predict_in_precision(net: nn.Module, image: Tensor, precision: str = "float32") -> Dict[str, List[Tensor]]:
+    """``net``'s float32 maps of ``image`` from a pass in ``precision`` (``NETWORK_PRECISIONS``); a network
+    without a decoder (the photometric one) has no finest blocks and runs ``bfloat16-fine`` in float32."""
+    if precision not in NETWORK_PRECISIONS:
+        raise ValueError(f"precision must be one of {sorted(NETWORK_PRECISIONS)}, got {precision!r}.")
+    if precision == "float32" or (precision == "bfloat16-fine" and not isinstance(net, UNet)):
+        return net(image)
+    if precision == "bfloat16-fine":
+        return net(image, fine_dtype=NETWORK_PRECISIONS[precision])
+    with torch.autocast(image.device.type, dtype=NETWORK_PRECISIONS[precision]):
+        pred = net(image)
+    return {key: [x.float() for x in maps] for key, maps in pred.items()}
+
+
 def fold_batchnorm(module: nn.Module) -> nn.Module:
     """Fold, in place, every BatchNorm2d that follows a Conv2d in a Sequential into that conv
     (its running statistics become the conv's scale and bias), for inference only: the same

@@ -121,3 +121,22 @@ def test_the_finest_blocks_in_bfloat16_leave_the_coarser_levels_exact():
     assert float(cosine.min()) > 0.9995 and float(cosine.mean()) > 0.99995  # what the LM compares (0.99998, 0.999995)
     assert not torch.equal(exact["features"][0], fine["features"][0])  # it did run in bfloat16
     torch.testing.assert_close(fine["confidences"][0], exact["confidences"][0], atol=0.01, rtol=0)
+
+
+def test_every_precision_returns_float32_maps_and_a_network_without_finest_blocks_runs_exact():
+    from pixloc.nets.photometric import PhotometricExtractor
+    from pixloc.nets.registry import load_refiner
+    from pixloc.nets.unet import NETWORK_PRECISIONS, predict_in_precision
+    image = torch.rand(1, 3, 64, 96)
+    net = load_refiner("pixloc-lite0").extractor.eval()
+    with torch.no_grad():
+        exact = predict_in_precision(net, image)
+        for precision in NETWORK_PRECISIONS:
+            maps = predict_in_precision(net, image, precision)
+            assert all(x.dtype == torch.float32 for v in maps.values() for x in v), precision
+            coarse_exact = all(torch.equal(a, b) for a, b in zip(exact["features"][1:], maps["features"][1:]))
+            assert coarse_exact == (precision != "bfloat16"), precision  # whole-pass bfloat16 changes them too
+        photometric = PhotometricExtractor()
+        assert torch.equal(predict_in_precision(photometric, image, "bfloat16-fine")["features"][0], image)
+    with pytest.raises(ValueError, match="precision must be one of"):
+        predict_in_precision(net, image, "float16")
