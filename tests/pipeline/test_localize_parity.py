@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from pipeline.mapping.build import build_map
+from pipeline.mapping.build import extract_features, finish_build, write_structure
 from pipeline.mapping.features import FeatureConfig
 from pipeline.localization.refine import Localizer, LocalizerConfig
 from pipeline.store.reader import MapReader
@@ -49,7 +49,12 @@ def test_official_localization_cases(setup, config, tmp_path):
     refinement = conf["refinement"]
     fconf = FeatureConfig(ckpt, conf["features"]["preprocessing"]["resize"],
                           tuple(refinement["multiscale"] or [1]), conf["optimizer"]["pad"], "float32")
-    build_map(scene, tmp_path / "map.zarr", fconf)
+    # the store of the whole model, with the features of the references the cases use (5 of its 10 images;
+    # the official localizer extracts only those): the same points, tracks and observations
+    used = {n for r in cases[config]["results"].values() for n in r["db_names"]}
+    write_structure(scene, tmp_path / "map.zarr", fconf)
+    extract_features(tmp_path / "map.zarr", fconf, [i for i, im in enumerate(scene.images) if im.name in used])
+    finish_build(tmp_path / "map.zarr", fconf)
     refiner = load_refiner(ckpt)
     reader = MapReader(tmp_path / "map.zarr", fconf, refiner.feature_digest())
     localizer = Localizer(refiner.extractor, refiner.solvers, reader, LocalizerConfig(
