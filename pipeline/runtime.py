@@ -6,7 +6,8 @@ import functools
 import logging
 import os
 from contextlib import contextmanager
-from typing import Iterator
+from pathlib import Path
+from typing import Iterator, Optional
 
 import torch
 
@@ -72,3 +73,21 @@ def set_malloc(keep_freed: bool) -> bool:
         settings = ((_M_MMAP_MAX, _MMAP_MAX_DEFAULT), (_M_MMAP_THRESHOLD, _MMAP_THRESHOLD_MAX),
                     (_M_TRIM_THRESHOLD, 2 * _MMAP_THRESHOLD_MAX))
     return all(mallopt(key, value) == 1 for key, value in settings)
+
+
+BFLOAT16_FLAGS = ("avx512_bf16", "amx_bf16")  # /proc/cpuinfo: the x86 instructions that compute bfloat16
+
+
+def native_bfloat16(cpuinfo: Optional[str] = None) -> Optional[bool]:
+    """Whether this CPU computes bfloat16 natively (one of ``BFLOAT16_FLAGS`` among the flags of
+    /proc/cpuinfo, or of ``cpuinfo``); None where that cannot be told (no /proc/cpuinfo, no flags line:
+    not Linux on x86). Without it a bfloat16 network pass is emulated and slower than float32's."""
+    if cpuinfo is None:
+        try:
+            cpuinfo = Path("/proc/cpuinfo").read_text()
+        except OSError:
+            return None
+    flags = [line.split(":", 1)[1].split() for line in cpuinfo.splitlines() if line.startswith("flags")]
+    if not flags:
+        return None
+    return any(flag in BFLOAT16_FLAGS for flag in flags[0])

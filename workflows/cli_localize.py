@@ -18,6 +18,7 @@ from pipeline.evaluate import (DEFAULT_THRESHOLDS, INDOOR_THRESHOLDS, evaluate, 
                                parse_thresholds, recall_label, shown_families, to_json)
 from pipeline.mapping.features import FeatureConfig
 from pipeline.progress import count
+from pipeline.runtime import BFLOAT16_FLAGS, native_bfloat16
 from pipeline.localization.refine import NETWORK_PRECISIONS
 from pipeline.localization.results import POSE_NAMES, REJECTED, outcome, pose_names_problem, read_records, reason_groups
 from pipeline.localization.shard import POINT_SELECTIONS, PRIORS, LocalizationJob
@@ -221,6 +222,11 @@ def main(args: argparse.Namespace) -> int:
         from .logs import to_file
         print(f"  log     {to_file(output / 'pixloc.log')}")
         logger.info("job %s", job.to_dict())
+    precision = job.localizer.network_precision
+    if precision != "float32" and job.device == "cpu" and native_bfloat16() is False:
+        print(f"warning: --network-precision {precision}: this CPU has no native bfloat16 (neither "
+              f"{' nor '.join(BFLOAT16_FLAGS)} among its flags), so the network pass is emulated and may be slower "
+              "than in float32")
     both = queries_in_map(job.store, queries)
     if both:
         print(f"warning: {len(both)} of the {len(queries)} queries are also map images (the same name or the same "

@@ -38,3 +38,16 @@ def test_freed_tensors_stay_in_the_heap_for_reuse():
 def test_a_users_malloc_setting_is_left_alone():
     assert run(MALLOC_MMAP_THRESHOLD_="131072") == ["False", "False", "True", "False"]
     assert run(MALLOC_MMAP_MAX_="65536") == ["False", "False", "True", "False"]
+
+
+def test_native_bfloat16_is_read_from_the_cpu_flags():
+    from pipeline.runtime import native_bfloat16
+    zen4 = "processor\t: 0\nflags\t\t: fpu sse2 avx2 avx512f avx512_bf16 avx512_vnni\n"
+    sapphire = "flags\t\t: fpu avx512f amx_bf16 amx_tile\n"
+    skylake = "processor\t: 0\nflags\t\t: fpu sse2 avx2 avx512f avx512bw\n"
+    assert native_bfloat16(zen4) is True and native_bfloat16(sapphire) is True
+    assert native_bfloat16(skylake) is False  # avx512 alone emulates bfloat16
+    assert native_bfloat16("processor\t: 0\nFeatures\t: fp asimd\n") is None  # no x86 flags line (an ARM CPU)
+    if os.path.exists("/proc/cpuinfo"):  # this machine's own answer, read from the same file
+        with open("/proc/cpuinfo") as f:
+            assert native_bfloat16() == native_bfloat16(f.read())
