@@ -152,7 +152,7 @@ def test_killed_build_resumes_and_a_finished_build_reruns_as_a_noop(shared, tmp_
     'holds another map ... pass overwrite'. The work folder's finished reconstruction is now reused."""
     store = tmp_path / "map.zarr"
     cmd = [sys.executable, "-m", "workflows.cli", "build-map", kind, str(shared / "data" / folder),
-           "--store", str(store), "--sync", "--resize", "1024", "--image-scales", "1"]
+           "--store", str(store), "--sync", "--resize", "512", "--image-scales", "1"]
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     wait_for(lambda: _done(store) >= 1, timeout=400)
