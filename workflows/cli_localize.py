@@ -19,12 +19,12 @@ from pipeline.evaluate import (DEFAULT_THRESHOLDS, INDOOR_THRESHOLDS, evaluate, 
 from pipeline.mapping.features import FeatureConfig
 from pipeline.progress import count
 from pipeline.runtime import BFLOAT16_FLAGS, native_bfloat16
-from pipeline.localization.refine import NETWORK_PRECISIONS
 from pipeline.localization.results import POSE_NAMES, REJECTED, outcome, pose_names_problem, read_records, reason_groups
 from pipeline.localization.shard import POINT_SELECTIONS, PRIORS, LocalizationJob
 from pipeline.store import location
 from pipeline.store.layout import StoreError, open_store
 from pipeline.textfiles import read_json, write_atomic
+from pixloc.nets.unet import NETWORK_PRECISIONS
 
 from . import executor
 from .options import Flag, add_flags, build, given

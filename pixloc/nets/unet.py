@@ -181,14 +181,14 @@ class UNet(nn.Module):
         for block in self.encoder:
             x = run(block, x)
             skips.append(x)
-        pre = [skips[-1]]
+        pre, skips = [skips[-1]], skips[:-1][::-1]  # the decoder's skips, coarse to fine
         exact = len(self.decoder) - (self.fine_blocks if fine_dtype is not None else 0)
-        for block, skip in zip(self.decoder[:exact], skips[:-1][::-1]):
+        for block, skip in zip(self.decoder[:exact], skips):
             pre.append(run(block, pre[-1], skip))
         if exact < len(self.decoder):
             fine = [pre[-1].to(fine_dtype)]
             with torch.autocast(image.device.type, dtype=fine_dtype):
-                for block, skip in zip(self.decoder[exact:], skips[:-1][::-1][exact:]):
+                for block, skip in zip(self.decoder[exact:], skips[exact:]):
                     fine.append(run(block, fine[-1], skip))
             pre += [x.float() if len(self.decoder) - exact - k in self.output_scales else x
                     for k, x in enumerate(fine[1:], 1)]

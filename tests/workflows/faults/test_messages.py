@@ -195,25 +195,19 @@ def test_colmap_log_goes_to_the_work_folder(shared, tmp_path):
     assert (tmp_path / "h.work" / "build-map.log").is_file()
 
 
-def test_a_bfloat16_pass_on_a_cpu_without_native_bfloat16_is_warned_about(stairs, tmp_path):
+def test_a_bfloat16_pass_on_a_cpu_without_native_bfloat16_is_warned_about(stairs, tmp_path, monkeypatch, capsys):
     """A user who asks for a bfloat16 network pass on a CPU that only emulates it is told that it may be
-    slower; on a CPU with avx512_bf16 or amx_bf16 (the developer machine's) nothing is said."""
+    slower; on a CPU with avx512_bf16 or amx_bf16 (the developer machine's) nothing is said. Dry runs in
+    this process: first with this CPU's own flags, then with the probe answering as a CPU without them."""
     from pipeline.runtime import native_bfloat16
-    args = ["localize", "7scenes", stairs.root, "--query-sequences", "1", "--store", stairs.job.store,
-            "--output", tmp_path / "out", "--dry-run"]
-    for precision in ("float32", "bfloat16-fine"):
-        out = pixloc(*args, "--network-precision", precision)
-        assert out.returncode == 0, out.stderr
-        warned = "has no native bfloat16" in out.stdout
-        assert warned == (precision != "float32" and native_bfloat16() is False), out.stdout
-
-
-def test_the_warning_names_the_flags_a_cpu_lacks(stairs, tmp_path, monkeypatch, capsys):
-    # the same dry run in this process, with the CPU probe answering as a CPU without bfloat16 would
     from workflows import cli, cli_localize
-    monkeypatch.setattr(cli_localize, "native_bfloat16", lambda: False)
     args = ["localize", "7scenes", str(stairs.root), "--query-sequences", "1", "--store", str(stairs.job.store),
             "--output", str(tmp_path / "out"), "--dry-run"]
+    for precision in ("float32", "bfloat16-fine"):
+        assert cli.main([*args, "--network-precision", precision]) == 0
+        warned = "has no native bfloat16" in capsys.readouterr().out
+        assert warned == (precision != "float32" and native_bfloat16() is False)
+    monkeypatch.setattr(cli_localize, "native_bfloat16", lambda: False)
     assert cli.main([*args, "--network-precision", "bfloat16"]) == 0
     assert ("warning: --network-precision bfloat16: this CPU has no native bfloat16 (neither avx512_bf16 nor "
             "amx_bf16 among its flags)") in capsys.readouterr().out
