@@ -102,8 +102,8 @@ def _absolute(path) -> Optional[str]:
 def add_query_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("query_kind", choices=QUERY_KINDS, help="where the queries come from")
     p.add_argument("query_path", type=Path, help="query list file, or dataset root")
-    p.add_argument("--query-images", type=Path, help="image folder of a query list, COLMAP model, Bundler bundle or "
-                   "OpenSfM reconstruction")
+    p.add_argument("--query-images", "--images", type=Path, help="image folder of a query list, COLMAP model, Bundler "
+                   "bundle or OpenSfM reconstruction (--images, as build-map names it, is the same)")
     p.add_argument("--query-sequences", type=int, nargs="+", default=[],
                    help="7scenes queries: the sequences to localize (official test split: 1 4)")
     p.add_argument("--query-names", nargs="+", help="keep only these queries")

@@ -3,6 +3,8 @@ plan, progress and summary themselves); the log file in the run's folder gets ev
 INFO on, with times, including COLMAP's own log during SfM and triangulation."""
 
 import logging
+import os
+import sys
 from pathlib import Path
 
 FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
@@ -20,6 +22,14 @@ def configure(verbose: bool) -> None:
     root.setLevel(logging.DEBUG if verbose else logging.INFO)
     if not verbose:
         logging.getLogger("matplotlib").setLevel(logging.ERROR)  # its font-cache notice on a first run
+        # COLMAP's INFO lines off (its warnings and errors stay): glog writes them to stderr in a process that
+        # sends them nowhere else, one "Creating SIFT CPU feature extractor" per image of a build with --sift and
+        # per query of the sift prior. glog reads this when pycolmap loads, in the local cluster's worker
+        # processes, which inherit the environment; here pycolmap is loaded already (by the parser's imports).
+        # ``colmap_to_file`` turns them on again, into its file
+        level = os.environ.setdefault("GLOG_minloglevel", "1")
+        if "pycolmap" in sys.modules and level.isdigit():
+            sys.modules["pycolmap"].logging.minloglevel = int(level)
 
 
 def to_file(path: Path) -> Path:
@@ -42,4 +52,5 @@ def colmap_to_file(folder: Path) -> None:
     pycolmap.logging.logtostderr = False
     pycolmap.logging.alsologtostderr = False
     pycolmap.logging.stderrthreshold = 2  # ERROR
+    pycolmap.logging.minloglevel = 0  # INFO, which ``configure`` keeps off the terminal
     pycolmap.logging.set_log_destination(pycolmap.logging.INFO, str(folder / "colmap.INFO."))

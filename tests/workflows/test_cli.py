@@ -107,3 +107,28 @@ def test_one_default_model_everywhere():
     args = p.parse_args(["strecha", "x", "--store", "s.zarr", "--preset", "7scenes", "--pad", "3"])
     conf = build(FeatureConfig, presets.feature_settings(presets.load(args.preset)), given(args, FLAGS))
     assert (conf.resize, conf.image_scales, conf.pad) == (1024, (4, 1), 3)
+
+
+def test_sift_work_keeps_colmaps_info_lines_off_the_terminal(shared, tmp_path):
+    """Before: a build with --sift printed pycolmap's "Creating SIFT CPU feature extractor" (glog INFO) once per
+    image from the Dask workers, and the sift prior once per query. The terminal now gets the commands' own
+    lines; -v brings COLMAP's back. Also: localize takes build-map's --images for a Bundler bundle's images."""
+    bare = subprocess.run([sys.executable, "-c", "import numpy as np; from pipeline.keypoints import extract_sift; "
+                           "extract_sift(np.random.default_rng(0).integers(0, 255, (120, 160, 3), np.uint8), 160, 50)"],
+                          capture_output=True, text=True)
+    assert bare.returncode == 0 and "sift.cc" in bare.stderr  # what an unconfigured process prints
+    images = shared / "data" / "bundler_kermit"
+    bundle = images / "results.example" / "bundle.out"
+    store, held = tmp_path / "kermit.zarr", ["kermit003.jpg", "kermit008.jpg"]
+    built = run("build-map", "bundler", str(bundle), "--images", str(images), "--hold-out", *held, "--sift", "1600",
+                "--resize", "512", "--store", str(store))  # on the local Dask cluster
+    assert built.returncode == 0, built.stderr
+    assert "sift.cc" not in built.stderr + built.stdout and "features: 7/7 images" in built.stderr
+    assert list((tmp_path / "kermit.work").glob("colmap.INFO.*"))  # the triangulation's COLMAP log, in its file
+    for extra in ([], ["-v"]):
+        out = tmp_path / f"run{len(extra)}"
+        done = run(*extra, "localize", "bundler", str(bundle), "--images", str(images), "--query-names", *held,
+                   "--store", str(store), "--prior", "sift", "--sync", "--output", str(out))
+        assert done.returncode == 0, done.stderr
+        assert ("sift.cc" in done.stderr) == bool(extra)
+        assert "2 queries (2 run in" in done.stdout and "0 failed" in done.stdout
