@@ -110,13 +110,18 @@ def posed_images(kind: str, path: Path, images: Optional[Path] = None) -> Tuple[
     raise ValueError(f"Unknown posed format {kind!r}; known: {', '.join(POSED_FORMATS)}.")
 
 
-def kept(names: Sequence[str], hold_out: Sequence[str]) -> List[bool]:
-    """Which of ``names`` stay in the map; a held-out name that is none of them is an error (a
-    typo would otherwise put the query in the map it is evaluated against)."""
-    unknown = sorted(set(hold_out) - set(names))
+def check_known(option: str, given: Sequence[str], names: Sequence[str]) -> None:
+    """A name given by ``option`` that is none of the source's ``names`` is an error, not ignored: a
+    typo would otherwise put a query in the map it is evaluated against, or drop it from a run."""
+    unknown = sorted(set(given) - set(names))
     if unknown:
-        raise ValueError(f"--hold-out: {', '.join(unknown[:5])} {'is' if len(unknown) == 1 else 'are'} not among "
+        raise ValueError(f"{option}: {', '.join(unknown[:5])} {'is' if len(unknown) == 1 else 'are'} not among "
                          f"the source's {len(names)} images (e.g. {', '.join(sorted(names)[:3])}).")
+
+
+def kept(names: Sequence[str], hold_out: Sequence[str]) -> List[bool]:
+    """Which of ``names`` stay in the map (``check_known``: each held-out name must be one of them)."""
+    check_known("--hold-out", hold_out, names)
     held = set(hold_out)
     return [n not in held for n in names]
 
@@ -180,7 +185,8 @@ def load_queries(kind: str, path: Path, images: Optional[Path] = None, sequences
     ``list``: a queries_with_intrinsics file, images in ``images``; ``7scenes``: frames
     of ``sequences``; ``kapture`` / ``strecha``: posed images; ``colmap``: a model's
     images (their SfM poses as ground truth); ``synthetic``: the queries of a generated scene
-    (the demo's ``outputs/demo/scene``). ``names`` keeps only those queries.
+    (the demo's ``outputs/demo/scene``). ``names`` keeps only those queries, each of which must be
+    one of the source's (``check_known``).
     """
     path = Path(path)
     if kind == "list":
@@ -201,6 +207,7 @@ def load_queries(kind: str, path: Path, images: Optional[Path] = None, sequences
     else:
         raise ValueError(f"Unknown query source {kind!r}; known: {', '.join(QUERY_KINDS)}.")
     if names is not None:
+        check_known("--query-names", names, [q.name for q in queries])
         keep = set(names)
         queries = [q for q in queries if q.name in keep]
     # every source's names are relative paths inside its image folder (pipeline.scene.name_problem)

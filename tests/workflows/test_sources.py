@@ -11,6 +11,15 @@ def test_hold_out_names_must_be_images_of_the_source():
         kept(["a.jpg", "b.jpg", "c.jpg"], ["b.JPG"])
 
 
+def test_query_names_must_be_queries_of_the_source(shared):
+    """Before: localize --query-names 0004.jpg nope.jpg localized 0004.jpg and said nothing of the other."""
+    from workflows.sources import load_queries
+    root = shared / "data" / "strecha" / "fountain-P11"
+    assert [q.name for q in load_queries("strecha", root, names=["0007.jpg", "0003.jpg"])] == ["0003.jpg", "0007.jpg"]
+    with pytest.raises(ValueError, match=r"--query-names: nope\.jpg is not among the source's 11 images"):
+        load_queries("strecha", root, names=["0003.jpg", "nope.jpg"])
+
+
 def test_a_held_out_image_is_not_in_the_map_and_the_source_records_it(shared, tmp_path):
     root = shared / "data" / "maupertuis"
     full = load_scene(MapSource("colmap", root / "reconstruction", root / "images"), tmp_path)
