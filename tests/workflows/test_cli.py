@@ -113,9 +113,14 @@ def test_sift_work_keeps_colmaps_info_lines_off_the_terminal(shared, tmp_path):
     """Before: a build with --sift printed pycolmap's "Creating SIFT CPU feature extractor" (glog INFO) once per
     image from the Dask workers, and the sift prior once per query. The terminal now gets the commands' own
     lines; -v brings COLMAP's back. Also: localize takes build-map's --images for a Bundler bundle's images."""
+    import os
+    env = {k: v for k, v in os.environ.items() if k != "GLOG_minloglevel"}  # a CLI run in-process sets it
+
+    def run(*args):
+        return subprocess.run([sys.executable, "-m", "workflows.cli", *args], capture_output=True, text=True, env=env)
     bare = subprocess.run([sys.executable, "-c", "import numpy as np; from pipeline.keypoints import extract_sift; "
                            "extract_sift(np.random.default_rng(0).integers(0, 255, (120, 160, 3), np.uint8), 160, 50)"],
-                          capture_output=True, text=True)
+                          capture_output=True, text=True, env=env)
     assert bare.returncode == 0 and "sift.cc" in bare.stderr  # what an unconfigured process prints
     images = shared / "data" / "bundler_kermit"
     bundle = images / "results.example" / "bundle.out"
