@@ -10,6 +10,7 @@ from pathlib import Path
 from pipeline.mapping.features import DTYPES, FeatureConfig
 from pipeline.mapping.image_pairs import METHODS as PAIR_METHODS, PairsConfig
 from pipeline.store import location
+from pipeline.store.layout import AnotherMap
 
 from . import executor, presets
 from .build_map import plan_build, prepare_structure, run_dask, run_sync
@@ -118,17 +119,26 @@ def main(args: argparse.Namespace) -> int:
         print(f"log            {log} (COLMAP's in {work_dir}/colmap.INFO.*)")
         from pipeline.progress import Progress
         scene = load_scene(source, work_dir, pairs, progress=Progress)
-        plan = plan_build(scene, store, conf, batch_size=args.batch_size, device=args.device,
-                          chunk_rows=args.chunk_rows, shard_rows=args.shard_rows, source=source.to_dict(),
-                          overwrite=args.overwrite)
-        print(plan.describe())
-        if args.dry_run:
-            return 0
-        if not plan.overwrite and location.exists(store):
-            if not prepare_structure(plan):  # cheap; re-admits refused images whose problem is gone
+        try:
+            plan = plan_build(scene, store, conf, batch_size=args.batch_size, device=args.device,
+                              chunk_rows=args.chunk_rows, shard_rows=args.shard_rows, source=source.to_dict(),
+                              overwrite=args.overwrite)
+            print(plan.describe())
+            if args.dry_run:
+                return 0
+            if not plan.overwrite and location.exists(store) and not prepare_structure(plan):
+                # cheap; re-admits refused images whose problem is gone
                 print(f"\nAll {len(scene.images)} images of {store} already have features (or were refused): "
                       "nothing to do (--overwrite rebuilds it).")
                 return 0
+        except AnotherMap as e:
+            if source.kind not in RECONSTRUCTED:
+                raise
+            raise AnotherMap(f"{e} The {source.kind} source's map comes from {RECONSTRUCTED[source.kind]}, which "
+                             f"gives another map each time it runs: a rerun reuses the one finished in its work "
+                             f"folder, here {work_dir}. If that is not the folder that built this store, give "
+                             "that one with --work-dir (a store copied or moved without its work folder cannot "
+                             "be resumed or repaired: rebuild it with --overwrite).") from None
         results = executor.run_plan(plan, run_sync, run_dask, sync=args.sync, scheduler=args.scheduler,
                                     workers=args.workers, device=args.device)
     counts = Counter(r.status for r in results)

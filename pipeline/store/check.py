@@ -76,7 +76,8 @@ class StoreCheck:
             lines.append(f"  bad chunk {b.array} {b.chunk}{images}: {_short(b.error)}")
         if self.bad_images():
             lines.append(f"  to fix: pixloc check-store {self.path} --repair marks the {len(self.bad_images())} "
-                         "damaged images pending; the same build-map command then rebuilds only them")
+                         "damaged images pending; the same build-map command (with the build's work folder) then "
+                         "rebuilds only them")
         if any(not b.array.startswith("features/") for b in self.bad):
             lines.append("  to fix: the damaged arrays hold the map's structure: rebuild the store "
                          "(build-map --overwrite)")

@@ -95,6 +95,10 @@ class StoreError(ValueError):
     """A store that does not exist, has another layout, or another model or config."""
 
 
+class AnotherMap(StoreError):
+    """A build whose scene differs from the map the store already holds."""
+
+
 class StoreReadError(StoreError):
     """A chunk of the store that cannot be read (corrupt, truncated, checksum mismatch):
     fails the query that needed it, not the run."""
@@ -143,7 +147,7 @@ def create_store(path, scene: Scene, chunk_rows: int = 256, overwrite: bool = Fa
         if len(stored) < len(names) and set(stored) <= set(names):
             extend_store(root, scene)
             return root
-        raise StoreError(f"{path} holds another map (other images or observations); "
+        raise AnotherMap(f"{path} holds another map (other images or observations); "
                          "choose another path, rebuild it with --overwrite, or add images with a scene that "
                          "holds every image of the map.")
     if found is not None:

@@ -1,6 +1,7 @@
 """Map building through the workflow: a real Dask cluster, killed workers, interrupted runs."""
 
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -170,6 +171,26 @@ def test_killed_build_resumes_and_a_finished_build_reruns_as_a_noop(shared, tmp_
     # --overwrite rebuilds it whole
     over = subprocess.run(cmd + ["--overwrite"], env=env, capture_output=True, text=True)
     assert over.returncode == 0 and f"{images} images extracted, 0 already done" in over.stdout
+
+
+def test_a_new_reconstruction_for_a_stores_map_names_the_work_folder(shared, tmp_path, monkeypatch, capsys):
+    """Before: a store copied without the work folder that built it (or a repair run elsewhere) was
+    refused as 'holds another map' by the very command that built it, without saying why: SfM and
+    triangulation give another map each run, and only the work folder's finished one is reused.
+    Here the second 'reconstruction' is given another map outright (one image fewer)."""
+    from workflows import cli, cli_build_map
+    root = shared / "data" / "maupertuis"
+    full = read_colmap(root / "reconstruction", root / "images")
+    scenes = iter([full.subset([0, 1, 2, 3]), full.subset([0, 1, 2])])
+    monkeypatch.setattr(cli_build_map, "load_scene", lambda *args, **kwargs: next(scenes))
+    argv = ["build-map", "sfm", str(root / "images"), "--store", str(tmp_path / "map.zarr"), "--sync",
+            "--resize", "160", "--image-scales", "1"]
+    assert cli.main(argv) in (0, None)
+    capsys.readouterr()
+    assert cli.main(argv) == 2
+    err = capsys.readouterr().err
+    assert re.search(r"holds another map .* which gives another map each time it runs: a rerun reuses the one "
+                     r"finished in its work folder, here .*map\.work\. .*--work-dir", err), err
 
 
 def test_build_map_into_an_existing_store_adds_a_mapping_session(shared, tmp_path):
