@@ -282,17 +282,18 @@ def missing_objects(arrays, rows: slice) -> List[str]:
     """The storage objects (shard files, or chunks of unsharded arrays) that hold rows ``rows`` of
     ``arrays`` (one array or several) and are absent, empty, or not plain files: zarr reads those
     as fill values (zeros, -1), so every reader of an image's rows asks here first. Keys relative
-    to the store. The objects are asked about together (against object storage, one round trip)."""
+    to the store. The objects are asked about together (against object storage, one round trip).
+    An empty ``rows`` has none: the map's structure is written whole, so an image without observations
+    (an unmatched photo of a triangulated map) has no shard of its own there, and nothing to read."""
     import asyncio
 
     from zarr.core.sync import sync
 
     arrays = [arrays] if isinstance(arrays, zarr.Array) else list(arrays)
-    stop = max(rows.stop, rows.start + 1)
     objects = []
-    for array in arrays:
+    for array in arrays if rows.stop > rows.start else ():  # no rows (an image without observations): none missing
         unit = (array.shards or array.chunks)[0]
-        for k in range(rows.start // unit, -(-stop // unit)):
+        for k in range(rows.start // unit, -(-rows.stop // unit)):
             key = array.metadata.encode_chunk_key((k,) + (0,) * (array.ndim - 1))
             objects.append((f"{array.path}/{key}", array.store_path / key))
 

@@ -244,6 +244,27 @@ def test_an_image_whose_rows_are_all_fill_values_is_not_missing(maupertuis, tmp_
     assert any(not d.any() for d in stored) and check_store(tmp_path / "map.zarr").ok
 
 
+def test_an_image_without_observations_is_not_missing(maupertuis, tmp_path):
+    """The same class for the map's structure: an image that observes no point (a photo that a
+    triangulation from known poses could not match: beer_capture with one of its files damaged) has no
+    observation rows, and its all-fill block of the structure arrays is not written. Before: check-store
+    named that block a missing file of the structure ("rebuild the store"), and every query with that
+    image among its references failed."""
+    from pipeline.store.check import check_store
+    from pipeline.store.reader import MapReader
+    keep = maupertuis.obs_image != 1
+    scene = dataclasses.replace(maupertuis, obs_point=maupertuis.obs_point[keep],
+                                obs_image=maupertuis.obs_image[keep], obs_xy=maupertuis.obs_xy[keep])
+    conf = FeatureConfig(resize=128, image_scales=(1,))
+    build_map(scene, tmp_path / "map.zarr", conf)
+    checked = check_store(tmp_path / "map.zarr")
+    assert checked.ok, checked.bad
+    reader = MapReader(tmp_path / "map.zarr", conf)
+    assert reader.num_obs[1] == 0 and reader.num_obs[0] > 0
+    seen = reader.observations([0, 1, 2], 1)  # no StoreReadError for image 1
+    assert len(seen.point) > 0 and 1 not in set(seen.db.tolist())
+
+
 def test_adding_a_mapping_session_extracts_only_the_new_images(built, maupertuis, tmp_path, monkeypatch):
     """A map of 3 images, then the model extended with a 4th: the store keeps its rows, adds the new
     image, its observations and the points only it sees (the others matched by COLMAP id), and
