@@ -106,6 +106,8 @@ def add_query_arguments(p: argparse.ArgumentParser) -> None:
                    "bundle or OpenSfM reconstruction (--images, as build-map names it, is the same)")
     p.add_argument("--query-sequences", type=int, nargs="+", default=[],
                    help="7scenes queries: the sequences to localize (official test split: 1 4)")
+    p.add_argument("--intrinsics", type=float, nargs=4, default=[], metavar=("FX", "FY", "CX", "CY"),
+                   help="posetxt queries: the colour camera's intrinsics (COLMAP convention), as build-map's")
     p.add_argument("--query-names", nargs="+", help="keep only these queries")
 
 
@@ -200,7 +202,7 @@ def build_job(args: argparse.Namespace) -> LocalizationJob:
 
 def _load_queries(args):
     return load_queries(args.query_kind, absolute(args.query_path), absolute(args.query_images),
-                        tuple(args.query_sequences), args.query_names)
+                        tuple(args.query_sequences), args.query_names, tuple(args.intrinsics))
 
 
 def main(args: argparse.Namespace) -> int:

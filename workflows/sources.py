@@ -169,7 +169,7 @@ def load_scene(source: MapSource, work_dir: Path, pairs: PairsConfig = PairsConf
     return densify(scene) if source.densify else scene
 
 
-QUERY_KINDS = ("list", "7scenes", *POSED_FORMATS, "colmap", "synthetic")
+QUERY_KINDS = ("list", "7scenes", "posetxt", *POSED_FORMATS, "colmap", "synthetic")
 
 
 def as_query(image, tags=None) -> QueryRecord:
@@ -179,11 +179,12 @@ def as_query(image, tags=None) -> QueryRecord:
 
 
 def load_queries(kind: str, path: Path, images: Optional[Path] = None, sequences: Tuple[int, ...] = (),
-                 names: Optional[List[str]] = None) -> List[QueryRecord]:
+                 names: Optional[List[str]] = None, intrinsics: Tuple[float, ...] = ()) -> List[QueryRecord]:
     """Queries with ground truth where the data has it.
 
     ``list``: a queries_with_intrinsics file, images in ``images``; ``7scenes``: frames
-    of ``sequences``; ``kapture`` / ``strecha``: posed images; ``colmap``: a model's
+    of ``sequences``; ``posetxt``: the colour frames of a ``pose.txt`` folder, with the camera
+    ``intrinsics`` (fx, fy, cx, cy); ``kapture`` / ``strecha``: posed images; ``colmap``: a model's
     images (their SfM poses as ground truth); ``synthetic``: the queries of a generated scene
     (the demo's ``outputs/demo/scene``). ``names`` keeps only those queries, each of which must be
     one of the source's (``check_known``).
@@ -197,6 +198,8 @@ def load_queries(kind: str, path: Path, images: Optional[Path] = None, sequences
         if not sequences:
             raise ValueError("7scenes queries need --query-sequences (official test split: 1 4).")
         queries = [as_query(im) for im in read_7scenes(path, sequences)]
+    elif kind == "posetxt":
+        queries = [as_query(im) for im in pose_txt_images(MapSource(kind, path, intrinsics=tuple(intrinsics)))]
     elif kind in POSED_FORMATS:
         queries = [as_query(im) for im in posed_images(kind, path, images)[0]]
     elif kind == "colmap":

@@ -136,6 +136,30 @@ def test_rgbd_pose_txt_source_plan(shared, tmp_path):
     assert "Traceback" not in out.stderr
 
 
+def test_a_held_out_rgbd_frame_is_localized_as_a_posetxt_query(shared, tmp_path):
+    """A pose.txt folder is a query source too (before: a map source only, so its held-out frames had no
+    query kind with their ground truth): build-map --hold-out one frame, then localize it from the same
+    folder with the same intrinsics."""
+    root, K = shared / "data" / "rgbd_slambook" / "kinect_room", ["518", "519", "325.5", "253.5"]
+    cli = [sys.executable, "-m", "workflows.cli"]
+    built = subprocess.run(cli + ["build-map", "posetxt", str(root), "--intrinsics", *K, "--depth-ext", ".pgm",
+                                  "--hold-out", "color/3.png", "--store", str(tmp_path / "k.zarr"), "--sync",
+                                  "--resize", "320", "--image-scales", "1"], capture_output=True, text=True, cwd=ROOT)
+    assert built.returncode == 0, built.stderr
+    assert "4 images extracted" in built.stdout
+    done = subprocess.run(cli + ["localize", "posetxt", str(root), "--intrinsics", *K, "--query-names", "color/3.png",
+                                 "--store", str(tmp_path / "k.zarr"), "--output", str(tmp_path / "out"), "--sync"],
+                          capture_output=True, text=True, cwd=ROOT)
+    assert done.returncode == 0, done.stderr
+    assert "1 query (1 run in" in done.stdout and "0 failed" in done.stdout
+    result = next(line for line in done.stdout.splitlines() if line.startswith("all") and " result " in line)
+    t, R = float(result.split("median")[1].split("/")[0]), float(result.split("/")[1].split("deg")[0])
+    assert t < 0.15 and R < 2.0, result  # against pose.txt's pose: 0.05 m, 0.96 deg at 320 px (0.03 m, 0.46 at 1,024)
+    missing = subprocess.run(cli + ["localize", "posetxt", str(root), "--store", str(tmp_path / "k.zarr"),
+                                    "--output", str(tmp_path / "o2")], capture_output=True, text=True, cwd=ROOT)
+    assert missing.returncode == 2 and "needs --intrinsics" in missing.stderr
+
+
 def _done(store: Path) -> int:
     try:
         root = open_store(store)

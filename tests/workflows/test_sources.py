@@ -42,6 +42,9 @@ def test_every_posed_format_is_a_map_source_and_a_query_source(shared):
     cases = {"llff": (data / "beer_capture", None, 71), "middlebury": (data / "middlebury" / "dino", None, 48),
              "bundler": (data / "bundler_kermit" / "results.example" / "bundle.out", None, 9),
              "opensfm": (data / "opensfm_berlin" / "reconstruction_example.json", None, 3)}
+    kinect = load_queries("posetxt", data / "rgbd_slambook" / "kinect_room", intrinsics=(518.0, 519.0, 325.5, 253.5))
+    assert "posetxt" in QUERY_KINDS and [q.name for q in kinect] == [f"color/{i}.png" for i in range(1, 6)]
+    assert all(np.isfinite(q.cam_from_world_gt).all() and q.camera.params[0] == 518.0 for q in kinect)
     for kind, (path, images, count) in cases.items():
         queries = load_queries(kind, path, images)
         assert len(queries) == count, kind
