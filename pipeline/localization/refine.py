@@ -258,9 +258,11 @@ class Localizer:
                     sub = np.isin(st.obs.point, chosen)
                     st.obs = Observations(st.obs.point[sub], st.obs.db[sub], st.obs.rows[sub])
                 result.num_points = int(len(np.unique(st.obs.point)))
-                result.filters["short_tracks"] = int(len(np.unique(seen.point))) - result.num_points
+                short = result.filters["short_tracks"] = int(len(np.unique(seen.point[~keep])))
                 if result.num_points < self.conf.min_points:
-                    result.reason = f"references see {result.num_points} points (< {self.conf.min_points})"
+                    result.reason = f"references see {result.num_points} points (< {self.conf.min_points})" + (
+                        f"; {short} more are seen by fewer than {self.conf.min_track_length} map images "
+                        "(--min-track-length)" if short else "")
                     continue
                 if st.rgb is None:  # a library caller: the same read and size rule as a shard's
                     st.rgb, camera, note = read_image_for(query.path, query.camera)

@@ -152,6 +152,12 @@ def test_bad_input_gives_per_query_failures(seven_scenes, tmp_path):
     fjob = dataclasses.replace(job, localizer=dataclasses.replace(LCONF, min_points=10**6))
     rec = run_sync(plan_localization(fjob, [queries[3]], tmp_path / "c"))[0]
     assert not rec["success"] and "points (< 1000000)" in rec["reason"] and rec["prior"] is not None
+    # ... because their points are seen by too few map images: the reason says so (a map of two images)
+    tjob = dataclasses.replace(job, localizer=dataclasses.replace(LCONF, min_track_length=10**6))
+    rec = run_sync(plan_localization(tjob, [queries[3]], tmp_path / "c2"))[0]
+    short = rec["filters"]["short_tracks"]
+    assert short > 0 and rec["reason"] == (f"references see 0 points (< {LCONF.min_points}); {short} more are seen "
+                                           "by fewer than 1000000 map images (--min-track-length)")
     # a store built with another model
     ojob = dataclasses.replace(job, model=str(ROOT / "nope.tar"))
     with pytest.raises(ValueError, match="Unknown feature model"):
