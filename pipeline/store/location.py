@@ -12,6 +12,7 @@ it; Dask workers that pixloc starts inherit it, workers started by hand need it 
 environment, see docs/cluster.md).
 """
 
+import contextlib
 import json
 import os
 from collections import OrderedDict
@@ -68,6 +69,27 @@ def storage_options() -> Dict[str, Any]:
         raise StoreLocationError(f"{STORAGE_OPTIONS_ENV} (--storage-options) must be a JSON object, "
                                  f"not {type(options).__name__}.")
     return options
+
+
+# packages whose errors (missing credentials, an endpoint that cannot be reached) are not OSErrors
+_STORAGE_PACKAGES = ("botocore", "aiobotocore", "google", "azure")
+
+
+@contextlib.contextmanager
+def _remote(url: StoreName):
+    """The calls of this module on a remote store: a storage package's error that is not an OSError
+    (botocore's NoCredentialsError ...) becomes a StoreLocationError naming the store and where its
+    access comes from, as a bad input, not a traceback."""
+    try:
+        yield
+    except (OSError, ValueError):
+        raise
+    except Exception as e:  # noqa: BLE001 - only the storage packages' are turned, the rest re-raised
+        if type(e).__module__.split(".")[0] not in _STORAGE_PACKAGES:
+            raise
+        raise StoreLocationError(f"{normalize(url)}: {type(e).__name__}: {e}. Credentials and endpoint come from the "
+                                 "usual environment (for s3://: AWS_ACCESS_KEY_ID, AWS_SECRET_ACCESS_KEY, "
+                                 "AWS_ENDPOINT_URL ...) or --storage-options (docs/cluster.md).") from None
 
 
 def filesystem(store: StoreName) -> Tuple[Any, str]:
@@ -193,7 +215,8 @@ def exists(store: StoreName) -> bool:
     if not is_url(store):
         return Path(normalize(store)).exists()
     fs, path = filesystem(store)
-    return bool(fs.exists(path))
+    with _remote(store):
+        return bool(fs.exists(path))
 
 
 def read_bytes(store: StoreName, key: str) -> Optional[bytes]:
@@ -205,7 +228,8 @@ def read_bytes(store: StoreName, key: str) -> Optional[bytes]:
             return None
     fs, path = filesystem(store)
     try:
-        return fs.cat_file(f"{path}/{key}")
+        with _remote(store):
+            return fs.cat_file(f"{path}/{key}")
     except FileNotFoundError:
         return None
 
@@ -238,9 +262,10 @@ def contents(store: StoreName) -> Optional[Contents]:
             return Contents(True, frozenset(), None)
         return Contents(False, frozenset(p.name for p in path.iterdir()), read_bytes(store, "zarr.json"))
     fs, path = filesystem(store)
-    if fs.isfile(path):
-        return Contents(True, frozenset(), None)
-    names = frozenset(str(p).rstrip("/").rsplit("/", 1)[-1] for p in fs.ls(path, detail=False))
+    with _remote(store):
+        if fs.isfile(path):
+            return Contents(True, frozenset(), None)
+        names = frozenset(str(p).rstrip("/").rsplit("/", 1)[-1] for p in fs.ls(path, detail=False))
     return Contents(False, names, read_bytes(store, "zarr.json"))
 
 
@@ -249,7 +274,8 @@ def total_bytes(store: StoreName) -> int:
     if not is_url(store):
         return sum(f.stat().st_size for f in Path(normalize(store)).rglob("*") if f.is_file())
     fs, path = filesystem(store)
-    return int(fs.du(path))
+    with _remote(store):
+        return int(fs.du(path))
 
 
 def work_dir(store: StoreName) -> Path:

@@ -112,3 +112,23 @@ def test_a_bad_url_or_storage_options_are_named(s3, env, tmp_path):
     assert out.returncode == 2 and "--storage-options" in out.stderr and "not JSON" in out.stderr
     out = pixloc(env, tmp_path, "check-store", "nosuch://maps/none.zarr", check=False)
     assert out.returncode == 2 and "nosuch://maps/none.zarr" in out.stderr
+
+
+def test_a_bucket_without_credentials_or_endpoint_is_a_named_error_not_a_traceback(tmp_path):
+    """Before: `check-store s3://...` (and `localize`, `build-map`) without credentials, or with an endpoint that
+    does not answer, ended in botocore's traceback (NoCredentialsError, EndpointConnectionError: not OSErrors).
+    Now the store is named with where its access comes from. No server is needed for either."""
+    pytest.importorskip("s3fs")
+    import socket
+    with socket.socket() as s:  # a port that nothing listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    bare = {k: v for k, v in os.environ.items() if not k.startswith("AWS_") and k != "PIXLOC_STORAGE_OPTIONS"}
+    bare.update(AWS_EC2_METADATA_DISABLED="true", AWS_CONFIG_FILE=str(tmp_path / "none"),
+                AWS_SHARED_CREDENTIALS_FILE=str(tmp_path / "none"), PYTHONPATH=str(ROOT))
+    closed = {**bare, **CREDENTIALS, "AWS_ENDPOINT_URL": f"http://127.0.0.1:{port}"}
+    for env, error in ((bare, "NoCredentialsError"), (closed, "EndpointConnectionError")):
+        out = subprocess.run([sys.executable, "-m", "workflows.cli", "check-store", "s3://nobucket/map.zarr"],
+                             capture_output=True, text=True, env=env, cwd=tmp_path, timeout=300)
+        assert out.returncode == 2 and "Traceback" not in out.stderr, out.stderr[-2000:]
+        assert f"s3://nobucket/map.zarr: {error}" in out.stderr and "AWS_ACCESS_KEY_ID" in out.stderr
