@@ -136,6 +136,10 @@ def shown_families(summary: Dict, group_by: Optional[Sequence[str]] = None) -> D
         if key != "all" and "=" in key:
             families.setdefault(key.split("=", 1)[0], []).append(key)
     if group_by is not None:
+        unknown = [f for f in group_by if f not in families]
+        if unknown:  # a typo would otherwise leave its table out without a word
+            raise ValueError(f"--group-by: {', '.join(unknown)} {'is' if len(unknown) == 1 else 'are'} not a tag of "
+                             f"these queries (theirs: {', '.join(sorted(families)) or 'none'}).")
         return {f: keys for f, keys in families.items() if f in group_by}
     return {f: keys for f, keys in families.items()
             if len(keys) > 1 and not all(summary[k]["refined"]["count"] <= 1 for k in keys)}

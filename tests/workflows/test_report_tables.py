@@ -3,6 +3,7 @@
 import re
 
 import numpy as np
+import pytest
 
 from pipeline.evaluate import evaluate, shown_families
 from workflows.cli_localize import format_summary
@@ -37,6 +38,9 @@ def test_families_of_one_query_per_value_or_one_value_get_no_table():
     summary = evaluate(records, {r["name"]: T for r in records}, ((0.05, 1.0),))
     assert sorted(shown_families(summary)) == ["sequence"]
     assert sorted(shown_families(summary, group_by=["camera"])) == ["camera"]
+    with pytest.raises(ValueError, match=r"--group-by: sequense is not a tag of these queries \(theirs: camera, "
+                       r"sequence, split, timestamp\)"):  # before: a typo's table was left out without a word
+        shown_families(summary, group_by=["sequence", "sequense"])
     html = accuracy_tables(summary, ((0.05, 1.0),), "m")
     assert "family-camera" not in html and "family-split" not in html and "family-sequence" in html
     assert "<th>sequence</th>" in html and "<th>condition</th>" not in html  # headed by its family
