@@ -36,6 +36,8 @@ def dask_client(scheduler: Optional[str] = None, workers: int = 2, device: str =
             check_resources(client, resources)
             yield client
         return
+    if workers < 1:  # a cluster without workers would wait for ever
+        raise ValueError(f"--workers must be at least 1, not {workers} (--sync runs in this process).")
     nanny = logging.getLogger("distributed.nanny")
     level = nanny.level
     try:

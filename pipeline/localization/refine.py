@@ -66,6 +66,10 @@ class LocalizerConfig:
     verification: VerificationConfig = field(default_factory=VerificationConfig)
 
     def __post_init__(self):
+        if min(self.num_iters, self.min_track_length, self.min_points) < 1 or self.points_per_cell < 0:
+            raise ValueError(f"num_iters, min_track_length and min_points must be at least 1 and points_per_cell not "
+                             f"negative, not {self.num_iters}, {self.min_track_length}, {self.min_points} and "
+                             f"{self.points_per_cell}.")
         if self.network_precision not in NETWORK_PRECISIONS:
             raise ValueError(f"network_precision must be one of {sorted(NETWORK_PRECISIONS)}, "
                              f"got {self.network_precision!r}.")

@@ -85,6 +85,9 @@ class VerificationConfig:
     sharper_by: float = 2.0
 
     def __post_init__(self):
+        if not 0 <= self.min_confidence <= 1 or not 0 <= self.min_valid <= 1:
+            raise ValueError(f"verification: min_confidence and min_valid must lie in [0, 1] (fractions), not "
+                             f"{self.min_confidence} and {self.min_valid}.")
         if self.max_sigma < 0:
             raise ValueError(f"verification: max_sigma must not be negative, not {self.max_sigma}.")
         if self.rivals < 0 or self.agree_t <= 0 or self.agree_R <= 0:

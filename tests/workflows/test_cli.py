@@ -137,3 +137,20 @@ def test_sift_work_keeps_colmaps_info_lines_off_the_terminal(shared, tmp_path):
         assert done.returncode == 0, done.stderr
         assert ("sift.cc" in done.stderr) == bool(extra)
         assert "2 queries (2 run in" in done.stdout and "0 failed" in done.stdout
+
+
+def test_numbers_out_of_range_are_refused_before_any_query():
+    """Before: --iters 0 failed every query inside the LM ('stack expects a non-empty TensorList'),
+    --min-confidence 2 (a percentage meant?) rejected every pose, and --workers 0 waited for ever."""
+    import pytest
+
+    from workflows import executor
+    for argv, match in ((["--iters", "0"], "num_iters, min_track_length and min_points must be at least 1"),
+                        (["--min-track-length", "0"], "must be at least 1"),
+                        (["--min-confidence", "2"], r"min_confidence and min_valid must lie in \[0, 1\]")):
+        with pytest.raises(ValueError, match=match):
+            _localize_job(*argv)
+    assert _localize_job("--iters", "1", "--min-confidence", "1").localizer.num_iters == 1
+    with pytest.raises(ValueError, match="--workers must be at least 1, not 0"):
+        with executor.dask_client(workers=0, dashboard=False):
+            pass

@@ -54,7 +54,7 @@ def test_failed_txt_and_the_report_say_that_pnp_failed_and_the_search_took_over(
     from pipeline.localization.verify import VerificationConfig
     from workflows.report import make_report
     job, queries, work = temple
-    strict = dataclasses.replace(job.localizer, verification=VerificationConfig(min_confidence=1.01))
+    strict = dataclasses.replace(job.localizer, verification=VerificationConfig(max_move_t=0.0))  # every pose moved
     job = dataclasses.replace(job, prior="sift", sift=SiftConfig(min_inliers=100_000), localizer=strict)
     run_sync(plan_localization(job, queries, work / "no-pnp"))
     lines = [line.split("\t") for line in (work / "no-pnp" / "failed.txt").read_text().splitlines()]
