@@ -77,6 +77,12 @@ class FeatureConfig:
             raise ValueError(f"Unknown global descriptor {self.descriptor!r}; known: {', '.join(DESCRIPTORS)}.")
         if self.pca < 0:
             raise ValueError(f"pca must be 0 (off) or a number of components, not {self.pca}.")
+        if not self.image_scales or min(self.image_scales) < 1 or len(set(self.image_scales)) < len(self.image_scales):
+            raise ValueError(f"image_scales must be distinct factors of at least 1 (e.g. 4 1), not "
+                             f"{list(self.image_scales)}.")
+        if self.resize // max(self.image_scales) < 16 or self.pad < 0:
+            raise ValueError(f"resize ({self.resize} px) must leave at least 16 px at the coarsest image scale "
+                             f"({max(self.image_scales)}), and pad ({self.pad}) must not be negative.")
         if self.sift and self.sift < 64:
             raise ValueError(f"sift must be 0 (off) or a longer image side of at least 64 pixels, not {self.sift}.")
 

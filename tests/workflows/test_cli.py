@@ -154,3 +154,15 @@ def test_numbers_out_of_range_are_refused_before_any_query():
     with pytest.raises(ValueError, match="--workers must be at least 1, not 0"):
         with executor.dask_client(workers=0, dashboard=False):
             pass
+    # build-map's: before, --image-scales 0 or --chunk-rows 0 passed the plan and failed in the work
+    # (a division by zero), --batch-size 0 said 'range() arg 3 must not be zero'
+    from pipeline.mapping.features import FeatureConfig
+    from workflows.build_map import plan_build
+    for kwargs, match in ((dict(image_scales=(0,)), "distinct factors of at least 1"),
+                          (dict(image_scales=(1, 1)), "distinct factors"),
+                          (dict(resize=0), "at least 16 px at the coarsest image scale")):
+        with pytest.raises(ValueError, match=match):
+            FeatureConfig(**kwargs)
+    for kwargs in (dict(batch_size=0), dict(chunk_rows=0), dict(shard_rows=100)):
+        with pytest.raises(ValueError, match="must be at least 1 and --shard-rows a multiple of --chunk-rows"):
+            plan_build(None, "unused.zarr", FeatureConfig(), **kwargs)
