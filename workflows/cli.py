@@ -139,9 +139,14 @@ def main(argv: Optional[List[str]] = None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 0
-    if getattr(args, "max_image_pixels", None):
-        from pipeline.images import MAX_PIXELS_ENV
+    if getattr(args, "max_image_pixels", None) is not None:
+        from pipeline.images import MAX_PIXELS_ENV, max_image_pixels
         os.environ[MAX_PIXELS_ENV] = str(args.max_image_pixels)  # inherited by local Dask workers
+        try:
+            max_image_pixels()  # refused here when it is not positive (0 was ignored)
+        except ValueError as e:
+            print(f"pixloc: error: --max-image-pixels: {e}", file=sys.stderr)
+            return 2
     try:
         if getattr(args, "storage_options", None):
             from pipeline.store.location import STORAGE_OPTIONS_ENV, storage_options

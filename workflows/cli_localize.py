@@ -194,6 +194,12 @@ def build_job(args: argparse.Namespace) -> LocalizationJob:
     if settings.get("scales") and not set(settings["scales"]) <= set(fconf.image_scales):
         raise ValueError(f"--scales {settings['scales']}: the store's features have image scales "
                          f"{list(fconf.image_scales)}.")
+    if settings.get("levels"):  # before: every query failed with it
+        from pipeline.store.feature_groups import feature_key
+        n = len(open_store(store)[f"features/{feature_key(fconf)}"].attrs["dims"])
+        if not set(settings["levels"]) <= set(range(n)):
+            raise ValueError(f"--levels {list(settings['levels'])}: the store's features have levels 0 (finest) to "
+                             f"{n - 1}.")
     job = build(LocalizationJob, {"store": str(store), "features": fconf, "model": fconf.model}, settings,
                 where="localize options")
     job.validate()

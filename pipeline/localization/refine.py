@@ -153,6 +153,8 @@ class Localizer:
         screening: at stride 16 many points share a feature-map cell)."""
         self.net, self.solvers, self.reader, self.conf, self.device = net, list(solvers), reader, conf, device
         self.max_points = max_points
+        if levels is not None and not set(levels) <= set(range(len(net.strides))):
+            raise ValueError(f"levels {list(levels)}: the network has levels 0 (finest) to {len(net.strides) - 1}.")
         self.levels = sorted(set(levels if levels is not None else range(len(net.strides))), reverse=True)
         stored = list(reader.conf.image_scales)
         missing = sorted(set(scales or ()) - set(stored))

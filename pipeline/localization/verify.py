@@ -88,8 +88,9 @@ class VerificationConfig:
         if not 0 <= self.min_confidence <= 1 or not 0 <= self.min_valid <= 1:
             raise ValueError(f"verification: min_confidence and min_valid must lie in [0, 1] (fractions), not "
                              f"{self.min_confidence} and {self.min_valid}.")
-        if self.max_sigma < 0:
-            raise ValueError(f"verification: max_sigma must not be negative, not {self.max_sigma}.")
+        if min(self.max_sigma, self.max_last_turn, self.max_move_R, self.max_move_t) < 0:
+            raise ValueError(f"verification: max_sigma, max_last_turn, max_move_R and max_move_t must not be negative, "
+                             f"not {self.max_sigma}, {self.max_last_turn}, {self.max_move_R} and {self.max_move_t}.")
         if self.rivals < 0 or self.agree_t <= 0 or self.agree_R <= 0:
             raise ValueError("verification: rivals must not be negative, agree_t and agree_R must be positive.")
         if not 0 <= self.join <= 1:

@@ -130,6 +130,9 @@ def test_sift_work_keeps_colmaps_info_lines_off_the_terminal(shared, tmp_path):
     assert built.returncode == 0, built.stderr
     assert "sift.cc" not in built.stderr + built.stdout and "features: 7/7 images" in built.stderr
     assert list((tmp_path / "kermit.work").glob("colmap.INFO.*"))  # the triangulation's COLMAP log, in its file
+    levels = run("localize", "bundler", str(bundle), "--query-names", *held, "--store", str(store), "--output",
+                 str(tmp_path / "lv"), "--levels", "3")  # before: every query failed with it
+    assert levels.returncode == 2 and "--levels [3]: the store's features have levels 0 (finest) to 2" in levels.stderr
     for extra in ([], ["-v"]):
         out = tmp_path / f"run{len(extra)}"
         done = run(*extra, "localize", "bundler", str(bundle), "--images", str(images), "--query-names", *held,
@@ -147,13 +150,19 @@ def test_numbers_out_of_range_are_refused_before_any_query():
     from workflows import executor
     for argv, match in ((["--iters", "0"], "num_iters, min_track_length and min_points must be at least 1"),
                         (["--min-track-length", "0"], "must be at least 1"),
-                        (["--min-confidence", "2"], r"min_confidence and min_valid must lie in \[0, 1\]")):
+                        (["--min-confidence", "2"], r"min_confidence and min_valid must lie in \[0, 1\]"),
+                        (["--max-turn", "-1"], "must not be negative")):
         with pytest.raises(ValueError, match=match):
             _localize_job(*argv)
     assert _localize_job("--iters", "1", "--min-confidence", "1").localizer.num_iters == 1
     with pytest.raises(ValueError, match="--workers must be at least 1, not 0"):
         with executor.dask_client(workers=0, dashboard=False):
             pass
+    executor.check_device("cpu")  # a CUDA device past this machine's last (none on a CPU build) failed every task
+    with pytest.raises(ValueError, match=r"--device cuda:99: this machine has \d+ CUDA device"):
+        executor.check_device("cuda:99")
+    out = run("--max-image-pixels", "0", "queries", "nowhere")  # 0 was ignored (the default limit stayed)
+    assert out.returncode == 2 and "--max-image-pixels: PIXLOC_MAX_IMAGE_PIXELS='0' must be positive" in out.stderr
     # build-map's: before, --image-scales 0 or --chunk-rows 0 passed the plan and failed in the work
     # (a division by zero), --batch-size 0 said 'range() arg 3 must not be zero'
     from pipeline.mapping.features import FeatureConfig
