@@ -8,7 +8,7 @@ import numpy as np
 
 from pixloc.geometry import COLMAP_MODELS
 
-from pipeline.scene import CameraRecord, SceneError, name_problem
+from pipeline.scene import CameraRecord, name_problem
 from pipeline.textfiles import data_lines
 
 
@@ -36,8 +36,6 @@ def read_queries_with_intrinsics(path, image_dir, tags=None) -> List[QueryRecord
     and fails with it."""
     queries = []
     path = Path(path)
-    if not path.is_file():
-        raise SceneError(f"Query list {path} does not exist.")
     for line_no, (name, *fields) in data_lines(path, "query list"):
         camera, error = None, None
         spaced = next((k for k, f in enumerate(fields) if f in COLMAP_MODELS), 0)

@@ -64,3 +64,11 @@ def test_the_command_writes_a_list_that_localize_reads(shared, tmp_path, capsys)
     # another default for images without EXIF
     assert pixloc(["queries", str(photos / "plain.jpg"), "--out", str(out), "--default-focal", "0.8"]) == 0
     assert read_queries_with_intrinsics(out, photos)[0].camera.params[0] == pytest.approx(0.8 * max(w, h), abs=1e-3)
+
+
+def test_a_query_list_that_is_a_folder_or_absent_is_named_as_such(tmp_path):
+    """Before: a folder given as the query list was 'Query list ... does not exist'."""
+    with pytest.raises(ValueError, match=r"query list does not exist \(it is a folder\)"):
+        read_queries_with_intrinsics(tmp_path, tmp_path)
+    with pytest.raises(ValueError, match=r"nothere\.txt: query list does not exist$"):
+        read_queries_with_intrinsics(tmp_path / "nothere.txt", tmp_path)
