@@ -77,6 +77,18 @@ class TrainingRun:
     trainer: TrainConfig = field(default_factory=TrainConfig)
     pairs: PairConfig = field(default_factory=PairConfig)
 
+    def __post_init__(self):
+        # before: a run with steps 0 or lr 0 started preparing its data (minutes of SIFT), then failed or did nothing
+        problems = [f"{k} {v} (at least 1)" for k, v in (
+            ("steps", self.steps), ("batch_size", self.batch_size), ("val_every", self.val_every),
+            ("checkpoint_every", self.checkpoint_every), ("num_iters", self.trainer.num_iters),
+            ("decay_steps", 1 if self.decay_steps is None else self.decay_steps)) if v < 1]
+        problems += [f"{k} {v} (not negative)" for k, v in (("workers", self.workers), ("val_pairs", self.val_pairs))
+                     if v < 0]
+        problems += [] if self.trainer.lr > 0 else [f"lr {self.trainer.lr} (positive)"]
+        if problems:
+            raise ValueError(f"training: {', '.join(problems)}.")
+
     @classmethod
     def from_dict(cls, config: Dict, where: str = "training config") -> "TrainingRun":
         nested = {"trainer": {f.name for f in fields(TrainConfig)} - {"total_steps"},
@@ -406,6 +418,8 @@ def main(args: argparse.Namespace) -> int:
     run = load_config(args.config, overrides)
     if run.trainer.device.startswith("cuda") and not torch.cuda.is_available():
         raise ValueError("--device cuda: no CUDA device is available to torch here.")
+    from .logs import colmap_to_file
+    colmap_to_file(args.output)  # the SfM and triangulation of map sources log there, not on the terminal
     if args.synthetic_only:
         run = replace(run, data=tuple(d for d in run.data if d["kind"] == "synthetic"))
     if args.contact_sheet:

@@ -73,6 +73,17 @@ def test_missing_training_data_is_reported(tmp_path, capsys):
     assert "No training data" in capsys.readouterr().err
 
 
+def test_numbers_out_of_range_are_refused_before_the_data(tmp_path, capsys):
+    """Before: steps -5 or lr 0 prepared the training data (minutes of SIFT on real sources) first."""
+    for key, value, said in (("steps", -5, "steps -5 (at least 1)"), ("lr", 0, "lr 0 (positive)"),
+                             ("workers", -1, "workers -1 (not negative)")):
+        path = tmp_path / f"{key}.yaml"
+        path.write_text(yaml.safe_dump(dict(CONFIG, **{key: value})))
+        assert main(["train", "--config", str(path), "--output", str(tmp_path / key)]) == 2
+        assert f"pixloc: error: training: {said}." in capsys.readouterr().err
+        assert not (tmp_path / key).exists()
+
+
 def test_worker_processes_load_the_same_pairs(config, tmp_path):
     """Batches of 2 pairs read in 2 worker processes: the same steps as read in-process."""
     for workers in ("0", "2"):
