@@ -96,6 +96,8 @@ def main(args: argparse.Namespace) -> int:
                  given(args, FLAGS), where="build-map options")
     if Path(conf.model).suffix:  # a model file, recorded absolute
         conf = dataclasses.replace(conf, model=str(absolute(conf.model)))
+    from pixloc.nets.registry import model_recipe
+    model_recipe(conf.model)  # an unknown model or a bad file is refused now, not after the SfM or triangulation
     store = location.normalize(args.store)
     source = MapSource(args.kind, absolute(args.path), absolute(args.images), tuple(args.sequences),
                        args.rgbd_points, args.densify, tuple(args.intrinsics), args.depth_scale, args.depth_ext,

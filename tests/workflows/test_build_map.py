@@ -160,6 +160,15 @@ def test_a_held_out_rgbd_frame_is_localized_as_a_posetxt_query(shared, tmp_path)
     assert missing.returncode == 2 and "needs --intrinsics" in missing.stderr
 
 
+def test_an_unknown_model_is_refused_before_the_reconstruction(shared, tmp_path):
+    """Before: a triangulated or SfM source ran its reconstruction (minutes), then refused the model."""
+    out = subprocess.run([sys.executable, "-m", "workflows.cli", "build-map", "strecha",
+                          str(shared / "data" / "strecha" / "fountain-P11"), "--store", str(tmp_path / "m.zarr"),
+                          "--model", "nothere.pt", "--dry-run"], capture_output=True, text=True, cwd=tmp_path)
+    assert out.returncode == 2 and "Unknown feature model" in out.stderr and "nothere.pt" in out.stderr
+    assert not (tmp_path / "m.work").exists()
+
+
 def _done(store: Path) -> int:
     try:
         root = open_store(store)
