@@ -27,7 +27,7 @@ from pipeline.textfiles import read_json, write_atomic
 from pixloc.nets.unet import NETWORK_PRECISIONS
 
 from . import executor
-from .options import Flag, add_flags, build, given
+from .options import Flag, add_flags, at_least, build, given
 from .localize import ORDERS, REGION_MIN_QUERIES, plan_localization, run_dask, run_sync
 from .sources import QUERY_KINDS, load_queries
 
@@ -400,7 +400,7 @@ def format_summary(summary, units: str = "m", group_by=None) -> str:
 def add_report_arguments(p: argparse.ArgumentParser) -> None:
     add_query_arguments(p)
     p.add_argument("--output", type=Path, required=True, help="a pixloc localize output folder")
-    p.add_argument("--examples", type=int, default=3, help="example queries per condition: best, median, worst "
+    p.add_argument("--examples", type=at_least(0), default=3, help="example queries per condition: best, median, worst "
                    "(default 3), then up to 3 failures")
     p.add_argument("--units", help="distance unit of the map (default: m for metric sources, 'SfM units' for SfM "
                    "models)")

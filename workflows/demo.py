@@ -27,6 +27,7 @@ from pipeline.data.synthetic import SyntheticConfig, ensure_generated, read_synt
 from pipeline.textfiles import write_atomic
 
 from . import build_map, executor, localize
+from .options import at_least
 from .report import make_report
 
 logger = logging.getLogger(__name__)
@@ -134,11 +135,11 @@ def format_table(summary: Dict[str, Dict]) -> str:
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--output", type=Path, default=Path("outputs/demo"), help="output folder (default outputs/demo)")
     p.add_argument("--model", default="pixloc-lite0", help="feature model (default: the shipped pixloc-lite0)")
-    p.add_argument("--references", type=int, default=30,
+    p.add_argument("--references", type=at_least(1), default=30,
                    help=f"map images of the synthetic scene (at least {MIN_REFERENCES})")
-    p.add_argument("--queries-per-condition", type=int, default=5,
+    p.add_argument("--queries-per-condition", type=at_least(1), default=5,
                    help="queries of each condition (day, dusk, night, occluded)")
-    p.add_argument("--workers", type=int, default=2, help="Dask workers (processes)")
+    p.add_argument("--workers", type=at_least(1), default=2, help="Dask workers (processes)")
     p.add_argument("--sync", action="store_true", help="localize in this process, without Dask")
     p.add_argument("--prior", choices=["top1", "average", "hypotheses", "search"], default="top1",
                    help="pose prior of the localization (see pixloc localize --help)")

@@ -31,6 +31,7 @@ from pipeline.data.training_data import PairDataset
 from pixloc.geometry import pose_error
 from pixloc.nets.registry import load_refiner
 
+from .options import at_least
 from .train import load_config
 from .training_sources import default_data_root, load_sources
 
@@ -156,10 +157,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--data-root", type=Path, help="default $PIXLOC_SHARED/data or ../shared/data")
     p.add_argument("--output", type=Path, default=Path("outputs/model_eval"),
                    help="folder of the tables, the per-pair errors and the reused triangulation")
-    p.add_argument("--max-pairs", type=int, default=40, help="pairs per held-out source (seeded choice)")
-    p.add_argument("--max-size", type=int, help="longer image side (default: the config's)")
-    p.add_argument("--iters", type=int, default=100, help="LM iterations per level")
-    p.add_argument("--threads", type=int, default=0,
+    p.add_argument("--max-pairs", type=at_least(1), default=40, help="pairs per held-out source (seeded choice)")
+    p.add_argument("--max-size", type=at_least(16), help="longer image side (default: the config's)")
+    p.add_argument("--iters", type=at_least(1), default=100, help="LM iterations per level")
+    p.add_argument("--threads", type=at_least(0), default=0,
                    help="torch threads (default: torch's choice; 1 beside another busy job, whose core the "
                         "threads would otherwise wait on)")
     p.add_argument("--seed", type=int, default=0, help="seed of the initial poses (the same pairs for every model)")

@@ -32,6 +32,21 @@ class Flag:
     metavar: Optional[str] = None
 
 
+def at_least(minimum: int):
+    """An argparse type: a whole number of at least ``minimum`` (a count: examples, threads, pairs),
+    refused by argparse with the option's name otherwise."""
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"not a whole number: {text!r}") from None
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"must be at least {minimum}, not {value}")
+        return value
+    parse.__name__ = "at_least"
+    return parse
+
+
 def field_types(cls, prefix: str = "") -> Dict[str, Any]:
     """Every field of ``cls`` and of its nested dataclasses, by dotted path, with its type (a
     nested dataclass is a field too: it can be given whole)."""

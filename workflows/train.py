@@ -35,7 +35,7 @@ from pipeline.data.training_data import PairConfig, PairDataset
 from pixloc.nets.registry import load_refiner, save_model
 from pixloc.training import Trainer, TrainConfig, reprojection_px
 
-from .options import build, check_keys
+from .options import at_least, build, check_keys
 from .training_sources import default_data_root, load_sources
 
 logger = logging.getLogger(__name__)
@@ -397,13 +397,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="folder of the real data sources (default $PIXLOC_SHARED/data or ../shared/data)")
     p.add_argument("--steps", type=int, help="total steps (overrides the config)")
     p.add_argument("--lr", type=float, help="learning rate (overrides the config)")
-    p.add_argument("--max-size", type=int, help="longer image side (overrides the config)")
+    p.add_argument("--max-size", type=at_least(16), help="longer image side (overrides the config)")
     p.add_argument("--synthetic-only", action="store_true", help="use only the config's synthetic sources")
     p.add_argument("--grad-checkpointing", action="store_true", help="trade compute for memory")
     p.add_argument("--restart", action="store_true", help="ignore an existing checkpoint")
     p.add_argument("--contact-sheet", action="store_true",
                    help="only write OUTPUT/contact_sheet.jpg: sampled pairs of every source, to check them by eye")
-    p.add_argument("--threads", type=int, default=0, help="torch threads (default: torch's choice)")
+    p.add_argument("--threads", type=at_least(0), default=0, help="torch threads (default: torch's choice)")
     p.add_argument("--device", help="cpu or cuda (overrides the config; default cpu)")
     p.add_argument("--amp", action="store_true", help="on a GPU: the network in bfloat16 autocast")
     p.add_argument("--batch-size", type=int, help="pairs per step (overrides the config; default 1)")

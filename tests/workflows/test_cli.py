@@ -161,6 +161,11 @@ def test_numbers_out_of_range_are_refused_before_any_query():
     executor.check_device("cpu")  # a CUDA device past this machine's last (none on a CPU build) failed every task
     with pytest.raises(ValueError, match=r"--device cuda:99: this machine has \d+ CUDA device"):
         executor.check_device("cuda:99")
+    for argv, said in ((["report", "list", "q.txt", "--output", "o", "--examples", "-2"], "--examples: must be at "
+                        "least 0, not -2"), (["demo", "--references", "0"], "--references: must be at least 1, not 0"),
+                       (["evaluate-model", "--threads", "x"], "--threads: not a whole number: 'x'")):
+        out = run(*argv)  # counts of the commands that no dataclass holds: before, -2 examples were taken
+        assert out.returncode == 2 and said in out.stderr, out.stderr
     out = run("--max-image-pixels", "0", "queries", "nowhere")  # 0 was ignored (the default limit stayed)
     assert out.returncode == 2 and "--max-image-pixels: PIXLOC_MAX_IMAGE_PIXELS='0' must be positive" in out.stderr
     # build-map's: before, --image-scales 0 or --chunk-rows 0 passed the plan and failed in the work
