@@ -341,7 +341,15 @@ def ground_truth(args: argparse.Namespace, queries) -> Dict[str, Optional[np.nda
         from pipeline.textfiles import read_poses, warn_partial_matches
         poses = read_poses(_absolute(args.ground_truth))  # strict: file:line for a bad line or a duplicate
         warn_partial_matches(poses, [q.name for q in queries], "check that they are the same images")
-        return {q.name: poses.find(q.name) for q in queries}
+        gt = {q.name: poses.find(q.name) for q in queries}
+        missing = [name for name, T in gt.items() if T is None]  # before: left out of the evaluation without a word
+        if missing and len(missing) == len(gt):
+            raise ValueError(f"--ground-truth {args.ground_truth}: no pose for any of the {len(gt)} queries (e.g. "
+                             f"{missing[0]}; the file has {len(poses)} poses).")
+        if missing:
+            logger.warning("--ground-truth %s: %d of the %d queries have no pose there and are not evaluated "
+                           "(e.g. %s)", args.ground_truth, len(missing), len(gt), missing[0])
+        return gt
     return {q.name: q.cam_from_world_gt for q in queries}
 
 

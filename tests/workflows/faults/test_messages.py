@@ -213,3 +213,21 @@ def test_a_bfloat16_pass_on_a_cpu_without_native_bfloat16_is_warned_about(stairs
             "amx_bf16 among its flags)") in capsys.readouterr().out
     assert cli.main([*args, "--network-precision", "bfloat16", "--device", "cuda"]) == 0  # a dry run: no CPU pass
     assert "no native bfloat16" not in capsys.readouterr().out
+
+
+def test_ground_truth_that_misses_queries_is_said(tmp_path, caplog):
+    """Before: a --ground-truth file without the queries' names (or empty) left them out of the
+    evaluation without a word; now none matched is an error, some missing a warning."""
+    import argparse
+    import types
+
+    from workflows.cli_localize import ground_truth
+    queries = [types.SimpleNamespace(name=n) for n in ("a.jpg", "b.jpg")]
+    path = tmp_path / "gt.txt"
+    path.write_text("")
+    with pytest.raises(ValueError, match=r"no pose for any of the 2 queries \(e\.g\. a\.jpg; the file has 0 poses\)"):
+        ground_truth(argparse.Namespace(ground_truth=path), queries)
+    path.write_text("a.jpg 1 0 0 0 0 0 0\n")
+    gt = ground_truth(argparse.Namespace(ground_truth=path), queries)
+    assert gt["a.jpg"] is not None and gt["b.jpg"] is None
+    assert "1 of the 2 queries have no pose there and are not evaluated (e.g. b.jpg)" in caplog.text
