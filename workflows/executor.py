@@ -64,7 +64,7 @@ def run_plan(plan, run_sync: Callable, run_dask: Callable, *, sync: bool, schedu
     """``run_sync(plan, progress=True)``, or ``run_dask(plan, client, progress=True)`` on a client of
     ``scheduler`` (or of a local cluster of ``workers``): what the commands do with a plan."""
     if not scheduler:  # the work runs on this machine (a cluster of yours may have devices that this one has not)
-        check_device(device)
+        check_device(device, "; use --device cpu, or run on a cluster whose workers have the GPU (--scheduler)")
     if sync:
         return run_sync(plan, progress=True)
     with dask_client(scheduler, workers, device) as client:
@@ -72,17 +72,16 @@ def run_plan(plan, run_sync: Callable, run_dask: Callable, *, sync: bool, schedu
         return run_dask(plan, client, progress=True)
 
 
-def check_device(device: str) -> None:
+def check_device(device: str, fix: str = "") -> None:
     """Refuse a torch device that this machine does not have (a CUDA device on a CPU build, or past
-    the last GPU): the tasks would fail one by one on torch's assertion."""
+    the last GPU), with ``fix`` appended: the work would fail one task at a time on torch's assertion."""
     import torch
     dev = torch.device(device)
     if dev.type == "cuda":
         count = torch.cuda.device_count() if torch.cuda.is_available() else 0
         if (dev.index or 0) >= count:
-            raise ValueError(f"--device {device}: this machine has {count} CUDA device(s)"
-                             f"{'' if count else ' (or this torch is a CPU build)'}; use --device cpu, or run on a "
-                             "cluster whose workers have the GPU (--scheduler).")
+            none = "" if count else " (no CUDA device is available to torch here: a CPU build, or no GPU)"
+            raise ValueError(f"--device {device}: this machine has {count} CUDA device(s){none}{fix}.")
 
 
 def check_resources(client, resources: Optional[Dict[str, float]]) -> None:

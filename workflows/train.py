@@ -416,8 +416,8 @@ def main(args: argparse.Namespace) -> int:
                  if getattr(args, key) is not None}
     overrides.update({key: True for key in ("grad_checkpointing", "amp") if getattr(args, key)})
     run = load_config(args.config, overrides)
-    if run.trainer.device.startswith("cuda") and not torch.cuda.is_available():
-        raise ValueError("--device cuda: no CUDA device is available to torch here.")
+    from .executor import check_device
+    check_device(run.trainer.device)
     from .logs import colmap_to_file
     colmap_to_file(args.output)  # the SfM and triangulation of map sources log there, not on the terminal
     if args.synthetic_only:
