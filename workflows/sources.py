@@ -11,7 +11,7 @@ from pipeline.mapping.depth import densify, rgbd_scene
 from pipeline.mapping.image_pairs import PairsConfig
 from pipeline.progress import Silent
 from pipeline.queries import QueryRecord, read_queries_with_intrinsics
-from pipeline.scene import name_problem
+from pipeline.scene import SceneError, name_problem
 from pipeline.mapping.readers.colmap import read_colmap, run_sfm, triangulate_known_poses
 from pipeline.mapping.readers.bundler import read_bundler
 from pipeline.mapping.readers.kapture import read_kapture
@@ -89,8 +89,18 @@ def describe_source(source: dict) -> str:
 
 
 def posed_images(kind: str, path: Path, images: Optional[Path] = None) -> Tuple[List, Path]:
-    """The posed images of a ``POSED_FORMATS`` source, and the folder their names are relative to."""
-    path = Path(path)
+    """The posed images of a ``POSED_FORMATS`` source, and the folder their names are relative to.
+    Every image is checked as a map needs it (``ImageRecord.check``: a finite rotation, a camera
+    that can project): a source that holds one that is not is refused, naming it."""
+    found, root = _read_posed(kind, Path(path), images)
+    for im in found:
+        reason = im.check()
+        if reason:
+            raise SceneError(f"{path}: image {im.name}: {reason}.")
+    return found, root
+
+
+def _read_posed(kind: str, path: Path, images: Optional[Path]) -> Tuple[List, Path]:
     if kind == "strecha":
         return read_strecha(path), path / "images"
     if kind == "kapture":

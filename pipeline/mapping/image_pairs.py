@@ -25,6 +25,7 @@ import numpy as np
 
 from pipeline.progress import Silent, database_rows, watching
 from pipeline.regions import camera_centres
+from pipeline.textfiles import read_text
 
 logger = logging.getLogger(__name__)
 
@@ -115,7 +116,7 @@ def read_pairs(path, names: Sequence[str]) -> List[Pair]:
     that names the line."""
     known = set(names)
     pairs = []
-    for n, line in enumerate(Path(path).read_text().splitlines(), 1):
+    for n, line in enumerate(read_text(path, "pairs file").splitlines(), 1):
         if not line.strip() or line.lstrip().startswith("#"):
             continue
         parts = line.split()

@@ -12,6 +12,7 @@ import numpy as np
 
 from pipeline.images import image_files, image_size
 from pipeline.scene import CameraRecord, ImageRecord, SceneError
+from pipeline.textfiles import read_text
 
 FLIP = np.diag([1.0, -1.0, -1.0])  # Bundler's camera axes (x right, y up, z back) to COLMAP's
 
@@ -19,7 +20,7 @@ FLIP = np.diag([1.0, -1.0, -1.0])  # Bundler's camera axes (x right, y up, z bac
 def image_list(root: Path, list_file: Optional[Path] = None) -> List[str]:
     """The names of the bundle's cameras, in order."""
     if list_file is not None and Path(list_file).is_file():
-        return [line.split()[0] for line in Path(list_file).read_text().splitlines() if line.strip()]
+        return [line.split()[0] for line in read_text(list_file, "Bundler image list").splitlines() if line.strip()]
     return image_files(root)
 
 
@@ -28,7 +29,7 @@ def read_bundler(bundle, image_root, names: Optional[Sequence[str]] = None, tags
     ``image_root``; ``names``: the images of the cameras, in order (default: ``image_list``).
     Errors name the file and line."""
     bundle, image_root = Path(bundle), Path(image_root)
-    lines = bundle.read_text().splitlines()
+    lines = read_text(bundle, "Bundler bundle file").splitlines()
     body = [(n, line) for n, line in enumerate(lines, 1) if line.strip() and not line.startswith("#")]
     if not body:
         raise SceneError(f"{bundle}: empty bundle file.")

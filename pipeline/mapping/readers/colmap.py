@@ -14,6 +14,7 @@ from pixloc.nets.registry import DEFAULT_MODEL
 
 from pipeline.images import file_sha256, image_files
 from pipeline.mapping.image_pairs import PairsConfig, match
+from pipeline.mapping.readers.colmap_files import read_reconstruction
 from pipeline.progress import Silent, database_rows, watching
 from pipeline.scene import CameraRecord, ImageRecord, Scene, SceneError
 
@@ -49,14 +50,7 @@ def scene_from_reconstruction(rec: pycolmap.Reconstruction, image_dir: Path,
 
 def read_colmap(model_dir, image_dir, tags=None) -> Scene:
     """Read a COLMAP model folder (cameras/images/points3D, .bin or .txt)."""
-    model_dir = Path(model_dir)
-    if not model_dir.is_dir():
-        raise SceneError(f"COLMAP model folder {model_dir} does not exist.")
-    try:
-        rec = pycolmap.Reconstruction(str(model_dir))
-    except Exception as e:  # pycolmap raises plain RuntimeErrors/ValueErrors
-        raise SceneError(f"Cannot read the COLMAP model in {model_dir}: {e}") from None
-    return scene_from_reconstruction(rec, image_dir, tags)
+    return scene_from_reconstruction(read_reconstruction(model_dir), image_dir, tags)
 
 
 def _extract_and_match(database: Path, image_dir: Path, names: Sequence[str], pairs: PairsConfig,
@@ -138,7 +132,7 @@ def cached_model(work_dir: Path, marker: str, model: str, fingerprint: dict,
             stored = json.loads(path.read_text())
             if stored in (fingerprint, legacy_fingerprint(image_dir, fingerprint)):
                 logger.info("Reusing the reconstruction in %s (same inputs).", work_dir / model)
-                rec = pycolmap.Reconstruction(str(work_dir / model))
+                rec = read_reconstruction(work_dir / model)
                 if stored != fingerprint:
                     path.write_text(json.dumps(fingerprint))
                 return rec

@@ -9,6 +9,7 @@ import numpy as np
 
 from pipeline.images import image_size
 from pipeline.scene import CameraRecord, ImageRecord, SceneError
+from pipeline.textfiles import read_text
 
 
 def par_file(root: Path) -> Path:
@@ -24,7 +25,7 @@ def read_middlebury(root, par: Optional[Path] = None, tags=None) -> List[ImageRe
     is absent are left out. Errors name the file and line."""
     root = Path(root)
     par = Path(par) if par is not None else par_file(root)
-    lines = par.read_text().splitlines()
+    lines = read_text(par, "Middlebury camera file").splitlines()
     images = []
     for n, line in enumerate(lines[1:], 2):
         fields = line.split()

@@ -6,6 +6,7 @@ from typing import List
 import numpy as np
 
 from pipeline.scene import CameraRecord, ImageRecord, SceneError
+from pipeline.textfiles import read_text
 
 
 def read_strecha_camera(path) -> tuple:
@@ -13,9 +14,10 @@ def read_strecha_camera(path) -> tuple:
 
     Returns (CameraRecord PINHOLE, cam_from_world (3, 4)).
     """
+    text = read_text(path, "Strecha camera file")
     try:
-        values = np.array(Path(path).read_text().split(), dtype=np.float64)
-    except (ValueError, UnicodeDecodeError) as e:
+        values = np.array(text.split(), dtype=np.float64)
+    except ValueError as e:
         raise SceneError(f"{path}: not a Strecha camera file ({e})") from None
     if values.size != 9 + 3 + 9 + 3 + 2:
         raise SceneError(f"{path}: expected 26 numbers in a Strecha camera file, got {values.size}.")

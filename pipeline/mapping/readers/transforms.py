@@ -13,21 +13,36 @@ import numpy as np
 
 from pipeline.images import PHOTO_SUFFIXES, image_size
 from pipeline.scene import CameraRecord, ImageRecord, SceneError
+from pipeline.textfiles import read_json
 
 FLIP = np.diag([1.0, -1.0, -1.0])  # OpenGL camera axes to COLMAP's
 
 
+def _number(values: dict, key: str, where: str, default=None) -> float:
+    """``values[key]`` as a finite number (``default`` where it is absent), or SceneError naming it."""
+    value = values.get(key, default)
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value):
+        raise SceneError(f"{where}: {key} is {json.dumps(value)}, not a finite number.")
+    return float(value)
+
+
 def _camera(values: dict, path: Path, where: str) -> CameraRecord:
-    width, height = (int(values["w"]), int(values["h"])) if "w" in values and "h" in values else image_size(path)
+    if "w" in values and "h" in values:
+        width, height = (_number(values, k, where) for k in ("w", "h"))
+        if width != int(width) or height != int(height):
+            raise SceneError(f"{where}: the image size {width:g} x {height:g} is not in whole pixels.")
+        width, height = int(width), int(height)
+    else:
+        width, height = image_size(path)
     if "fl_x" in values:
-        fx = float(values["fl_x"])
+        fx = _number(values, "fl_x", where)
     elif "camera_angle_x" in values:
-        fx = 0.5 * width / np.tan(0.5 * float(values["camera_angle_x"]))
+        fx = 0.5 * width / np.tan(0.5 * _number(values, "camera_angle_x", where))
     else:
         raise SceneError(f"{where}: no focal length (fl_x or camera_angle_x).")
-    fy = float(values.get("fl_y", fx))
-    cx, cy = float(values.get("cx", width / 2)), float(values.get("cy", height / 2))
-    distortion = [float(values.get(k, 0.0)) for k in ("k1", "k2", "p1", "p2")]
+    fy = _number(values, "fl_y", where, fx)
+    cx, cy = _number(values, "cx", where, width / 2), _number(values, "cy", where, height / 2)
+    distortion = [_number(values, k, where, 0.0) for k in ("k1", "k2", "p1", "p2")]
     if any(distortion):
         return CameraRecord("OPENCV", width, height, (fx, fy, cx, cy, *distortion))
     return CameraRecord("PINHOLE", width, height, (fx, fy, cx, cy))
@@ -36,18 +51,17 @@ def _camera(values: dict, path: Path, where: str) -> CameraRecord:
 def read_transforms(path, tags=None) -> List[ImageRecord]:
     """The posed frames of a ``transforms.json``; image names relative to its folder."""
     path = Path(path)
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, ValueError) as e:
-        raise SceneError(f"{path}: not a transforms.json ({e}).") from None
-    frames = data.get("frames") if isinstance(data, dict) else None
-    if not frames:
-        raise SceneError(f"{path}: no frames.")
+    data = read_json(path, "transforms.json")
+    frames = data.get("frames")
+    if not frames or not isinstance(frames, list):
+        raise SceneError(f"{path}: no frames (a list of them).")
     root = path.parent
     images = []
     for k, frame in enumerate(frames):
         where = f"{path}: frame {k}"
-        name = str(frame.get("file_path", "")).removeprefix("./")
+        if not isinstance(frame, dict) or not isinstance(frame.get("file_path"), str):
+            raise SceneError(f"{where}: expected an object with a file_path, got {json.dumps(frame)[:80]}.")
+        name = frame["file_path"].removeprefix("./")
         file = root / name
         if not file.is_file():
             found = [root / (name + x) for s in PHOTO_SUFFIXES for x in (s, s.upper()) if (root / (name + x)).is_file()]
@@ -55,7 +69,10 @@ def read_transforms(path, tags=None) -> List[ImageRecord]:
                 raise SceneError(f"{where}: image {file} does not exist.")
             file = found[0]
             name = file.relative_to(root).as_posix()
-        c2w = np.asarray(frame.get("transform_matrix"), np.float64)
+        try:
+            c2w = np.asarray(frame.get("transform_matrix"), np.float64)
+        except (TypeError, ValueError):
+            c2w = np.zeros(0)
         if c2w.shape != (4, 4) or not np.isfinite(c2w).all():
             raise SceneError(f"{where}: transform_matrix is not a finite 4x4 matrix.")
         R_c2w = c2w[:3, :3] @ FLIP  # the camera's axes in COLMAP's convention

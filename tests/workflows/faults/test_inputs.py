@@ -212,6 +212,7 @@ def test_a_damaged_posed_format_names_its_file_and_what_is_wrong(shared, tmp_pat
     from pipeline.mapping.readers.opensfm import read_opensfm
     from pipeline.mapping.readers.transforms import read_transforms
     from pipeline.scene import SceneError
+    from pipeline.textfiles import InputError
     data = shared / "data"
     if case.startswith("par"):
         src = data / "middlebury" / "templeRing"
@@ -247,7 +248,7 @@ def test_a_damaged_posed_format_names_its_file_and_what_is_wrong(shared, tmp_pat
     elif case == "opensfm_json":
         path = tmp_path / "reconstruction.json"
         path.write_text((data / "opensfm_berlin" / "reconstruction_example.json").read_text()[:5000])
-        with pytest.raises(SceneError, match=rf"{path}: not an OpenSfM reconstruction"):
+        with pytest.raises(InputError, match=rf"{path}:\d+: OpenSfM reconstruction is not valid JSON"):
             read_opensfm(path, data / "opensfm_berlin" / "images")
     else:
         path = tmp_path / "transforms.json"

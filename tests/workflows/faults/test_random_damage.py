@@ -194,7 +194,7 @@ def _named_or_checked(read, path: Path, folder: bool = False):
     from pipeline.scene import SceneError
     try:
         images = read()
-    except SceneError as e:
+    except (SceneError, InputError) as e:
         assert str(path.parent if folder else path) in str(e), str(e)
         return
     for im in images:
