@@ -14,6 +14,7 @@ arbitrary pickled code is refused.
 import functools
 import pickle
 import zipfile
+import zlib
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
@@ -126,6 +127,9 @@ def build_refiner(recipe: Recipe) -> TwoViewRefiner:
         if missing or unexpected:
             raise CheckpointError(f"{recipe.source} does not match its configuration: missing {missing[:5]}, "
                                   f"unexpected {unexpected[:5]}.")
+        broken = [k for k, v in recipe.state.items() if v.is_floating_point() and not torch.isfinite(v).all()]
+        if broken:
+            raise CheckpointError(f"{recipe.source} holds weights that are not finite numbers: {broken[:3]}.")
     return refiner.eval()
 
 
@@ -188,11 +192,27 @@ def _numpy_safe_globals():
     return allowed
 
 
+def _check_zip(path: Path) -> None:
+    """A checkpoint in PyTorch's zip format (every one saved since torch 1.6) has a CRC-32 per record,
+    which ``torch.load`` does not check: a damaged byte in a tensor would load as other weights."""
+    if not zipfile.is_zipfile(path):
+        return
+    try:
+        with zipfile.ZipFile(path) as archive:
+            bad = archive.testzip()
+    except (zipfile.BadZipFile, OSError, ValueError, EOFError, NotImplementedError, zlib.error, RuntimeError) as e:
+        raise CheckpointError(f"{path} is corrupt or not a PyTorch checkpoint: {e}") from None
+    if bad is not None:
+        raise CheckpointError(f"{path} is corrupt: its record {bad} fails its checksum (the file was damaged "
+                              "after it was written).")
+
+
 def read_checkpoint(path) -> Dict[str, Any]:
     """The checkpoint's dict, loaded without executing pickled code."""
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"Checkpoint {path} does not exist.")
+    _check_zip(path)
     try:
         with torch.serialization.safe_globals(_numpy_safe_globals()):
             ckpt = torch.load(path, map_location="cpu", weights_only=True)
@@ -200,8 +220,8 @@ def read_checkpoint(path) -> Dict[str, Any]:
         raise CheckpointError(
             f"Refusing {path}: loading it would require running arbitrary pickled code, which is "
             f"not allowed for checkpoints ({str(e).splitlines()[-1] if str(e) else e}).") from None
-    except (RuntimeError, EOFError, zipfile.BadZipFile, OSError, ValueError) as e:
-        raise CheckpointError(f"{path} is corrupt or not a PyTorch checkpoint: {e}") from None
+    except Exception as e:  # damaged bytes fail torch's legacy unpickler in any way: KeyError, IndexError...
+        raise CheckpointError(f"{path} is corrupt or not a PyTorch checkpoint: {type(e).__name__}: {e}") from None
     if not isinstance(ckpt, dict):
         raise CheckpointError(f"{path} is not a PixLoc checkpoint: it holds a {type(ckpt).__name__}.")
     return ckpt

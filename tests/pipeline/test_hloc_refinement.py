@@ -7,6 +7,8 @@ import pickle
 import numpy as np
 import pycolmap
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from pipeline.mapping.build import build_map
 from pipeline.mapping.features import FeatureConfig
@@ -169,3 +171,47 @@ def test_command_line_refinement_mode(sacre, oracle, tmp_path):
     direct = run(work, query, "inliers", "inliers")
     assert cli["success"] and cli["references"] == direct["references"]
     np.testing.assert_allclose(record_pose(cli), record_pose(direct), atol=1e-6)
+
+
+LOG = {"db": [3, 7, 9], "PnP_ret": {"success": True, "qvec": [1.0, 0.0, 0.0, 0.0], "tvec": [0.1, 0.2, 0.3],
+                                     "num_inliers": 2, "inliers": [True, False, True]},
+       "keypoints_query": [[1.0, 2.0], [3.0, 4.0], [5.0, 6.0]], "num_matches": 3,
+       "keypoint_index_to_db": ([0, 1, 2], [(11, [0]), (12, [1, 2]), (13, [2])])}
+ODD = ["x", None, [], {}, -1, 5, float("nan"), float("inf"), 1e300, [1, 2], [[1, 2], [3]], True, ([], [])]
+
+
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(seed=st.integers(0, 2**31), cut=st.one_of(st.none(), st.floats(0, 1)))
+def test_a_damaged_log_is_refused_by_name(tmp_path, seed, cut):
+    """Values of other types, dropped keys or a truncated file: a SceneError naming the file, or logs
+    whose poses are finite and whose matches name references of the log; never another error."""
+    import copy
+    import random
+    rng = random.Random(seed)
+    loc = copy.deepcopy(LOG)
+    for _ in range(rng.randint(1, 3)):
+        nodes = []
+
+        def walk(v, parent, key):
+            nodes.append((parent, key))
+            if isinstance(v, dict) or isinstance(v, list):
+                for k in (list(v) if isinstance(v, dict) else range(len(v))):
+                    walk(v[k], v, k)
+        walk(loc, None, None)
+        parent, key = rng.choice(nodes[1:])
+        if rng.random() < 0.3 and isinstance(parent, dict):
+            del parent[key]
+        else:
+            parent[key] = rng.choice(ODD)
+    path = tmp_path / f"logs-{seed}.pkl"
+    raw = pickle.dumps({"loc": {"q.jpg": loc}})
+    path.write_bytes(raw if cut is None else raw[:int(cut * len(raw))])
+    try:
+        logs = read_hloc_logs(path)
+    except SceneError as e:
+        assert str(path) in str(e), str(e)
+        return
+    for log in logs.values():
+        assert log.cam_from_world is None or np.isfinite(log.cam_from_world).all()
+        assert all(0 <= d < len(log.db_ids) for ds in log.match_dbs for d in ds)
+        log.inliers_per_db(), log.inlier_observations(log.db_ids)

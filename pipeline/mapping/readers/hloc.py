@@ -87,8 +87,12 @@ def parse_loc(name: str, loc: Dict) -> PnPLog:
     inliers = np.asarray(ret.get("inliers", np.zeros(len(points), bool)), dtype=bool).reshape(-1)
     if success and len(inliers) != len(points):
         raise SceneError(f"hloc log of {name}: {len(inliers)} inlier flags for {len(points)} matches.")
-    return PnPLog(success, pose, int(ret.get("num_inliers", int(inliers.sum()))),
-                  [int(i) for i in loc.get("db", [])], points, dbs, inliers)
+    db_ids = [int(i) for i in loc.get("db", [])]
+    if any(not 0 <= i < 2**32 for i in db_ids):
+        raise SceneError(f"hloc log of {name}: a reference id (db) is not a COLMAP image id.")
+    if any(not 0 <= d < len(db_ids) for ds in dbs for d in ds):
+        raise SceneError(f"hloc log of {name}: a match names a reference beyond its {len(db_ids)} (db).")
+    return PnPLog(success, pose, int(ret.get("num_inliers", int(inliers.sum()))), db_ids, points, dbs, inliers)
 
 
 def read_hloc_logs(path) -> Dict[str, PnPLog]:
@@ -96,4 +100,14 @@ def read_hloc_logs(path) -> Dict[str, PnPLog]:
     logs = load_data_pickle(path, "hloc localization log", _PYCOLMAP)
     if not isinstance(logs, dict) or not isinstance(logs.get("loc"), dict):
         raise SceneError(f"{path} is not an hloc localization log: it has no 'loc' entry.")
-    return {str(name): parse_loc(str(name), loc) for name, loc in logs["loc"].items()}
+    parsed = {}
+    for name, loc in logs["loc"].items():
+        try:
+            parsed[str(name)] = log = parse_loc(str(name), loc)
+        except (AttributeError, TypeError, ValueError, KeyError, IndexError, OverflowError) as e:
+            if isinstance(e, SceneError):
+                raise SceneError(f"{path}: {e}") from None
+            raise SceneError(f"{path}: the log of {name} is not what hloc writes ({type(e).__name__}: {e}).") from None
+        if log.cam_from_world is not None and not np.isfinite(log.cam_from_world).all():
+            raise SceneError(f"{path}: the PnP pose of {name} is not finite.")
+    return parsed

@@ -37,5 +37,7 @@ def load_data_pickle(path, what: str, allowed: FrozenSet[Tuple[str, str]] = froz
     with open(path, "rb") as f:
         try:
             return unpickler(f).load()
-        except (pickle.UnpicklingError, EOFError, AttributeError, ImportError, ValueError, TypeError) as e:
-            raise SceneError(f"{path} is not a readable {what}: {e}") from None
+        except SceneError:  # a class that is not data
+            raise
+        except Exception as e:  # damaged bytes fail the unpickler in any way: KeyError, IndexError, MemoryError...
+            raise SceneError(f"{path} is not a readable {what}: {type(e).__name__}: {e}") from None
