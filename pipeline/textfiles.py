@@ -54,6 +54,25 @@ def read_json(path, what: str, kind: type = dict):
     return value
 
 
+def read_yaml(path, what: str, kind: type = dict):
+    """The YAML value of ``path`` (an empty file: an empty ``kind``), of type ``kind``; InputError
+    naming the file (and line) otherwise."""
+    import yaml
+
+    text = read_text(path, what)
+    try:
+        value = yaml.safe_load(text)
+    except yaml.YAMLError as e:
+        mark = getattr(e, "problem_mark", None)
+        where = f"{path}:{mark.line + 1}" if mark is not None else f"{path}"
+        raise InputError(f"{where}: {what} is not valid YAML ({getattr(e, 'problem', None) or e})") from None
+    value = kind() if value is None else value
+    if not isinstance(value, kind):
+        raise InputError(f"{path}: {what} should hold a YAML {'mapping' if kind is dict else kind.__name__}, "
+                         f"not a {type(value).__name__}")
+    return value
+
+
 def _numbers(fields: List[str], where: str) -> np.ndarray:
     try:
         values = np.array([float(v) for v in fields], np.float64)

@@ -127,26 +127,38 @@ def check_keys(keys, allowed, where: str) -> None:
                          f"valid keys: {', '.join(sorted(allowed))}.")
 
 
-def build(cls, *layers: Dict[str, Any], where: str = "settings"):
-    """``cls`` from its defaults, then each layer (``{dotted path: value}``) in turn."""
+def build(cls, *layers: Dict[str, Any], where: str = "settings", names: Optional[Dict[str, str]] = None):
+    """``cls`` from its defaults, then each layer (``{dotted path: value}``) in turn; a value of
+    another type than its field's is refused, naming ``where`` and the key (as ``names`` shows it,
+    where the user's file gives it by another name)."""
     values: Dict[str, Any] = {}
     for layer in layers:
         check_keys(layer, field_types(cls), where)
         values.update(layer)
-    return _build(cls, values, "")
+    try:
+        return _build(cls, values, "", where)
+    except _WrongType as e:
+        key = (names or {}).get(e.key, e.key)
+        raise ValueError(f"{where}: {key} is {e.value!r}, not {_described(e.kind)}.") from None
 
 
-def _build(cls, values: Dict[str, Any], prefix: str):
+class _WrongType(Exception):
+    def __init__(self, key: str, value, kind):
+        super().__init__(key)
+        self.key, self.value, self.kind = key, value, kind
+
+
+def _build(cls, values: Dict[str, Any], prefix: str, where: str):
     hints = typing.get_type_hints(cls)
     kwargs = {}
     for f in dataclasses.fields(cls):
         key, kind = prefix + f.name, hints[f.name]
         if key in values:
-            kwargs[f.name] = _coerce(values[key], kind)
+            kwargs[f.name] = _coerce(values[key], kind, key)
         elif _dataclass(kind) and (f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING
                                    or any(k.startswith(key + ".") for k in values)):
             base = values.get(key)
-            kwargs[f.name] = _build(kind, values, key + ".") if base is None else base
+            kwargs[f.name] = _build(kind, values, key + ".", where) if base is None else _coerce(base, kind, key)
     return cls(**kwargs)
 
 
@@ -167,12 +179,64 @@ def _item(kind):
     return kind
 
 
-def _coerce(value, kind):
-    """YAML and argparse give lists where the dataclass keeps tuples (hashable, as recorded)."""
+def _coerce(value, kind, key: str = "value"):
+    """``value`` as its field's type ``kind``: YAML and argparse give lists where the dataclass keeps
+    tuples (hashable, as recorded); a whole number is a float too. A value of another
+    type (a string for a number, a list for a string, NaN) is refused: before, it reached the
+    dataclass's range checks as a TypeError, or ran."""
+    converted = _converted(value, kind)
+    if converted is _WRONG:
+        raise _WrongType(key, value, kind)
+    return converted
+
+
+_WRONG = object()
+
+
+def _converted(value, kind):
     plain = _plain(kind)
-    if isinstance(value, list) and typing.get_origin(plain) is tuple:
-        return tuple(value)
+    if plain is not kind and value is None:  # Optional
+        return None
+    if plain is typing.Any or plain is dict or typing.get_origin(plain) is dict or plain is typing.Dict:
+        return value if plain is typing.Any or isinstance(value, dict) else _WRONG
+    if _dataclass(plain):
+        return value if isinstance(value, plain) else _WRONG
+    if plain is bool:
+        return value if isinstance(value, bool) else _WRONG
+    if plain is int:
+        if isinstance(value, float) and value.is_integer():
+            return int(value)
+        return value if isinstance(value, int) and not isinstance(value, bool) else _WRONG
+    if plain is float:
+        ok = isinstance(value, (int, float)) and not isinstance(value, bool) and value == value  # not NaN
+        return value if ok else _WRONG
+    if plain is str:
+        return value if isinstance(value, str) else _WRONG
+    if plain is tuple or typing.get_origin(plain) is tuple:
+        if not isinstance(value, (list, tuple)):
+            return _WRONG
+        args = typing.get_args(plain)
+        if not args:  # a bare Tuple: any items
+            return tuple(value)
+        items = args[:1] * len(value) if len(args) == 2 and args[1] is Ellipsis else args
+        if len(items) != len(value):
+            return _WRONG
+        out = tuple(_converted(v, k) for v, k in zip(value, items))
+        return _WRONG if any(v is _WRONG for v in out) else out
     return value
+
+
+def _described(kind, plural: bool = False) -> str:
+    plain = _plain(kind)
+    nouns = {bool: ("true or false", "true or false values"), int: ("a whole number", "whole numbers"),
+             float: ("a number", "numbers"), str: ("a string", "strings")}
+    text = nouns[plain][plural] if plain in nouns else None
+    if text is None and (plain is tuple or typing.get_origin(plain) is tuple):
+        args = typing.get_args(plain)
+        text = ("a list" if not args else f"a list of {_described(args[0], True)}" if args[-1] is Ellipsis
+                else f"a list of {len(args)}: " + ", ".join(_described(a) for a in args))
+    text = text or getattr(plain, "__name__", str(plain)) + ("s" if plural else "")
+    return text + (" or null" if plain is not kind else "")
 
 
 def _show(value) -> str:

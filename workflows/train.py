@@ -30,6 +30,7 @@ import torch
 import yaml
 
 from pipeline.runtime import keep_freed_memory
+from pipeline.textfiles import read_yaml
 from pipeline.scene import CameraRecord
 from pipeline.data.training_data import PairConfig, PairDataset
 from pixloc.nets.registry import load_refiner, save_model
@@ -73,7 +74,7 @@ class TrainingRun:
     val_pairs: int = 24
     val_every: int = 100
     checkpoint_every: int = 100
-    synthetic_camera: Tuple = ("PINHOLE", 320, 240, (250.0, 250.0, 160.0, 120.0))
+    synthetic_camera: Tuple[str, int, int, Tuple[float, ...]] = ("PINHOLE", 320, 240, (250.0, 250.0, 160.0, 120.0))
     trainer: TrainConfig = field(default_factory=TrainConfig)
     pairs: PairConfig = field(default_factory=PairConfig)
 
@@ -86,6 +87,8 @@ class TrainingRun:
         problems += [f"{k} {v} (not negative)" for k, v in (("workers", self.workers), ("val_pairs", self.val_pairs))
                      if v < 0]
         problems += [] if self.trainer.lr > 0 else [f"lr {self.trainer.lr} (positive)"]
+        camera = self.camera().check()
+        problems += [f"synthetic_camera: {camera}"] if camera else []
         if problems:
             raise ValueError(f"training: {', '.join(problems)}.")
 
@@ -95,8 +98,13 @@ class TrainingRun:
                   "pairs": {f.name for f in fields(PairConfig)}}
         own = {f.name for f in fields(cls)} - set(nested)
         check_keys(config, own | nested["trainer"] | nested["pairs"], where)
-        layer = {next((f"{n}.{k}" for n, keys in nested.items() if k in keys), k): v for k, v in config.items()}
-        run = build(cls, layer, where=where)
+        names = {next((f"{n}.{k}" for n, keys in nested.items() if k in keys), k): k for k in config}
+        try:
+            run = build(cls, {key: config[k] for key, k in names.items()}, where=where, names=names)
+        except ValueError as e:  # the range checks of __post_init__ do not know the file
+            if str(e).startswith(where):
+                raise
+            raise ValueError(f"{where}: {str(e).removeprefix('training: ')}") from None
         return replace(run, trainer=replace(run.trainer, total_steps=run.decay_steps or run.steps))
 
     def to_dict(self) -> Dict:
@@ -130,7 +138,7 @@ def load_config(spec: str, overrides: Optional[Dict] = None) -> TrainingRun:
         if not packaged.is_file():
             raise ValueError(f"Training config {spec!r} is neither a file nor a packaged config.")
         path = Path(str(packaged))
-    config = yaml.safe_load(path.read_text()) or {}
+    config = read_yaml(path, "training config")
     return TrainingRun.from_dict({**config, **(overrides or {})}, f"training config {path}")
 
 

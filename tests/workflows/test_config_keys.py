@@ -74,3 +74,42 @@ def test_the_network_precision_is_checked_and_recorded_only_where_it_is_not_the_
     assert fine.to_dict()["localizer"]["network_precision"] == "bfloat16-fine"
     with pytest.raises(ValueError, match="network_precision must be one of"):
         LocalizerConfig(network_precision="float16")
+
+
+def test_a_value_of_another_type_is_refused_naming_its_key(tmp_path):
+    """Before: the config's values reached the dataclasses as YAML gave them: ``steps: x`` failed its
+    range check with a TypeError traceback, ``synthetic_camera: [PINHOLE, 320, x]`` one deeper, and
+    ``clip_grad: .nan`` trained."""
+    from workflows.options import build
+    from workflows.train import TrainingRun
+    for config, said in (({"steps": "x"}, "steps is 'x', not a whole number"),
+                         ({"lr": [1]}, r"lr is \[1\], not a number"),
+                         ({"clip_grad": float("nan")}, "clip_grad is nan, not a number"),
+                         ({"lr_schedule": 3}, "lr_schedule is 3, not a string"),
+                         ({"data": "synthetic"}, "data is 'synthetic', not a list of Dicts"),
+                         ({"synthetic_camera": ["PINHOLE", 320, "x", [1.0]]}, "synthetic_camera is"),
+                         ({"synthetic_camera": ["PINHOLE", 320, 0, [250.0, 250.0, 160.0, 120.0]]},
+                          "synthetic_camera: camera PINHOLE has an invalid size 320x0")):
+        with pytest.raises(ValueError, match=rf"^run.yaml: {said}"):
+            TrainingRun.from_dict(config, "run.yaml")
+    run = TrainingRun.from_dict({"steps": 40.0, "lr": 1})  # a whole number is both
+    assert run.steps == 40 and isinstance(run.steps, int) and run.trainer.lr == 1
+    from pipeline.localization.shard import LocalizationJob
+    for layer, said in (({"localizer.num_iters": "50"}, "localizer.num_iters is '50', not a whole number"),
+                        ({"localizer.average_observations": 1},
+                         "localizer.average_observations is 1, not true or false"),
+                        ({"retrieval.k": None}, "retrieval.k is None, not a whole number")):
+        with pytest.raises(ValueError, match=f"^job.json: {said}"):
+            build(LocalizationJob, {"store": "m.zarr", "model": "pixloc-lite0"}, layer, where="job.json")
+
+
+def test_a_damaged_training_config_is_refused_naming_its_file(tmp_path):
+    """Text that is not YAML or not UTF-8, or YAML that is not a mapping: an error naming the file
+    (and line), not yaml's ParserError or a UnicodeDecodeError."""
+    for text, said in (("steps: [1, 2\n", r":\d+: training config is not valid YAML"),
+                       (b"steps: 1\n\xff\n", "training config is not UTF-8"),
+                       ("- 1\n- 2\n", "training config should hold a YAML mapping, not a list")):
+        path = tmp_path / "bad.yaml"
+        path.write_bytes(text if isinstance(text, bytes) else text.encode())
+        with pytest.raises(ValueError, match=f"^{path}{said}" if said.startswith(":") else f"^{path}: {said}"):
+            load_config(str(path))

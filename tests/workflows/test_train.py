@@ -80,7 +80,7 @@ def test_numbers_out_of_range_are_refused_before_the_data(tmp_path, capsys):
         path = tmp_path / f"{key}.yaml"
         path.write_text(yaml.safe_dump(dict(CONFIG, **{key: value})))
         assert main(["train", "--config", str(path), "--output", str(tmp_path / key)]) == 2
-        assert f"pixloc: error: training: {said}." in capsys.readouterr().err
+        assert f"pixloc: error: training config {path}: {said}." in capsys.readouterr().err
         assert not (tmp_path / key).exists()
 
 

@@ -8,11 +8,11 @@ and ``model_hint`` document it. Any other key is refused with the nearest valid 
 """
 
 from importlib import resources
+from pathlib import Path
 from typing import Any, Dict, List, Optional
 
-import yaml
-
 from pipeline.localization.shard import LocalizationJob
+from pipeline.textfiles import read_yaml
 
 from ..options import check_keys, dotted, field_types
 
@@ -35,7 +35,7 @@ def load(name: str) -> Dict:
     path = resources.files(__package__) / f"{name}.yaml"
     if not path.is_file():
         raise ValueError(f"Unknown preset {name!r}; available: {', '.join(available())}.")
-    preset = yaml.safe_load(path.read_text()) or {}
+    preset = read_yaml(Path(str(path)), f"preset {name}.yaml")
     check_keys(dotted(preset, keep=("layout",)), PRESET_KEYS, f"preset {name}.yaml")
     return preset
 
