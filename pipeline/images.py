@@ -145,6 +145,24 @@ def _decode_checked(data: bytes, flags: int) -> Tuple[Optional[np.ndarray], str]
     return image, messages + (("\n" + error) if error else "")
 
 
+def _decoded(data: bytes, flags: int) -> Tuple[Optional[np.ndarray], List[str]]:
+    """``_decode_checked`` and the decoder's messages that say the data is damaged (a partial decode:
+    its missing part would read as zeros); other messages go on to stderr."""
+    image, messages = _decode_checked(data, flags)
+    problems = []
+    for line in messages.splitlines():
+        if "[ERROR:" in line and "can't read data: " in line:  # OpenCV's own: keep its reason
+            problems.append(line.split("can't read data: ", 1)[1].strip())
+        elif any(e in line for e in _DECODER_ERRORS) or line.startswith(("error:", "MemoryError:", "ValueError:")) \
+                or "[ERROR:" in line:
+            problems.append(line.strip())
+    other = "".join(line + "\n" for line in messages.splitlines()
+                    if line.strip() and "[ERROR:" not in line and line.strip() not in problems)
+    if other:
+        sys.stderr.write(other)  # not ours to swallow
+    return image, problems
+
+
 def read_image(path, *, orientation: bool = True) -> np.ndarray:
     """(H, W, 3) uint8 RGB, fully decoded, with the EXIF orientation applied (``orientation``;
     False keeps the pixels as stored). A missing, empty, oversized, truncated or corrupt file
@@ -159,13 +177,7 @@ def _decode(path: Path, header: Optional[ImageHeader], orientation: bool) -> np.
         data = path.read_bytes()
     except OSError as e:
         raise ImageReadError(f"image file {path} cannot be read: {e.strerror or e}") from None
-    image, messages = _decode_checked(data, flags)
-    problems = [line.strip() for line in messages.splitlines()
-                if any(e in line for e in _DECODER_ERRORS)
-                or line.startswith(("error:", "MemoryError:", "ValueError:"))]
-    other = "".join(line + "\n" for line in messages.splitlines() if line.strip() and line.strip() not in problems)
-    if other:
-        sys.stderr.write(other)  # not ours to swallow
+    image, problems = _decoded(data, flags)
     if image is None:
         raise ImageReadError(f"image file {path} cannot be decoded" + (f": {problems[0]}" if problems else ""))
     if problems:
@@ -255,11 +267,16 @@ def read_depth(path, scale: float) -> np.ndarray:
     """(H, W) float32 depth in scene units; 0 where invalid (0 or 65535 in 16-bit files)."""
     path = Path(path)
     try:
-        depth = cv2.imread(str(path), cv2.IMREAD_UNCHANGED) if path.is_file() and path.stat().st_size else None
-    except cv2.error:
-        depth = None
+        data = path.read_bytes()
+    except OSError as e:
+        raise ImageReadError(f"depth file {path} cannot be read: {e.strerror or e}") from None
+    depth, problems = _decoded(data, cv2.IMREAD_UNCHANGED) if data else (None, ["the file is empty"])
     if depth is None:
-        raise ImageReadError(f"depth file {path} is missing or cannot be decoded")
+        raise ImageReadError(f"depth file {path} cannot be decoded" + (f": {problems[0]}" if problems else ""))
+    if problems:  # decoded in part: the rest would read as zero depth
+        raise ImageReadError(f"depth file {path} is truncated or corrupt: {'; '.join(dict.fromkeys(problems))}")
+    if depth.ndim != 2:
+        raise ImageReadError(f"depth file {path} has {depth.shape[2]} channels, not one")
     invalid = (depth == 0) | (depth == 65535) if depth.dtype == np.uint16 else ~np.isfinite(depth)
     depth = depth.astype(np.float32) * scale
     depth[invalid] = 0

@@ -131,7 +131,9 @@ class ImageRecord:
     intrinsics: 7-Scenes) and ``color_from_depth``, the rigid transform (3, 4)
     from the depth sensor's frame to the image's where the two sensors are apart
     (None: depth is taken at the image's pose). ``cam_from_world`` is always the
-    image's own pose: the one projected with, estimated and evaluated.
+    image's own pose: the one projected with, estimated and evaluated. ``problem``: set by
+    a reader that found the image unusable (``check`` returns it: the build records the
+    image as failed with it).
     """
 
     name: str
@@ -144,9 +146,10 @@ class ImageRecord:
     depth_camera: Optional[CameraRecord] = None
     source_id: int = -1  # the image's id in its source model (COLMAP image_id), -1 if none
     color_from_depth: Optional[np.ndarray] = None
+    problem: Optional[str] = None  # why a reader found it unusable (its depth file cannot be read): it fails
 
     def check(self) -> Optional[str]:
-        reason = name_problem(self.name) or self.camera.check()
+        reason = self.problem or name_problem(self.name) or self.camera.check()
         if reason:
             return reason
         T = np.asarray(self.cam_from_world)

@@ -4,13 +4,14 @@ Sarlin et al. 2021, appendix "Accuracy of the 3D model": SfM points are moved
 to the back-projection of one of their observations at the interpolated depth.
 """
 
+import dataclasses
 import logging
 from typing import List, Optional, Tuple
 
 import numpy as np
 import torch
 
-from pipeline.images import read_depth
+from pipeline.images import ImageReadError, read_depth
 from pipeline.scene import ImageRecord, Scene, SceneError
 
 logger = logging.getLogger(__name__)
@@ -46,13 +47,40 @@ def backproject(image: ImageRecord, depth: np.ndarray, stride: int = 1) -> np.nd
     return _to_world(image.depth_from_world(), rays * d[keep][:, None])
 
 
-def frame_points(images: List[ImageRecord], stride: int = 16) -> np.ndarray:
-    """Map points sampled from every ``stride``-th pixel of each depth frame."""
-    return np.concatenate([backproject(im, load_depth(im), stride) for im in images])
+def readable_depths(images: List[ImageRecord]) -> Tuple[List[ImageRecord], List[Optional[np.ndarray]]]:
+    """Each frame's depth map, read once; a frame whose depth file cannot be decoded, or is not of
+    its depth camera's size, gets None and a ``problem`` (the build records it as failed, named),
+    instead of stopping the whole map. A warning names each."""
+    out, depths = [], []
+    for im in images:
+        try:
+            depth = load_depth(im)
+            cam = im.depth_camera or im.camera
+            if depth.shape != (cam.height, cam.width):
+                raise ImageReadError(f"depth file {im.depth_path} is {depth.shape[1]}x{depth.shape[0]}, "
+                                     f"not the {cam.width}x{cam.height} of its camera")
+        except ImageReadError as e:
+            logger.warning("RGB-D frame %s left out of the map: %s", im.name, e)
+            out.append(dataclasses.replace(im, problem=str(e)))
+            depths.append(None)
+            continue
+        out.append(im)
+        depths.append(depth)
+    return out, depths
+
+
+def frame_points(images: List[ImageRecord], stride: int = 16,
+                 depths: Optional[List[Optional[np.ndarray]]] = None) -> np.ndarray:
+    """Map points sampled from every ``stride``-th pixel of each depth frame (``depths``: as read by
+    ``readable_depths``, None for a frame left out)."""
+    depths = depths if depths is not None else [load_depth(im) for im in images]
+    return np.concatenate([backproject(im, d, stride) for im, d in zip(images, depths) if d is not None]
+                          or [np.zeros((0, 3))])
 
 
 def tsdf_points(images: List[ImageRecord], voxel: float = 0.02, truncation: float = 0.08,
-                max_depth: float = 5.0, max_resolution: int = 512) -> np.ndarray:
+                max_depth: float = 5.0, max_resolution: int = 512,
+                depths: Optional[List[Optional[np.ndarray]]] = None) -> np.ndarray:
     """Points on the surface of an open3d TSDF fusion of the depth frames.
 
     A uniform volume bounds the frames' back-projected points (open3d's
@@ -62,9 +90,9 @@ def tsdf_points(images: List[ImageRecord], voxel: float = 0.02, truncation: floa
     """
     import open3d as o3d
 
-    depths = [load_depth(im) for im in images]
-    for d in depths:
-        d[d > max_depth] = 0
+    depths = [load_depth(im) for im in images] if depths is None else list(depths)
+    images = [im for im, d in zip(images, depths) if d is not None]
+    depths = [np.where(d > max_depth, 0, d).astype(np.float32) for d in depths if d is not None]
     sample = np.concatenate([backproject(im, d, 8) for im, d in zip(images, depths)])
     if len(sample) == 0:
         raise SceneError("The depth frames have no valid depth.")
@@ -109,6 +137,8 @@ def observe(points: np.ndarray, images: List[ImageRecord], depths: Optional[List
     obs_point, obs_image, obs_xy = [], [], []
     for i, im in enumerate(images):
         depth = depths[i] if depths is not None else load_depth(im)
+        if depth is None:  # a frame left out (``readable_depths``): it observes nothing
+            continue
         cand = _within_reach(tree, im, depth, tolerance) if tree is not None else None
         sub = points if cand is None else points[cand]
         p_depth = torch.from_numpy(_to_frame(im.depth_from_world(), sub))
@@ -150,15 +180,18 @@ def rgbd_scene(images: List[ImageRecord], method: str = "tsdf", min_track_length
 
     Points seen in fewer than ``min_track_length`` images are dropped.
     """
-    if method == "tsdf":
-        points = tsdf_points(images, voxel=voxel)
-    elif method == "frames":
-        points = frame_points(images, stride=stride)
-    else:
+    if method not in ("tsdf", "frames"):
         raise ValueError(f"Unknown RGB-D point method {method!r}: use 'tsdf' or 'frames'.")
+    images, depths = readable_depths(images)
+    if all(d is None for d in depths):
+        raise SceneError(f"None of the {len(images)} depth frames can be read (first: {images[0].problem}).")
+    if method == "tsdf":
+        points = tsdf_points(images, voxel=voxel, depths=depths)
+    else:
+        points = frame_points(images, stride=stride, depths=depths)
     if len(points) == 0:
         raise SceneError("The depth frames produced no 3D points.")
-    obs_point, obs_image, obs_xy = observe(points, images, tolerance=tolerance)
+    obs_point, obs_image, obs_xy = observe(points, images, depths, tolerance=tolerance)
     track = np.bincount(obs_point, minlength=len(points))
     keep = np.flatnonzero(track >= min_track_length)
     remap = -np.ones(len(points), dtype=np.int64)
