@@ -40,6 +40,7 @@ class BuildPlan:
     source: Dict = field(default_factory=dict)
     overwrite: bool = False
     shard_rows: Optional[int] = None
+    refused: Dict[str, str] = field(default_factory=dict)  # image name -> why it cannot be used (Scene.check)
 
     def expected_bytes(self) -> int:
         """Approximate store size before compression: per observation and scale, the features
@@ -82,6 +83,7 @@ def plan_build(scene: Scene, store, conf: FeatureConfig, *, batch_size: int = 1,
         raise ValueError(f"--batch-size and --chunk-rows must be at least 1 and --shard-rows a multiple of "
                          f"--chunk-rows, not {batch_size}, {chunk_rows} and {shard_rows}.")
     store = location.normalize(store)
+    problems = scene.check()  # images that cannot be used: write_structure records them as failed
     if location.exists(store) and not overwrite:
         from pipeline.store.layout import open_store, read
         stored = set(str(n) for n in read(open_store(store), "images/name"))
@@ -89,10 +91,11 @@ def plan_build(scene: Scene, store, conf: FeatureConfig, *, batch_size: int = 1,
         todo = pending_images(store, conf) + list(range(len(stored), len(stored) + new))
         todo = sorted(set(todo))
     else:
-        todo = list(range(len(scene.images)))
+        todo = [i for i in range(len(scene.images)) if i not in problems]
     batches = [todo[i:i + batch_size] for i in range(0, len(todo), batch_size)]
     dims = list(network(conf.model, "cpu")[0].output_dims)
-    return BuildPlan(scene, store, conf, batches, dims, device, chunk_rows, source or {}, overwrite, shard_rows)
+    return BuildPlan(scene, store, conf, batches, dims, device, chunk_rows, source or {}, overwrite, shard_rows,
+                     {scene.images[i].name: reason for i, reason in sorted(problems.items())})
 
 
 def run_sync(plan: BuildPlan, progress: bool = False) -> List[ImageResult]:

@@ -150,6 +150,10 @@ def main(args: argparse.Namespace) -> int:
     for r in results:
         if r.status == "failed":
             print(f"  failed: {r.name}: {r.reason}")
+    for name, reason in list(plan.refused.items())[:20]:
+        print(f"  refused: {name}: {reason}")
+    if len(plan.refused) > 20:
+        print(f"  ... and {len(plan.refused) - 20} more refused (the store's failed images: pixloc check-store)")
     return 0
 
 

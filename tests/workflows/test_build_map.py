@@ -246,3 +246,31 @@ def test_build_map_into_an_existing_store_adds_a_mapping_session(shared, tmp_pat
     assert new["num_images"] == 6 and new["num_observations"] > meta["num_observations"]
     assert all(f.stat().st_mtime_ns == t for f, t in files.items())  # the first session's shards untouched
     assert _done(store) == 6
+
+
+def test_an_rgbd_frame_with_a_damaged_depth_map_is_refused_by_name(shared, tmp_path):
+    """One truncated depth map of five: the build makes the map of the other four and says which frame it
+    refused and why (before: the whole build stopped; then the summary counted the refused frame nowhere);
+    a rerun has nothing to do."""
+    kinect = shared / "data" / "rgbd_slambook" / "kinect_room"
+    root = tmp_path / "kinect"
+    for sub in ("color", "depth"):
+        (root / sub).mkdir(parents=True)
+        for p in (kinect / sub).iterdir():
+            (root / sub / p.name).symlink_to(p)
+    (root / "pose.txt").symlink_to(kinect / "pose.txt")
+    (root / "depth" / "2.pgm").unlink()
+    (root / "depth" / "2.pgm").write_bytes((kinect / "depth" / "2.pgm").read_bytes()[:3000])
+    cli = [sys.executable, "-m", "workflows.cli", "build-map", "posetxt", str(root), "--intrinsics", "518", "519",
+           "325.5", "253.5", "--depth-ext", ".pgm", "--rgbd-points", "frames", "--store", str(tmp_path / "k.zarr"),
+           "--sync", "--resize", "320", "--image-scales", "1"]
+    built = subprocess.run(cli, capture_output=True, text=True, cwd=ROOT)
+    assert built.returncode == 0, built.stderr
+    assert "4 images extracted, 1 already done or refused, 0 failed" in built.stdout
+    assert f"refused: color/2.png: depth file {root / 'depth' / '2.pgm'} cannot be decoded" in built.stdout
+    assert "[ERROR:" not in built.stderr  # OpenCV's own line stays off the terminal
+    root_group = open_store(tmp_path / "k.zarr")
+    names = [str(n) for n in root_group["images/name"][:]]
+    assert sorted(names) == [f"color/{k}.png" for k in range(1, 6)]
+    again = subprocess.run(cli, capture_output=True, text=True, cwd=ROOT)
+    assert again.returncode == 0 and "nothing to do" in again.stdout, again.stdout + again.stderr
