@@ -10,6 +10,7 @@ way for queries and map images (``fit_image``).
 
 import hashlib
 import os
+import re
 import struct
 import sys
 import tempfile
@@ -136,7 +137,8 @@ def _decode_checked(data: bytes, flags: int) -> Tuple[Optional[np.ndarray], str]
         try:
             image = cv2.imdecode(buffer, flags)
         except (cv2.error, MemoryError, ValueError) as e:
-            image, error = None, f"{type(e).__name__}: {str(e).strip().splitlines()[-1] if str(e).strip() else ''}"
+            words = _opencv_words(str(e).strip().splitlines()[-1]) if str(e).strip() else ""
+            image, error = None, f"{type(e).__name__}: {words}"
         finally:
             os.dup2(saved, 2)
             os.close(saved)
@@ -145,19 +147,24 @@ def _decode_checked(data: bytes, flags: int) -> Tuple[Optional[np.ndarray], str]
     return image, messages + (("\n" + error) if error else "")
 
 
+def _opencv_words(line: str) -> str:
+    """A decoder message without OpenCV's log prefix and source location: "[ERROR:0@0.6] global
+    loadsave.cpp:1377 imdecode_ imdecode_(''): can't read header: OpenCV(5.1.0) /io/.../bitstrm.cpp:59:
+    error: (-2:Unspecified error) Unexpected end of input stream in function 'readBlock'" reads
+    "can't read header: Unexpected end of input stream in function 'readBlock'"."""
+    line = re.sub(r"^\[ERROR:[^\]]*\] .*?imdecode_\([^)]*\): ", "", line.strip())
+    return re.sub(r"OpenCV\([^)]*\) \S+: error: \([^)]*\) ", "", line)
+
+
 def _decoded(data: bytes, flags: int) -> Tuple[Optional[np.ndarray], List[str]]:
     """``_decode_checked`` and the decoder's messages that say the data is damaged (a partial decode:
     its missing part would read as zeros); other messages go on to stderr."""
     image, messages = _decode_checked(data, flags)
-    problems = []
-    for line in messages.splitlines():
-        if "[ERROR:" in line and "can't read data: " in line:  # OpenCV's own: keep its reason
-            problems.append(line.split("can't read data: ", 1)[1].strip())
-        elif any(e in line for e in _DECODER_ERRORS) or line.startswith(("error:", "MemoryError:", "ValueError:")) \
-                or "[ERROR:" in line:
-            problems.append(line.strip())
+    problems = [_opencv_words(line) for line in messages.splitlines()
+                if any(e in line for e in _DECODER_ERRORS) or "[ERROR:" in line
+                or line.startswith(("error:", "MemoryError:", "ValueError:"))]
     other = "".join(line + "\n" for line in messages.splitlines()
-                    if line.strip() and "[ERROR:" not in line and line.strip() not in problems)
+                    if line.strip() and "[ERROR:" not in line and _opencv_words(line) not in problems)
     if other:
         sys.stderr.write(other)  # not ours to swallow
     return image, problems

@@ -5,14 +5,14 @@ import logging
 import time
 from dataclasses import asdict
 from pathlib import Path
-from typing import Callable, Dict, List, Optional, Sequence
+from typing import Callable, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 import pycolmap
 
 from pixloc.nets.registry import DEFAULT_MODEL
 
-from pipeline.images import file_sha256, image_files
+from pipeline.images import ImageReadError, file_sha256, image_files, read_image
 from pipeline.mapping.image_pairs import PairsConfig, match
 from pipeline.mapping.readers.colmap_files import read_reconstruction
 from pipeline.progress import Silent, database_rows, watching
@@ -56,12 +56,14 @@ def read_colmap(model_dir, image_dir, tags=None) -> Scene:
 def _extract_and_match(database: Path, image_dir: Path, names: Sequence[str], pairs: PairsConfig,
                        cameras: Optional[Sequence[CameraRecord]] = None,
                        cam_from_world: Optional[Sequence[np.ndarray]] = None,
-                       timings: Optional[Dict[str, float]] = None, progress: Callable = Silent) -> None:
+                       timings: Optional[Dict[str, float]] = None, progress: Callable = Silent) -> List[str]:
     """SIFT features, and matches over the pairs of ``pairs``, into ``database``; known
     intrinsics if given; the seconds of each (``sift``, ``matching``) into ``timings``; images
-    and pairs counted by ``progress(total, desc, unit)``."""
+    and pairs counted by ``progress(total, desc, unit)``. Returns the names of the images used:
+    those the image reader refuses are left out (``_readable``)."""
     timings = {} if timings is None else timings
     t0 = time.perf_counter()
+    names, cameras, cam_from_world = _readable(image_dir, names, cameras, cam_from_world)
     options = pycolmap.ImageReaderOptions()
     if cameras is not None:
         options.camera_model = "PINHOLE"
@@ -86,6 +88,28 @@ def _extract_and_match(database: Path, image_dir: Path, names: Sequence[str], pa
     match(database, names, pairs, database.parent, cam_from_world=cam_from_world, image_dir=image_dir,
           model=DEFAULT_MODEL, progress=progress)
     timings["matching"] = time.perf_counter() - t0
+    return list(names)
+
+
+def _readable(image_dir: Path, names: Sequence[str], *aligned: Optional[Sequence]) -> Tuple:
+    """``names`` (and the lists ``aligned`` with them) less the images that the one image reader
+    refuses (missing, empty, truncated, corrupt, not an image), each named with its reason in a
+    warning: COLMAP would read a truncated JPEG in part, and log one error per pair for an image
+    it could not read."""
+    keep, refused = [], []
+    for k, name in enumerate(names):
+        try:
+            read_image(image_dir / name)
+            keep.append(k)
+        except ImageReadError as e:
+            refused.append(f"{name}: {e}")
+    if refused:
+        more = f"\n  ... and {len(refused) - 20} more" if len(refused) > 20 else ""
+        logger.warning("%d of %d images left out of SIFT and matching:\n  %s", len(refused), len(names),
+                       "\n  ".join(refused[:20]) + more)
+    if not keep:
+        raise SceneError(f"None of the {len(names)} images in {image_dir} can be read (first: {refused[0]}).")
+    return ([names[k] for k in keep], *(None if a is None else [a[k] for k in keep] for a in aligned))
 
 
 def _pairs_fingerprint(pairs: PairsConfig, num_images: int, posed: bool) -> dict:
@@ -177,11 +201,11 @@ def run_sfm(image_dir, work_dir, names: Optional[Sequence[str]] = None, tags=Non
     if rec is not None:
         return scene_from_reconstruction(rec, image_dir, tags)
     database = fresh_database(work_dir, "sfm.json")
-    _extract_and_match(database, image_dir, names, pairs, progress=progress)
+    used = _extract_and_match(database, image_dir, names, pairs, progress=progress)
     options = pycolmap.IncrementalPipelineOptions()
     options.random_seed = 0
     options.num_threads = 2
-    with progress(len(names), "SfM registration", "image") as counter:
+    with progress(len(used), "SfM registration", "image") as counter:
         def registered(n: int) -> None:  # the initial pair, then one image at a time (any model)
             counter.update(max(0, min(n, counter.total - counter.done)))
         models = pycolmap.incremental_mapping(database, image_dir, work_dir / "sparse", options=options,
@@ -189,14 +213,16 @@ def run_sfm(image_dir, work_dir, names: Optional[Sequence[str]] = None, tags=Non
                                               next_image_callback=lambda: registered(1))
     if not models:
         raise SceneError(
-            f"SfM could not reconstruct any model from {len(names)} images in {image_dir}: no initial image pair "
+            f"SfM could not reconstruct any model from {len(used)} images in {image_dir}"
+            + (f" ({len(names) - len(used)} more could not be read)" if len(used) < len(names) else "")
+            + ": no initial image pair "
             f"had enough matches with enough baseline (pairs matched: {pairs.method}). What to try: more images of "
             "the same place with overlap (each part seen by three or more), '--pairs exhaustive' to match every "
             "pair, the images at their full resolution (not downscaled copies), and images that show one scene.")
     rec = max(models.values(), key=lambda r: r.num_reg_images())
-    missing = set(names) - {im.name for im in rec.images.values() if im.has_pose}
+    missing = set(used) - {im.name for im in rec.images.values() if im.has_pose}
     if missing:
-        logger.warning("SfM did not register %d of %d images: %s", len(missing), len(names), sorted(missing))
+        logger.warning("SfM did not register %d of %d images: %s", len(missing), len(used), sorted(missing))
     rec = _finish(rec, work_dir, "sfm.json", "model", fingerprint)
     return scene_from_reconstruction(rec, image_dir, tags)
 
