@@ -43,6 +43,7 @@ def dask_client(scheduler: Optional[str] = None, workers: int = 2, device: str =
     try:
         with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, resources=resources,
                           dashboard_address=":0" if dashboard else None) as cluster, Client(cluster) as client:
+            client.register_plugin(_interrupt_plugin(), name="pixloc-interrupt")
             try:
                 yield client
             except KeyboardInterrupt:
@@ -57,6 +58,30 @@ def dask_client(scheduler: Optional[str] = None, workers: int = 2, device: str =
                 nanny.setLevel(logging.ERROR)
     finally:
         nanny.setLevel(level)
+
+
+def _interrupt_plugin():
+    """A worker plugin of the local cluster: Ctrl-C in a terminal goes to every process of its group,
+    and each worker process printed a KeyboardInterrupt traceback, then a warning per cancelled task
+    as the client tore the cluster down. The workers now leave Ctrl-C to the client (which stops the
+    run, said once), and drop those warnings (a rerun resumes the cancelled shards)."""
+    from distributed import WorkerPlugin
+
+    class LeaveInterruptToClient(WorkerPlugin):
+        def setup(self, worker) -> None:
+            import signal
+            import threading
+            if threading.current_thread() is threading.main_thread():  # a worker process runs its loop there
+                signal.signal(signal.SIGINT, signal.SIG_IGN)
+            logging.getLogger("distributed.worker.state_machine").addFilter(_not_cancelled)
+
+        def teardown(self, worker) -> None:  # closing: the scheduler may go first, mid-heartbeat
+            logging.getLogger("distributed").setLevel(logging.CRITICAL)
+    return LeaveInterruptToClient()
+
+
+def _not_cancelled(record: logging.LogRecord) -> bool:
+    return "ended with CancelledError" not in record.getMessage()
 
 
 def run_plan(plan, run_sync: Callable, run_dask: Callable, *, sync: bool, scheduler: Optional[str] = None,

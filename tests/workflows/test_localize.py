@@ -3,6 +3,7 @@
 import dataclasses
 import itertools
 import json
+import os
 import signal
 import subprocess
 import sys
@@ -327,3 +328,35 @@ def test_auto_order_groups_by_region_only_where_retrieval_is_free():
     assert resolve_order("region", job, 2) == "region"
     with pytest.raises(ValueError, match="retrieves none"):
         resolve_order("region", dataclasses.replace(job, prior="poses", prior_poses="p.txt"), 100)
+
+
+def test_ctrl_c_in_a_terminal_stops_the_run_with_one_line(shared, tmp_path):
+    """Ctrl-C goes to every process of the terminal's group: the local cluster's worker processes too.
+    Before, each printed a KeyboardInterrupt traceback, then a warning per cancelled task; now the
+    client alone stops the run and says so in one line, and the same command resumes it."""
+    kinect, K = shared / "data" / "rgbd_slambook" / "kinect_room", ["518", "519", "325.5", "253.5"]
+    cli = [sys.executable, "-m", "workflows.cli"]
+    built = subprocess.run(cli + ["build-map", "posetxt", str(kinect), "--intrinsics", *K, "--depth-ext", ".pgm",
+                                  "--rgbd-points", "frames", "--store", str(tmp_path / "k.zarr"), "--sync",
+                                  "--resize", "320", "--image-scales", "1"], capture_output=True, text=True, cwd=ROOT)
+    assert built.returncode == 0, built.stderr
+    localize = cli + ["localize", "posetxt", str(kinect), "--intrinsics", *K, "--store", str(tmp_path / "k.zarr"),
+                      "--output", str(tmp_path / "out"), "--workers", "2"]
+    # a session of its own, as a terminal's: SIGINT to its group reaches the client and the workers
+    proc = subprocess.Popen(localize, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=ROOT,
+                            start_new_session=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    said = []
+    for line in proc.stdout:
+        said.append(line)
+        if "queries to do" in line:  # the workers are running the first tasks
+            time.sleep(1.0)
+            os.killpg(proc.pid, signal.SIGINT)
+            break
+    said += proc.stdout.readlines()
+    assert proc.wait(timeout=120) == 130, "".join(said)
+    text = "".join(said)
+    assert "pixloc: interrupted; run the same command again to resume" in text
+    assert "Traceback" not in text and "KeyboardInterrupt" not in text and "CancelledError" not in text, text
+    done = subprocess.run(localize, capture_output=True, text=True, cwd=ROOT)
+    assert done.returncode == 0 and "5 queries (" in done.stdout, done.stdout + done.stderr
