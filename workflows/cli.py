@@ -3,7 +3,9 @@
 import argparse
 import logging
 import os
+import signal
 import sys
+import threading
 from typing import List, Optional
 
 import pixloc
@@ -147,20 +149,42 @@ def main(argv: Optional[List[str]] = None) -> int:
         except ValueError as e:
             print(f"pixloc: error: --max-image-pixels: {e}", file=sys.stderr)
             return 2
+    previous = _on_sigterm_stop()
     try:
         if getattr(args, "storage_options", None):
             from pipeline.store.location import STORAGE_OPTIONS_ENV, storage_options
             os.environ[STORAGE_OPTIONS_ENV] = args.storage_options  # inherited by local Dask workers
             storage_options()  # refused here when it is not a JSON object
         return args.func(args)
-    except KeyboardInterrupt:  # finished shards and images are on disk (executor.dask_client quiets Dask's teardown)
-        print("pixloc: interrupted; run the same command again to resume", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as e:  # finished shards and images are on disk (executor.dask_client quiets teardown)
+        said = "terminated (SIGTERM)" if isinstance(e, Terminated) else "interrupted"
+        print(f"pixloc: {said}; run the same command again to resume", file=sys.stderr)
+        return 143 if isinstance(e, Terminated) else 130
     except (ValueError, OSError) as e:  # bad input: SceneError, StoreError, CheckpointError, missing files
         if args.verbose:
             raise
         print(f"pixloc: error: {e}", file=sys.stderr)
         return 2
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (a batch system's or ``timeout``'s stop): the run stops as on Ctrl-C, its cluster closed
+    and its finished work kept. Before, glog's failure handler (installed with pycolmap) printed a
+    stack dump and the process died without closing anything."""
+
+
+def _raise_terminated(signum, frame):
+    raise Terminated()
+
+
+def _on_sigterm_stop():
+    """SIGTERM raises ``Terminated`` in this (main) thread; returns the handler to restore."""
+    if threading.current_thread() is not threading.main_thread():
+        return None
+    return signal.signal(signal.SIGTERM, _raise_terminated)
 
 
 if __name__ == "__main__":

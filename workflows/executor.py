@@ -64,7 +64,8 @@ def _interrupt_plugin():
     """A worker plugin of the local cluster: Ctrl-C in a terminal goes to every process of its group,
     and each worker process printed a KeyboardInterrupt traceback, then a warning per cancelled task
     as the client tore the cluster down. The workers now leave Ctrl-C to the client (which stops the
-    run, said once), and drop those warnings (a rerun resumes the cancelled shards)."""
+    run, said once), and drop those warnings (a rerun resumes the cancelled shards); SIGTERM ends a
+    worker without the stack dump of glog's failure handler (installed with pycolmap)."""
     from distributed import WorkerPlugin
 
     class LeaveInterruptToClient(WorkerPlugin):
@@ -73,6 +74,7 @@ def _interrupt_plugin():
             import threading
             if threading.current_thread() is threading.main_thread():  # a worker process runs its loop there
                 signal.signal(signal.SIGINT, signal.SIG_IGN)
+                signal.signal(signal.SIGTERM, signal.SIG_DFL)  # stopped by its nanny: not glog's stack dump
             logging.getLogger("distributed.worker.state_machine").addFilter(_not_cancelled)
 
         def teardown(self, worker) -> None:  # closing: the scheduler may go first, mid-heartbeat

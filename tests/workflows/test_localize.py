@@ -330,10 +330,11 @@ def test_auto_order_groups_by_region_only_where_retrieval_is_free():
         resolve_order("region", dataclasses.replace(job, prior="poses", prior_poses="p.txt"), 100)
 
 
-def test_ctrl_c_in_a_terminal_stops_the_run_with_one_line(shared, tmp_path):
+def test_ctrl_c_or_sigterm_stops_the_run_with_one_line(shared, tmp_path):
     """Ctrl-C goes to every process of the terminal's group: the local cluster's worker processes too.
-    Before, each printed a KeyboardInterrupt traceback, then a warning per cancelled task; now the
-    client alone stops the run and says so in one line, and the same command resumes it."""
+    Before, each printed a KeyboardInterrupt traceback, then a warning per cancelled task; SIGTERM gave
+    glog's stack dump and no cleanup. Now the command alone stops the run and says so in one line, its
+    workers end with it, and the same command resumes it."""
     kinect, K = shared / "data" / "rgbd_slambook" / "kinect_room", ["518", "519", "325.5", "253.5"]
     cli = [sys.executable, "-m", "workflows.cli"]
     built = subprocess.run(cli + ["build-map", "posetxt", str(kinect), "--intrinsics", *K, "--depth-ext", ".pgm",
@@ -342,21 +343,33 @@ def test_ctrl_c_in_a_terminal_stops_the_run_with_one_line(shared, tmp_path):
     assert built.returncode == 0, built.stderr
     localize = cli + ["localize", "posetxt", str(kinect), "--intrinsics", *K, "--store", str(tmp_path / "k.zarr"),
                       "--output", str(tmp_path / "out"), "--workers", "2"]
-    # a session of its own, as a terminal's: SIGINT to its group reaches the client and the workers
-    proc = subprocess.Popen(localize, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=ROOT,
-                            start_new_session=True,
-                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
-    said = []
-    for line in proc.stdout:
-        said.append(line)
-        if "queries to do" in line:  # the workers are running the first tasks
-            time.sleep(1.0)
-            os.killpg(proc.pid, signal.SIGINT)
-            break
-    said += proc.stdout.readlines()
-    assert proc.wait(timeout=120) == 130, "".join(said)
-    text = "".join(said)
-    assert "pixloc: interrupted; run the same command again to resume" in text
-    assert "Traceback" not in text and "KeyboardInterrupt" not in text and "CancelledError" not in text, text
+    for sig, code, said in ((signal.SIGINT, 130, "interrupted"), (signal.SIGTERM, 143, "terminated (SIGTERM)")):
+        # a session of its own, as a terminal's (or a batch job's): the signal to its group reaches the
+        # client and the workers
+        proc = subprocess.Popen(localize, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=ROOT,
+                                start_new_session=True,
+                                preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+        lines = []
+        for line in proc.stdout:
+            lines.append(line)
+            if "queries to do" in line:  # the workers are running the first tasks
+                time.sleep(1.0)
+                os.killpg(proc.pid, sig)
+                break
+        lines += proc.stdout.readlines()
+        text = "".join(lines)
+        assert proc.wait(timeout=120) == code, text
+        assert f"pixloc: {said}; run the same command again to resume" in text
+        for noise in ("Traceback", "KeyboardInterrupt", "CancelledError", "Aborted at", "SIGTERM received"):
+            assert noise not in text, text  # SIGTERM: glog's failure handler printed a stack dump
+        wait_for(lambda: not _group_alive(proc.pid), timeout=30)  # no worker process left behind
     done = subprocess.run(localize, capture_output=True, text=True, cwd=ROOT)
     assert done.returncode == 0 and "5 queries (" in done.stdout, done.stdout + done.stderr
+
+
+def _group_alive(pgid: int) -> bool:
+    try:
+        os.killpg(pgid, 0)
+        return True
+    except ProcessLookupError:
+        return False
