@@ -212,10 +212,12 @@ def _load_queries(args):
 
 
 def main(args: argparse.Namespace) -> int:
+    output = Path(_absolute(args.output))
+    if output.exists() and not output.is_dir():
+        raise ValueError(f"--output {output} is a file: the run's outputs go in a folder.")
     job = build_job(args)
     queries = _load_queries(args)
     gt = ground_truth(args, queries)  # read before the run: a bad file fails now, not after it
-    output = Path(_absolute(args.output))
     plan = plan_localization(job, queries, output, args.shard_size, workers=1 if args.sync else args.workers,
                              keep_failures=args.keep_failures, overwrite=args.overwrite, order=args.order,
                              allow_partial_map=args.allow_partial_map)

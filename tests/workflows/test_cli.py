@@ -180,3 +180,24 @@ def test_numbers_out_of_range_are_refused_before_any_query():
     for kwargs in (dict(batch_size=0), dict(chunk_rows=0), dict(shard_rows=100)):
         with pytest.raises(ValueError, match="must be at least 1 and --shard-rows a multiple of --chunk-rows"):
             plan_build(None, "unused.zarr", FeatureConfig(), **kwargs)
+
+
+def test_a_file_where_a_folder_belongs_is_refused_before_any_work(shared, tmp_path):
+    """--store or --output naming a file (or a folder that holds something else than a store): said first.
+    Before: build-map ran its SfM or RGB-D fusion, then failed on the store; localize printed its plan, then
+    '[Errno 17] File exists'."""
+    kinect = shared / "data" / "rgbd_slambook" / "kinect_room"
+    (tmp_path / "afile").write_text("x")
+    (tmp_path / "folder").mkdir()
+    (tmp_path / "folder" / "notes.txt").write_text("x")
+    build = ["build-map", "posetxt", str(kinect), "--intrinsics", "518", "519", "325.5", "253.5", "--depth-ext",
+             ".pgm", "--sync", "--work-dir", str(tmp_path / "work")]
+    out = run(*build, "--store", str(tmp_path / "afile"))
+    assert out.returncode == 2 and f"--store {tmp_path / 'afile'} is a file" in out.stderr, out.stderr
+    out = run(*build, "--store", str(tmp_path / "folder"))
+    assert out.returncode == 2 and f"{tmp_path / 'folder'} is not a readable zarr group" in out.stderr, out.stderr
+    assert not (tmp_path / "work").exists()  # nothing was reconstructed
+    (tmp_path / "q.txt").write_text("3.png PINHOLE 640 480 518 519 325.5 253.5\n")
+    out = run("localize", "list", str(tmp_path / "q.txt"), "--query-images", str(kinect / "color"), "--store",
+              str(shared / "nowhere.zarr"), "--output", str(tmp_path / "afile"))
+    assert out.returncode == 2 and f"--output {tmp_path / 'afile'} is a file" in out.stderr, out.stderr
