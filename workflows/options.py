@@ -136,7 +136,7 @@ def build(cls, *layers: Dict[str, Any], where: str = "settings", names: Optional
         check_keys(layer, field_types(cls), where)
         values.update(layer)
     try:
-        return _build(cls, values, "", where)
+        return _build(cls, values, "")
     except _WrongType as e:
         key = (names or {}).get(e.key, e.key)
         raise ValueError(f"{where}: {key} is {e.value!r}, not {_described(e.kind)}.") from None
@@ -148,7 +148,7 @@ class _WrongType(Exception):
         self.key, self.value, self.kind = key, value, kind
 
 
-def _build(cls, values: Dict[str, Any], prefix: str, where: str):
+def _build(cls, values: Dict[str, Any], prefix: str):
     hints = typing.get_type_hints(cls)
     kwargs = {}
     for f in dataclasses.fields(cls):
@@ -158,7 +158,7 @@ def _build(cls, values: Dict[str, Any], prefix: str, where: str):
         elif _dataclass(kind) and (f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING
                                    or any(k.startswith(key + ".") for k in values)):
             base = values.get(key)
-            kwargs[f.name] = _build(kind, values, key + ".", where) if base is None else _coerce(base, kind, key)
+            kwargs[f.name] = _build(kind, values, key + ".") if base is None else _coerce(base, kind, key)
     return cls(**kwargs)
 
 

@@ -47,11 +47,12 @@ def backproject(image: ImageRecord, depth: np.ndarray, stride: int = 1) -> np.nd
     return _to_world(image.depth_from_world(), rays * d[keep][:, None])
 
 
-def readable_depths(images: List[ImageRecord]) -> Tuple[List[ImageRecord], List[Optional[np.ndarray]]]:
-    """Each frame's depth map, read once; a frame whose depth file cannot be decoded, or is not of
-    its depth camera's size, gets None and a ``problem`` (the build records it as failed, named),
-    instead of stopping the whole map. A warning names each."""
-    out, depths = [], []
+def readable_depths(images: List[ImageRecord]) -> List[ImageRecord]:
+    """The frames, each whose depth file cannot be read whole, or is not of its depth camera's size,
+    with a ``problem``: it is left out of the points and observations, and the build records it as
+    failed with the reason, instead of stopping the whole map. A warning names each. (Each depth map is
+    decoded here and again where it is used: holding every frame's would take GBs on large maps.)"""
+    out = []
     for im in images:
         try:
             depth = load_depth(im)
@@ -59,28 +60,22 @@ def readable_depths(images: List[ImageRecord]) -> Tuple[List[ImageRecord], List[
             if depth.shape != (cam.height, cam.width):
                 raise ImageReadError(f"depth file {im.depth_path} is {depth.shape[1]}x{depth.shape[0]}, "
                                      f"not the {cam.width}x{cam.height} of its camera")
+            out.append(im)
         except ImageReadError as e:
             logger.warning("RGB-D frame %s left out of the map: %s", im.name, e)
             out.append(dataclasses.replace(im, problem=str(e)))
-            depths.append(None)
-            continue
-        out.append(im)
-        depths.append(depth)
-    return out, depths
+    return out
 
 
-def frame_points(images: List[ImageRecord], stride: int = 16,
-                 depths: Optional[List[Optional[np.ndarray]]] = None) -> np.ndarray:
-    """Map points sampled from every ``stride``-th pixel of each depth frame (``depths``: as read by
-    ``readable_depths``, None for a frame left out)."""
-    depths = depths if depths is not None else [load_depth(im) for im in images]
-    return np.concatenate([backproject(im, d, stride) for im, d in zip(images, depths) if d is not None]
+def frame_points(images: List[ImageRecord], stride: int = 16) -> np.ndarray:
+    """Map points sampled from every ``stride``-th pixel of each depth frame (but those with a
+    ``problem``: ``readable_depths``)."""
+    return np.concatenate([backproject(im, load_depth(im), stride) for im in images if im.problem is None]
                           or [np.zeros((0, 3))])
 
 
 def tsdf_points(images: List[ImageRecord], voxel: float = 0.02, truncation: float = 0.08,
-                max_depth: float = 5.0, max_resolution: int = 512,
-                depths: Optional[List[Optional[np.ndarray]]] = None) -> np.ndarray:
+                max_depth: float = 5.0, max_resolution: int = 512) -> np.ndarray:
     """Points on the surface of an open3d TSDF fusion of the depth frames.
 
     A uniform volume bounds the frames' back-projected points (open3d's
@@ -90,9 +85,10 @@ def tsdf_points(images: List[ImageRecord], voxel: float = 0.02, truncation: floa
     """
     import open3d as o3d
 
-    depths = [load_depth(im) for im in images] if depths is None else list(depths)
-    images = [im for im, d in zip(images, depths) if d is not None]
-    depths = [np.where(d > max_depth, 0, d).astype(np.float32) for d in depths if d is not None]
+    images = [im for im in images if im.problem is None]  # ``readable_depths``
+    depths = [load_depth(im) for im in images]
+    for d in depths:
+        d[d > max_depth] = 0
     sample = np.concatenate([backproject(im, d, 8) for im, d in zip(images, depths)])
     if len(sample) == 0:
         raise SceneError("The depth frames have no valid depth.")
@@ -136,9 +132,9 @@ def observe(points: np.ndarray, images: List[ImageRecord], depths: Optional[List
         tree = o3d.geometry.KDTreeFlann(o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points)))
     obs_point, obs_image, obs_xy = [], [], []
     for i, im in enumerate(images):
-        depth = depths[i] if depths is not None else load_depth(im)
-        if depth is None:  # a frame left out (``readable_depths``): it observes nothing
+        if im.problem is not None:  # a frame left out (``readable_depths``): it observes nothing
             continue
+        depth = depths[i] if depths is not None else load_depth(im)
         cand = _within_reach(tree, im, depth, tolerance) if tree is not None else None
         sub = points if cand is None else points[cand]
         p_depth = torch.from_numpy(_to_frame(im.depth_from_world(), sub))
@@ -182,16 +178,13 @@ def rgbd_scene(images: List[ImageRecord], method: str = "tsdf", min_track_length
     """
     if method not in ("tsdf", "frames"):
         raise ValueError(f"Unknown RGB-D point method {method!r}: use 'tsdf' or 'frames'.")
-    images, depths = readable_depths(images)
-    if all(d is None for d in depths):
+    images = readable_depths(images)
+    if all(im.problem is not None for im in images):
         raise SceneError(f"None of the {len(images)} depth frames can be read (first: {images[0].problem}).")
-    if method == "tsdf":
-        points = tsdf_points(images, voxel=voxel, depths=depths)
-    else:
-        points = frame_points(images, stride=stride, depths=depths)
+    points = tsdf_points(images, voxel=voxel) if method == "tsdf" else frame_points(images, stride=stride)
     if len(points) == 0:
         raise SceneError("The depth frames produced no 3D points.")
-    obs_point, obs_image, obs_xy = observe(points, images, depths, tolerance=tolerance)
+    obs_point, obs_image, obs_xy = observe(points, images, tolerance=tolerance)
     track = np.bincount(obs_point, minlength=len(points))
     keep = np.flatnonzero(track >= min_track_length)
     remap = -np.ones(len(points), dtype=np.int64)
