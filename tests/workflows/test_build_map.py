@@ -136,15 +136,23 @@ def test_rgbd_pose_txt_source_plan(shared, tmp_path):
     assert "Traceback" not in out.stderr
 
 
+KINECT_K = ["518", "519", "325.5", "253.5"]  # rgbd_slambook's kinect_room
+
+
+def build_kinect(root: Path, store: Path, *extra: str) -> subprocess.CompletedProcess:
+    """``build-map posetxt`` of a kinect_room folder at 320 px, in this process's Python."""
+    return subprocess.run([sys.executable, "-m", "workflows.cli", "build-map", "posetxt", str(root), "--intrinsics",
+                           *KINECT_K, "--depth-ext", ".pgm", "--store", str(store), "--sync", "--resize", "320",
+                           "--image-scales", "1", *extra], capture_output=True, text=True, cwd=ROOT)
+
+
 def test_a_held_out_rgbd_frame_is_localized_as_a_posetxt_query(shared, tmp_path):
     """A pose.txt folder is a query source too (before: a map source only, so its held-out frames had no
     query kind with their ground truth): build-map --hold-out one frame, then localize it from the same
     folder with the same intrinsics."""
-    root, K = shared / "data" / "rgbd_slambook" / "kinect_room", ["518", "519", "325.5", "253.5"]
+    root, K = shared / "data" / "rgbd_slambook" / "kinect_room", KINECT_K
     cli = [sys.executable, "-m", "workflows.cli"]
-    built = subprocess.run(cli + ["build-map", "posetxt", str(root), "--intrinsics", *K, "--depth-ext", ".pgm",
-                                  "--hold-out", "color/3.png", "--store", str(tmp_path / "k.zarr"), "--sync",
-                                  "--resize", "320", "--image-scales", "1"], capture_output=True, text=True, cwd=ROOT)
+    built = build_kinect(root, tmp_path / "k.zarr", "--hold-out", "color/3.png")
     assert built.returncode == 0, built.stderr
     assert "4 images extracted" in built.stdout
     done = subprocess.run(cli + ["localize", "posetxt", str(root), "--intrinsics", *K, "--query-names", "color/3.png",
@@ -261,10 +269,7 @@ def test_an_rgbd_frame_with_a_damaged_depth_map_is_refused_by_name(shared, tmp_p
     (root / "pose.txt").symlink_to(kinect / "pose.txt")
     (root / "depth" / "2.pgm").unlink()
     (root / "depth" / "2.pgm").write_bytes((kinect / "depth" / "2.pgm").read_bytes()[:3000])
-    cli = [sys.executable, "-m", "workflows.cli", "build-map", "posetxt", str(root), "--intrinsics", "518", "519",
-           "325.5", "253.5", "--depth-ext", ".pgm", "--rgbd-points", "frames", "--store", str(tmp_path / "k.zarr"),
-           "--sync", "--resize", "320", "--image-scales", "1"]
-    built = subprocess.run(cli, capture_output=True, text=True, cwd=ROOT)
+    built = build_kinect(root, tmp_path / "k.zarr", "--rgbd-points", "frames")
     assert built.returncode == 0, built.stderr
     assert "4 images extracted, 1 already done or refused, 0 failed" in built.stdout
     assert f"refused: color/2.png: depth file {root / 'depth' / '2.pgm'} cannot be decoded" in built.stdout
@@ -272,5 +277,5 @@ def test_an_rgbd_frame_with_a_damaged_depth_map_is_refused_by_name(shared, tmp_p
     root_group = open_store(tmp_path / "k.zarr")
     names = [str(n) for n in root_group["images/name"][:]]
     assert sorted(names) == [f"color/{k}.png" for k in range(1, 6)]
-    again = subprocess.run(cli, capture_output=True, text=True, cwd=ROOT)
+    again = build_kinect(root, tmp_path / "k.zarr", "--rgbd-points", "frames")
     assert again.returncode == 0 and "nothing to do" in again.stdout, again.stdout + again.stderr

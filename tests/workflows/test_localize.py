@@ -23,7 +23,7 @@ from pipeline.mapping.readers.rgbd import read_7scenes
 from pipeline.localization.results import read_records, record_pose
 from pipeline.localization.retrieval import RetrievalConfig
 from pipeline.localization.shard import LocalizationJob
-from tests.workflows.test_build_map import cluster  # noqa: F401  (fixture)
+from tests.workflows.test_build_map import KINECT_K, build_kinect, cluster  # noqa: F401  (fixture)
 from workflows.process_cluster import wait_for
 from workflows.localize import plan_localization, run_dask, run_sync
 from workflows.sources import load_queries
@@ -335,14 +335,11 @@ def test_ctrl_c_or_sigterm_stops_the_run_with_one_line(shared, tmp_path):
     Before, each printed a KeyboardInterrupt traceback, then a warning per cancelled task; SIGTERM gave
     glog's stack dump and no cleanup. Now the command alone stops the run and says so in one line, its
     workers end with it, and the same command resumes it."""
-    kinect, K = shared / "data" / "rgbd_slambook" / "kinect_room", ["518", "519", "325.5", "253.5"]
-    cli = [sys.executable, "-m", "workflows.cli"]
-    built = subprocess.run(cli + ["build-map", "posetxt", str(kinect), "--intrinsics", *K, "--depth-ext", ".pgm",
-                                  "--rgbd-points", "frames", "--store", str(tmp_path / "k.zarr"), "--sync",
-                                  "--resize", "320", "--image-scales", "1"], capture_output=True, text=True, cwd=ROOT)
+    kinect = shared / "data" / "rgbd_slambook" / "kinect_room"
+    built = build_kinect(kinect, tmp_path / "k.zarr", "--rgbd-points", "frames")
     assert built.returncode == 0, built.stderr
-    localize = cli + ["localize", "posetxt", str(kinect), "--intrinsics", *K, "--store", str(tmp_path / "k.zarr"),
-                      "--output", str(tmp_path / "out"), "--workers", "2"]
+    localize = [sys.executable, "-m", "workflows.cli", "localize", "posetxt", str(kinect), "--intrinsics", *KINECT_K,
+                "--store", str(tmp_path / "k.zarr"), "--output", str(tmp_path / "out"), "--workers", "2"]
     for sig, code, said in ((signal.SIGINT, 130, "interrupted"), (signal.SIGTERM, 143, "terminated (SIGTERM)")):
         # a session of its own, as a terminal's (or a batch job's): the signal to its group reaches the
         # client and the workers

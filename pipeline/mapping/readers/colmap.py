@@ -60,10 +60,10 @@ def _extract_and_match(database: Path, image_dir: Path, names: Sequence[str], pa
     """SIFT features, and matches over the pairs of ``pairs``, into ``database``; known
     intrinsics if given; the seconds of each (``sift``, ``matching``) into ``timings``; images
     and pairs counted by ``progress(total, desc, unit)``. Returns the names of the images used:
-    those the image reader refuses are left out (``_readable``)."""
+    those the image reader refuses are left out (``readable_images``)."""
     timings = {} if timings is None else timings
     t0 = time.perf_counter()
-    names, cameras, cam_from_world = _readable(image_dir, names, cameras, cam_from_world)
+    names, cameras, cam_from_world = readable_images(image_dir, names, cameras, cam_from_world)
     options = pycolmap.ImageReaderOptions()
     if cameras is not None:
         options.camera_model = "PINHOLE"
@@ -91,7 +91,7 @@ def _extract_and_match(database: Path, image_dir: Path, names: Sequence[str], pa
     return list(names)
 
 
-def _readable(image_dir: Path, names: Sequence[str], *aligned: Optional[Sequence]) -> Tuple:
+def readable_images(image_dir: Path, names: Sequence[str], *aligned: Optional[Sequence]) -> Tuple:
     """``names`` (and the lists ``aligned`` with them) less the images that the one image reader
     refuses (missing, empty, truncated, corrupt, not an image), each named with its reason in a
     warning: COLMAP would read a truncated JPEG in part, and log one error per pair for an image

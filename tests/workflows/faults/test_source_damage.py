@@ -248,7 +248,7 @@ def test_unreadable_images_are_left_out_of_sift_by_name(shared, tmp_path, caplog
     """SfM and triangulation read their images with the one image reader first: a truncated, empty or
     fake image is left out of SIFT and matching with its reason (before: COLMAP read a truncated JPEG in
     part, and logged 'Image X does not exist' once per pair for one it could not read)."""
-    from pipeline.mapping.readers.colmap import _readable
+    from pipeline.mapping.readers.colmap import readable_images
     photos = sorted((shared / "data" / "sacre_coeur" / "mapping").glob("*.jpg"))[:2]
     for p in photos:
         (tmp_path / p.name).symlink_to(p)
@@ -257,7 +257,7 @@ def test_unreadable_images_are_left_out_of_sift_by_name(shared, tmp_path, caplog
     (tmp_path / "fake.png").write_bytes(b"GIF89a")
     names = ["cut.jpg", photos[0].name, "zero.jpg", "fake.png", photos[1].name, "missing.jpg"]
     with caplog.at_level("WARNING"):
-        kept, tags = _readable(tmp_path, names, list(range(len(names))))
+        kept, tags = readable_images(tmp_path, names, list(range(len(names))))
     assert kept == [photos[0].name, photos[1].name] and tags == [1, 4]
     said = caplog.text
     assert "4 of 6 images left out of SIFT and matching" in said
@@ -265,4 +265,4 @@ def test_unreadable_images_are_left_out_of_sift_by_name(shared, tmp_path, caplog
                       ("missing.jpg", "is missing")):
         assert f"{name}: image file {tmp_path / name} {why}" in said, said
     with pytest.raises(SceneError, match=r"None of the 2 images .* can be read \(first: zero.jpg"):
-        _readable(tmp_path, ["zero.jpg", "fake.png"])
+        readable_images(tmp_path, ["zero.jpg", "fake.png"])
