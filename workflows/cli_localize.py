@@ -46,6 +46,8 @@ FLAGS = {
                     "refinement mode from an hloc _logs.pkl (its PnP poses and inliers)", PRIORS),
     "--sift-min-inliers": Flag("sift.min_inliers", "with --prior sift: PnP inliers a pose needs"),
     "--sift-max-size": Flag("sift.max_size", "with --prior sift: longer image side of SIFT extraction"),
+    "--sift-levels": Flag("sift.levels", "with --prior sift: the levels a PnP pose is refined on (the two finest, as "
+                          "the official refinement of PnP poses; 0 1 2: every level)"),
     "--prior-poses": Flag("prior_poses", "refinement mode: poses file of another pipeline", file=True),
     "--hloc-logs": Flag("hloc_logs", "refinement mode: hloc localization logs (_logs.pkl); the store must be built "
                         "from the SfM model hloc localized against", file=True),
@@ -194,12 +196,13 @@ def build_job(args: argparse.Namespace) -> LocalizationJob:
     if settings.get("scales") and not set(settings["scales"]) <= set(fconf.image_scales):
         raise ValueError(f"--scales {settings['scales']}: the store's features have image scales "
                          f"{list(fconf.image_scales)}.")
-    if settings.get("levels"):  # before: every query failed with it
-        from pipeline.store.feature_groups import feature_key
-        n = len(open_store(store)[f"features/{feature_key(fconf)}"].attrs["dims"])
-        if not set(settings["levels"]) <= set(range(n)):
-            raise ValueError(f"--levels {list(settings['levels'])}: the store's features have levels 0 (finest) to "
-                             f"{n - 1}.")
+    for flag, key in (("--levels", "levels"), ("--sift-levels", "sift.levels")):  # before: every query failed
+        if settings.get(key):
+            from pipeline.store.feature_groups import feature_key
+            n = len(open_store(store)[f"features/{feature_key(fconf)}"].attrs["dims"])
+            if not set(settings[key]) <= set(range(n)):
+                raise ValueError(f"{flag} {list(settings[key])}: the store's features have levels 0 (finest) to "
+                                 f"{n - 1}.")
     job = build(LocalizationJob, {"store": str(store), "features": fconf, "model": fconf.model}, settings,
                 where="localize options")
     job.validate()

@@ -12,8 +12,8 @@ query's candidates (``pipeline.localization.refine.Candidate``, several for ``hy
 - ``poses``: refinement mode from another pipeline's poses file (``prior_poses``);
 - ``hloc``: refinement mode from hloc's logs (its PnP pose, the references with most inliers,
   optionally only the inlier points), as the paper's;
-- ``sift``: SIFT matches to the references, PnP (``pipeline.localization.sift``); where PnP
-  finds too few inliers, the ``search`` prior.
+- ``sift``: SIFT matches to the references, PnP (``pipeline.localization.sift``), refined on the
+  two finest levels; where PnP finds too few inliers, the ``search`` prior.
 
 A new prior is a function here and its line in ``PRIORS``.
 """
@@ -54,8 +54,9 @@ class Start:
     references: Callable[[], Retrieved]
 
     def candidate(self, dbs: List[int], prior: np.ndarray, origin: str,
-                  selected: Optional[np.ndarray] = None) -> Candidate:
-        return Candidate(self.query, list(dbs), np.asarray(prior, np.float64), self.rgb, self.cache, selected, origin)
+                  selected: Optional[np.ndarray] = None, levels: Optional[Tuple[int, ...]] = None) -> Candidate:
+        return Candidate(self.query, list(dbs), np.asarray(prior, np.float64), self.rgb, self.cache, selected, origin,
+                         levels=levels)
 
 
 def failure(query: QueryRecord, reason: str, prior=None, refs=None) -> QueryResult:
@@ -181,7 +182,7 @@ def sift(s: Start) -> Prepared:
         note = f"{found.describe()}: fewer than {s.job.sift.min_inliers} inliers, {FALLBACK}"
         return search(replace(s, query=replace(s.query, notes=s.query.notes + (note,))))
     noted = replace(s, query=replace(s.query, notes=s.query.notes + (found.describe(),)))
-    return [noted.candidate(dbs, found.pose, "SIFT PnP pose")]
+    return [noted.candidate(dbs, found.pose, "SIFT PnP pose", levels=s.job.sift.levels)]
 
 
 PRIORS: Dict[str, Callable[[Start], Prepared]] = {

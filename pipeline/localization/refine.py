@@ -109,7 +109,9 @@ class Candidate:
     network prediction, and the references' features); ``selected``: (point, reference) pairs that
     restrict the observations (hloc's PnP inliers); ``rival``: a rival start of verification
     (``pipeline.localization.search.rival_starts``), stopped where it joins one of its query's own
-    starts (those sharing its ``cache``; ``Localizer.localize_batch``)."""
+    starts (those sharing its ``cache``; ``Localizer.localize_batch``); ``levels``: the levels this
+    start is refined on, of the localizer's (refinement mode for a pose from another method: the two
+    finest); it always ends at the localizer's finest level, whose evidence verification reads."""
 
     query: QueryRecord
     dbs: List[int]
@@ -119,6 +121,7 @@ class Candidate:
     selected: Optional[np.ndarray] = None
     origin: str = "prior"
     rival: bool = False
+    levels: Optional[Sequence[int]] = None
 
 
 @dataclass
@@ -126,7 +129,8 @@ class LevelState:
     """A candidate while ``Localizer.localize_batch`` refines it: its observations and current pose
     ``T``, the reference features of the image scale being run (``refs``), whether it is still
     ``active``, its own seconds (``t_own``) and the result being filled; for a rival start, its
-    query's own starts' poses at the end of each level (``own``: (image scale, level) -> 3 x 4 pose)."""
+    query's own starts' poses at the end of each level (``own``: (image scale, level) -> 3 x 4 pose);
+    the ``levels`` it is refined on."""
 
     query: QueryRecord
     rgb: Optional[np.ndarray]
@@ -139,6 +143,7 @@ class LevelState:
     prior_T: Optional[Pose] = None
     refs: Optional[Tuple] = None
     own: Optional[List[Dict[Tuple[int, int], np.ndarray]]] = None
+    levels: Sequence[int] = ()
 
 
 class Localizer:
@@ -164,12 +169,13 @@ class Localizer:
         for s in self.solvers:
             s.eval()
 
-    def reference_features(self, obs: Observations, scale: int, stats: Optional[Dict] = None):
+    def reference_features(self, obs: Observations, scale: int, stats: Optional[Dict] = None,
+                           levels: Optional[Sequence[int]] = None):
         """Points (K, 3) and per level (features (K, C) normalised, confidences (K,)) of the
         observations ``obs``; as the official localizer, an observation invalid at any of the
-        optimised levels is dropped."""
+        optimised ``levels`` (default the localizer's) is dropped."""
         feats = self.reader.features(obs, scale)
-        valid = np.logical_and.reduce([feats[level][2] for level in self.levels])
+        valid = np.logical_and.reduce([feats[level][2] for level in (self.levels if levels is None else levels)])
         if stats is not None:  # observations (not points) dropped as invalid at an optimised level
             stats[f"invalid_observations_s{scale}"] = int((~valid).sum())
         point = obs.point[valid]
@@ -252,7 +258,9 @@ class Localizer:
             t_item = time.perf_counter()
             query = c.query
             result = self._unrefined(c)
-            st = LevelState(query, c.rgb, {} if c.cache is None else c.cache, result)
+            levels = self.levels if c.levels is None else sorted(set(c.levels) & set(self.levels) | {self.levels[-1]},
+                                                                  reverse=True)
+            st = LevelState(query, c.rgb, {} if c.cache is None else c.cache, result, levels=levels)
             states.append(st)
             try:
                 seen = self.reader.observations(c.dbs, 1, c.selected)
@@ -292,11 +300,11 @@ class Localizer:
                     # the starts of one query's search share its cache, references and points:
                     # their reference features are read and averaged once
                     obs = st.obs
-                    key = ("refs", k, tuple(self.levels), hash((obs.point.tobytes(), obs.db.tobytes(),
-                                                                 obs.rows.tobytes())))
+                    key = ("refs", k, tuple(st.levels), hash((obs.point.tobytes(), obs.db.tobytes(),
+                                                               obs.rows.tobytes())))
                     if key not in st.cache:
                         stats: Dict = {}
-                        st.cache[key] = (self.reference_features(obs, k, stats), stats)
+                        st.cache[key] = (self.reference_features(obs, k, stats, st.levels), stats)
                     st.refs, stats = st.cache[key]
                     st.result.filters.update(stats)
                     if k not in st.cache:
@@ -316,7 +324,7 @@ class Localizer:
             for level in self.levels:
                 final = k == self.scales[-1] and level == self.levels[-1]
                 for group in groups.values():
-                    group = [st for st in group if st.active]
+                    group = [st for st in group if st.active and level in st.levels]
                     if not group:
                         continue
                     try:

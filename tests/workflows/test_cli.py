@@ -133,6 +133,9 @@ def test_sift_work_keeps_colmaps_info_lines_off_the_terminal(shared, tmp_path):
     levels = run("localize", "bundler", str(bundle), "--query-names", *held, "--store", str(store), "--output",
                  str(tmp_path / "lv"), "--levels", "3")  # before: every query failed with it
     assert levels.returncode == 2 and "--levels [3]: the store's features have levels 0 (finest) to 2" in levels.stderr
+    levels = run("localize", "bundler", str(bundle), "--query-names", *held, "--store", str(store), "--output",
+                 str(tmp_path / "lv"), "--prior", "sift", "--sift-levels", "1", "3")
+    assert levels.returncode == 2 and "--sift-levels [1, 3]: the store's features have levels" in levels.stderr
     for extra in ([], ["-v"]):
         out = tmp_path / f"run{len(extra)}"
         done = run(*extra, "localize", "bundler", str(bundle), "--images", str(images), "--query-names", *held,

@@ -42,6 +42,8 @@ def test_sift_brings_in_queries_that_top1_and_search_miss(temple):
             assert all(r["success"] for r in records)
             assert all(r["notes"][0].startswith("SIFT PnP: ") and "inliers of" in r["notes"][0] for r in records)
             assert all(np.linalg.norm(np.asarray(r["prior"]) - np.asarray(r["refined"])) < 0.05 for r in records)
+            # a PnP pose is refined as the official code refines hloc's: on the two finest levels only
+            assert all([p["level"] for p in r["per_level"]] == [1, 0] for r in records)
     scale = 0.01  # the temple is about 0.1 scene units across: 1 % of the viewing distance, 1 deg
     assert all(R > 2.0 for _, R in errors["top1"] + errors["search"])
     assert all(t < scale and R < 1.0 for t, R in errors["sift"])
@@ -50,6 +52,7 @@ def test_sift_brings_in_queries_that_top1_and_search_miss(temple):
 def test_failed_txt_and_the_report_say_that_pnp_failed_and_the_search_took_over(temple):
     """Where PnP finds too few inliers, the sift prior hands the query to the search; a query
     without a verified pose then says, in failed.txt and the report, which stage failed first."""
+    from pipeline.localization.results import read_records
     from pipeline.localization.sift import FALLBACK, NOTE, SiftConfig
     from pipeline.localization.verify import VerificationConfig
     from workflows.report import make_report
@@ -63,6 +66,8 @@ def test_failed_txt_and_the_report_say_that_pnp_failed_and_the_search_took_over(
         first, *rest = stages.split(" | ")
         assert outcome == "rejected" and first.startswith(NOTE) and first.endswith(FALLBACK)
         assert rest and rest[-1].startswith("search: ")
+    records = read_records(work / "no-pnp" / "records.jsonl")  # the search's starts run every level
+    assert all([p["level"] for p in r["per_level"]][0] == 2 for r in records)
     page = make_report(work / "no-pnp", queries, num_examples=1).read_text()
     assert "<th data-type='text'>stages</th>" in page and page.count(FALLBACK) >= len(HELD_OUT)
 
