@@ -10,12 +10,12 @@ PnP inliers; where PnP fails, ``pipeline.localization.priors`` falls back to the
 """
 
 import functools
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
-from pipeline.images import read_image
+from pipeline.images import ImageReadError, read_image
 from pipeline.keypoints import MAX_FEATURES, MAX_GAP, extract_sift, from_uint8, nearest_within
 from pipeline.scene import CameraRecord
 from pipeline.store.reader import MapReader
@@ -55,11 +55,15 @@ class PnPResult:
     correspondences: int
     inliers: int
     matches: List[int]
+    unreadable: List[str] = field(default_factory=list)  # references whose image could not be read, and why
 
     def describe(self) -> str:
         """The note a query's record carries (ending in ``FALLBACK`` where the search took over)."""
+        missing = (f"; no SIFT from {len(self.unreadable)} reference(s) without descriptors in the map, whose "
+                   f"image cannot be read ({'; '.join(self.unreadable[:2])}): build-map --sift stores them"
+                   if self.unreadable else "")
         return (f"{NOTE}{self.inliers} inliers of {self.correspondences} 2D-3D matches "
-                f"(matches per reference {self.matches})")
+                f"(matches per reference {self.matches}{missing})")
 
 
 NOTE = "SIFT PnP: "  # how a record's note starts that says what SIFT + PnP found
@@ -125,17 +129,22 @@ def sift_pnp(reader: MapReader, dbs: List[int], rgb: np.ndarray, camera: CameraR
 
     q_xy, q_desc = extract(rgb, conf)
     point_of: Dict[int, int] = {}  # query keypoint -> map point (the first reference's wins)
-    per_ref = []
+    per_ref, unreadable = [], []
     for i in dbs:
         found = 0
-        for k, point in reference_matches(reader, i, q_desc, conf):
+        try:
+            matched = reference_matches(reader, i, q_desc, conf)
+        except ImageReadError as e:  # a map moved without its images: the other references still match
+            matched = np.zeros((0, 2), np.int64)
+            unreadable.append(str(e))
+        for k, point in matched:
             if k not in point_of:
                 point_of[int(k)] = int(point)
                 found += 1
         per_ref.append(found)
     keys = sorted(point_of)
     if len(keys) < max(conf.min_inliers, 4):
-        return PnPResult(None, len(keys), 0, per_ref)
+        return PnPResult(None, len(keys), 0, per_ref, unreadable)
     p2d = q_xy[keys]
     p3d = reader.xyz[[point_of[k] for k in keys]]
     cam = pycolmap.Camera(model=camera.model, width=camera.width, height=camera.height, params=list(camera.params))
@@ -144,7 +153,7 @@ def sift_pnp(reader: MapReader, dbs: List[int], rgb: np.ndarray, camera: CameraR
     options.ransac.random_seed = 0
     found = pycolmap.estimate_and_refine_absolute_pose(p2d, p3d, cam, options)
     if found is None:
-        return PnPResult(None, len(keys), 0, per_ref)
+        return PnPResult(None, len(keys), 0, per_ref, unreadable)
     inliers = int(found["num_inliers"])
     pose = np.asarray(found["cam_from_world"].matrix(), np.float64)
-    return PnPResult(pose if inliers >= conf.min_inliers else None, len(keys), inliers, per_ref)
+    return PnPResult(pose if inliers >= conf.min_inliers else None, len(keys), inliers, per_ref, unreadable)

@@ -99,3 +99,34 @@ def test_a_map_that_stores_sift_localizes_without_the_reference_images(temple, s
     for r, q in zip(records, queries):
         t, R = pose_errors(record_pose(r), q.cam_from_world_gt)
         assert t < 0.01 and R < 1.0
+
+
+def test_reference_images_that_cannot_be_read_are_named_and_the_others_still_match(temple, shared, tmp_path):
+    """A map without stored descriptors whose reference images moved (a store copied to another
+    machine, or read from a bucket): the references that cannot be read give no SIFT, the note names
+    them and says how to store descriptors, and the others still give the PnP pose; where none
+    can be read, the query takes the search prior, not a failure."""
+    import shutil
+    from pipeline.localization.sift import FALLBACK, NOTE, reference_sift
+    job, queries, work = temple
+    root = shared / "data" / "middlebury" / "templeRing"
+    scene = load_scene(MapSource("middlebury", root, hold_out=HELD_OUT), work / "work")  # the finished model
+    images = tmp_path / "images"
+    shutil.copytree(root, images)
+    moved = dataclasses.replace(scene, images=[dataclasses.replace(im, path=images / im.path.name)
+                                               for im in scene.images])
+    build_map(moved, tmp_path / "map.zarr", job.features)
+    job = dataclasses.replace(job, store=str(tmp_path / "map.zarr"), prior="sift")
+    first = run_sync(plan_localization(job, queries, tmp_path / "all-there"))
+    top = first[0]["references"][0]  # the query's first reference: its image goes
+    (images / top).unlink()
+    reference_sift.cache_clear()  # as a new process: the references' SIFT is kept for the process
+    records = run_sync(plan_localization(job, queries[:1], tmp_path / "one-gone"))
+    note = records[0]["notes"][0]
+    assert note.startswith(NOTE) and not note.endswith(FALLBACK) and records[0]["success"]
+    assert "no SIFT from 1 reference(s)" in note and top in note and "build-map --sift stores them" in note
+    shutil.rmtree(images)
+    reference_sift.cache_clear()
+    records = run_sync(plan_localization(job, queries, tmp_path / "all-gone"))
+    assert all(r["notes"][0].endswith(FALLBACK) and "cannot be read" in r["notes"][0] for r in records)
+    assert all(r["notes"][-1].startswith("search: ") for r in records)
