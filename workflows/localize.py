@@ -50,6 +50,7 @@ from pipeline.store.layout import StoreError
 from pipeline.textfiles import InputError, read_json, write_atomic
 
 from . import executor
+from .options import dotted
 
 logger = logging.getLogger(__name__)
 LOCK = ".pixloc.lock"
@@ -251,10 +252,10 @@ def plan_localization(job: LocalizationJob, queries: List[QueryRecord], output, 
         raise ValueError(f"Query names must be unique; repeated: {dup[:5]}.")
     job.validate()
     output = Path(output)
-    if stored is not None and not overwrite and {k: v for k, v in stored.items() if k not in RECORDED} != _job_json(
-            job, names, shard_size, order):
-        raise AnotherRun(f"{output} holds a run with another job, query list or order: use another --output, "
-                         "or --overwrite to redo it.")
+    now = _job_json(job, names, shard_size, order)
+    if stored is not None and not overwrite and {k: v for k, v in stored.items() if k not in RECORDED} != now:
+        raise AnotherRun(f"{output} holds a run with another job, query list or order ({_changes(stored, now)}): "
+                         "use another --output, or --overwrite to redo it.")
     shards = [queries[i:i + shard_size] for i in range(0, len(queries), shard_size)]
     plan = LocalizationPlan(job, shards, output, overwrite=overwrite, shard_size=shard_size,
                             keep_failures=keep_failures, order=order, queries=list(queries), store=store)
@@ -269,6 +270,20 @@ def plan_localization(job: LocalizationJob, queries: List[QueryRecord], output, 
 
 
 RECORDED = ("store", "thresholds")  # recorded in job.json, not part of the job a rerun must match
+
+
+def _changes(stored: Dict, now: Dict, most: int = 4) -> str:
+    """What differs between a run's job.json and this run's, by setting: 'sift.levels: [0, 1] now,
+    not set there'; the query lists by count."""
+    old, new = (dotted({k: v for k, v in d.items() if k not in RECORDED and k != "queries"}) for d in (stored, now))
+    words = [f"{k.removeprefix('job.')}: {json.dumps(new[k]) if k in new else 'not set'} now, "
+             f"{json.dumps(old[k]) if k in old else 'not set'} there"
+             for k in sorted(set(old) | set(new)) if old.get(k, KeyError) != new.get(k, KeyError)]
+    theirs, mine = stored.get("queries") or [], now["queries"]
+    if theirs != mine:
+        words.append(f"queries: {len(set(mine) - set(theirs))} new, {len(set(theirs) - set(mine))} left out"
+                     if set(theirs) != set(mine) else "queries: the same, in another order")
+    return "; ".join(words[:most]) + (f"; and {len(words) - most} more" if len(words) > most else "")
 
 
 def _job_json(job: LocalizationJob, names: List[str], shard_size: int, order: str = "list",

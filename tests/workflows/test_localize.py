@@ -314,8 +314,13 @@ def test_region_order_shards_by_reference_region_and_resumes(seven_scenes, sync_
     assert list(resumed.todo) == [1]
     run_sync(resumed)
     assert [p.stat().st_mtime_ns for p in parts] == stamp
-    with pytest.raises(ValueError, match="another job, query list or order"):
+    with pytest.raises(ValueError, match='another job, query list or order \\(order: not set now, "region" there\\)'):
         plan_localization(job, queries, tmp_path, shard_size=2, order="list")
+    # the refusal names what differs: each setting, then the query lists by count
+    n = job.localizer.num_iters
+    other = dataclasses.replace(job, localizer=dataclasses.replace(job.localizer, num_iters=n + 1))
+    with pytest.raises(ValueError, match=f"localizer.num_iters: {n + 1} now, {n} there; queries: 0 new, 1 left out"):
+        plan_localization(other, queries[1:], tmp_path, shard_size=2, order="region")
 
 
 def test_auto_order_groups_by_region_only_where_retrieval_is_free():
