@@ -141,8 +141,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="queries of each condition (day, dusk, night, occluded)")
     p.add_argument("--workers", type=at_least(1), default=2, help="Dask workers (processes)")
     p.add_argument("--sync", action="store_true", help="localize in this process, without Dask")
-    p.add_argument("--prior", choices=["top1", "average", "hypotheses", "search"], default="top1",
-                   help="pose prior of the localization (see pixloc localize --help)")
+    p.add_argument("--prior", choices=["top1", "average", "hypotheses", "search", "sift"], default="top1",
+                   help="pose prior of the localization (see pixloc localize --help; sift: SIFT + PnP, refined)")
     p.set_defaults(func=main)
 
 

@@ -50,7 +50,6 @@ from pipeline.store.layout import StoreError
 from pipeline.textfiles import InputError, read_json, write_atomic
 
 from . import executor
-from .options import dotted
 
 logger = logging.getLogger(__name__)
 LOCK = ".pixloc.lock"
@@ -273,12 +272,21 @@ RECORDED = ("store", "thresholds")  # recorded in job.json, not part of the job 
 
 
 def _changes(stored: Dict, now: Dict, most: int = 4) -> str:
-    """What differs between a run's job.json and this run's, by setting: 'sift.levels: [0, 1] now,
-    not set there'; the query lists by count."""
-    old, new = (dotted({k: v for k, v in d.items() if k not in RECORDED and k != "queries"}) for d in (stored, now))
-    words = [f"{k.removeprefix('job.')}: {json.dumps(new[k]) if k in new else 'not set'} now, "
-             f"{json.dumps(old[k]) if k in old else 'not set'} there"
-             for k in sorted(set(old) | set(new)) if old.get(k, KeyError) != new.get(k, KeyError)]
+    """What differs between a run's job.json and this run's, setting by setting ('localizer.num_iters:
+    40 now, 50 there'; a block that one side alone records, as a search run's search settings, once),
+    then the query lists by count."""
+    def said(d: Dict, k: str) -> str:
+        return "not set" if k not in d else "set" if isinstance(d[k], dict) else json.dumps(d[k])
+
+    def diff(old: Dict, new: Dict, prefix: str = "") -> List[str]:
+        out = []
+        for k in sorted(set(old) | set(new)):
+            if isinstance(old.get(k), dict) and isinstance(new.get(k), dict):
+                out += diff(old[k], new[k], f"{prefix}{k}.")
+            elif old.get(k, KeyError) != new.get(k, KeyError):
+                out.append(f"{prefix}{k}: {said(new, k)} now, {said(old, k)} there".removeprefix("job."))
+        return out
+    words = diff(*({k: v for k, v in d.items() if k not in RECORDED and k != "queries"} for d in (stored, now)))
     theirs, mine = stored.get("queries") or [], now["queries"]
     if theirs != mine:
         words.append(f"queries: {len(set(mine) - set(theirs))} new, {len(set(theirs) - set(mine))} left out"
