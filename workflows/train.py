@@ -36,6 +36,7 @@ from pipeline.data.training_data import PairConfig, PairDataset
 from pixloc.nets.registry import load_refiner, save_model
 from pixloc.training import Trainer, TrainConfig, reprojection_px
 
+from .localize import LOCK, file_lock
 from .options import at_least, build, check_keys
 from .training_sources import default_data_root, load_sources
 
@@ -299,10 +300,16 @@ def contact_sheet(run: TrainingRun, out: Path, data_root: Path, pairs_per_source
 
 def train(run, out: Path, data_root: Path, resume: bool = True, threads: int = 0) -> Dict:
     """Train (or resume) as ``run`` (a ``TrainingRun``, or its flat config) says; returns the final
-    validation metrics."""
+    validation metrics. Two runs at once into one ``out`` are refused (its lock): they would write
+    over each other's checkpoint."""
     if not isinstance(run, TrainingRun):
         run = TrainingRun.from_dict(run)
     out.mkdir(parents=True, exist_ok=True)
+    with file_lock(out / LOCK, f"{out} is in use by another pixloc run"):
+        return _train(run, out, data_root, resume, threads)
+
+
+def _train(run: "TrainingRun", out: Path, data_root: Path, resume: bool, threads: int) -> Dict:
     keep_freed_memory()  # a step frees and allocates the same large blocks: reuse them
     if threads:
         torch.set_num_threads(threads)

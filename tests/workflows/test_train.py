@@ -93,6 +93,22 @@ def test_worker_processes_load_the_same_pairs(config, tmp_path):
     assert [r["total"] for r in a] == [r["total"] for r in b] and len(a) == 2
 
 
+def test_a_second_run_into_the_same_folder_is_refused(config, tmp_path, capsys):
+    """Before: two runs at once into one --output wrote over each other's checkpoint, and one died with
+    '[Errno 2] No such file or directory: .../checkpoint.tmp -> .../checkpoint.pt'."""
+    import os
+    import socket
+    out = tmp_path / "o"
+    out.mkdir()
+    (out / ".pixloc.lock").write_text(f"{socket.gethostname()} {os.getppid()}")  # a live run holds it
+    assert main(["train", "--config", str(config), "--output", str(out), "--steps", "1"]) == 2
+    err = capsys.readouterr().err
+    assert f"pixloc: error: {out} is in use by another pixloc run" in err and not (out / "checkpoint.pt").exists()
+    (out / ".pixloc.lock").write_text(f"{socket.gethostname()} 999999999")  # a killed run's: taken over
+    assert main(["train", "--config", str(config), "--output", str(out), "--steps", "1"]) == 0
+    assert not (out / ".pixloc.lock").exists()
+
+
 def test_training_on_cuda_without_a_gpu_is_refused(config, tmp_path, capsys):
     if torch.cuda.is_available():
         pytest.skip("a GPU is available")
