@@ -289,8 +289,9 @@ def _changes(stored: Dict, now: Dict, most: int = 4) -> str:
     words = diff(*({k: v for k, v in d.items() if k not in RECORDED and k != "queries"} for d in (stored, now)))
     theirs, mine = stored.get("queries") or [], now["queries"]
     if theirs != mine:
-        words.append(f"queries: {len(set(mine) - set(theirs))} new, {len(set(theirs) - set(mine))} left out"
-                     if set(theirs) != set(mine) else "queries: the same, in another order")
+        a, b = set(map(str, theirs)), set(map(str, mine))  # a hand-edited job.json may hold anything there
+        words.append(f"queries: {len(b - a)} new, {len(a - b)} left out" if a != b else
+                     "queries: the same, in another order")
     return "; ".join(words[:most]) + (f"; and {len(words) - most} more" if len(words) > most else "")
 
 
