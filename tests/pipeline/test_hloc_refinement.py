@@ -202,7 +202,7 @@ def test_a_damaged_log_is_refused_by_name(tmp_path, seed, cut):
         if rng.random() < 0.3 and isinstance(parent, dict):
             del parent[key]
         else:
-            parent[key] = rng.choice(ODD)
+            parent[key] = copy.deepcopy(rng.choice(ODD))  # a copy: the same object twice made cycles, and ODD changed
     path = tmp_path / f"logs-{seed}.pkl"
     raw = pickle.dumps({"loc": {"q.jpg": loc}})
     path.write_bytes(raw if cut is None else raw[:int(cut * len(raw))])

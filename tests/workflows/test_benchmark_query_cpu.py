@@ -55,6 +55,8 @@ def _has_commit(rev: str) -> bool:
                           capture_output=True).returncode == 0
 
 
+# benchmark tooling (a git archive of an old commit, run apart): slow tier, the default suite's 15 minutes
+@pytest.mark.slow
 def test_the_earlier_code_runs_the_same_query_in_its_own_process(shared, tmp_path):
     """--earlier-code: the real baseline, the commit's own code on a copy of the same map, its poses
     compared with the default's."""

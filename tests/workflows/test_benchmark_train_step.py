@@ -3,12 +3,15 @@ and ratio, and the cost of drawing a pair of each source (the whole run: docs/mo
 
 import re
 
+import pytest
 import yaml
 
 from workflows.cli import main
 from tests.workflows.test_train import CONFIG
 
 
+# benchmark tooling: slow tier, the default suite's 15 minutes
+@pytest.mark.slow
 def test_the_table_has_every_variant_and_the_costs_that_are_not_the_model(tmp_path, capsys):
     path = tmp_path / "tiny.yaml"
     path.write_text(yaml.safe_dump(dict(CONFIG, validation=[])))
