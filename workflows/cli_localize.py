@@ -196,13 +196,14 @@ def build_job(args: argparse.Namespace) -> LocalizationJob:
     if settings.get("scales") and not set(settings["scales"]) <= set(fconf.image_scales):
         raise ValueError(f"--scales {settings['scales']}: the store's features have image scales "
                          f"{list(fconf.image_scales)}.")
-    for flag, key in (("--levels", "levels"), ("--sift-levels", "sift.levels")):  # before: every query failed
-        if settings.get(key):
-            from pipeline.store.feature_groups import feature_key
-            n = len(open_store(store)[f"features/{feature_key(fconf)}"].attrs["dims"])
-            if not set(settings[key]) <= set(range(n)):
-                raise ValueError(f"{flag} {list(settings[key])}: the store's features have levels 0 (finest) to "
-                                 f"{n - 1}.")
+    levels = [(flag, settings[key]) for flag, key in (("--levels", "levels"), ("--sift-levels", "sift.levels"))
+              if settings.get(key)]
+    if levels:  # before: every query failed with levels the store does not have
+        from pipeline.store.feature_groups import feature_key
+        n = len(open_store(store)[f"features/{feature_key(fconf)}"].attrs["dims"])
+        for flag, given in levels:
+            if not set(given) <= set(range(n)):
+                raise ValueError(f"{flag} {list(given)}: the store's features have levels 0 (finest) to {n - 1}.")
     job = build(LocalizationJob, {"store": str(store), "features": fconf, "model": fconf.model}, settings,
                 where="localize options")
     job.validate()

@@ -36,7 +36,7 @@ from pipeline.data.training_data import PairConfig, PairDataset
 from pixloc.nets.registry import load_refiner, save_model
 from pixloc.training import Trainer, TrainConfig, reprojection_px
 
-from .localize import LOCK, file_lock
+from .localize import output_lock
 from .options import at_least, build, check_keys
 from .training_sources import default_data_root, load_sources
 
@@ -304,8 +304,7 @@ def train(run, out: Path, data_root: Path, resume: bool = True, threads: int = 0
     over each other's checkpoint."""
     if not isinstance(run, TrainingRun):
         run = TrainingRun.from_dict(run)
-    out.mkdir(parents=True, exist_ok=True)
-    with file_lock(out / LOCK, f"{out} is in use by another pixloc run"):
+    with output_lock(out):
         return _train(run, out, data_root, resume, threads)
 
 

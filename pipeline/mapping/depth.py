@@ -6,7 +6,7 @@ to the back-projection of one of their observations at the interpolated depth.
 
 import dataclasses
 import logging
-from typing import List, Optional, Tuple
+from typing import List, Tuple
 
 import numpy as np
 import torch
@@ -115,8 +115,8 @@ def tsdf_points(images: List[ImageRecord], voxel: float = 0.02, truncation: floa
     return np.asarray(cloud.points, dtype=np.float64)
 
 
-def observe(points: np.ndarray, images: List[ImageRecord], depths: Optional[List[np.ndarray]] = None,
-            tolerance: float = 0.03, cull: bool = True) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+def observe(points: np.ndarray, images: List[ImageRecord], tolerance: float = 0.03,
+            cull: bool = True) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Observations of ``points`` in ``images`` by projection and a depth test.
 
     A point is observed where it projects inside the image and its depth in the
@@ -134,7 +134,7 @@ def observe(points: np.ndarray, images: List[ImageRecord], depths: Optional[List
     for i, im in enumerate(images):
         if im.problem is not None:  # a frame left out (``readable_depths``): it observes nothing
             continue
-        depth = depths[i] if depths is not None else load_depth(im)
+        depth = load_depth(im)
         cand = _within_reach(tree, im, depth, tolerance) if tree is not None else None
         sub = points if cand is None else points[cand]
         p_depth = torch.from_numpy(_to_frame(im.depth_from_world(), sub))
