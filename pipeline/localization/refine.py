@@ -25,6 +25,7 @@ from pixloc.optim.cost import new_query_maps
 from pixloc.nets.unet import NETWORK_PRECISIONS, UNet, predict_in_precision
 
 from pipeline.images import ImageReadError, read_image_for, resize_max, to_tensor
+from pipeline.localization.finest import FinestFill, level_like, level_shape, write_level
 from pipeline.store.reader import MapReader, Observations, StoreReadError
 from pipeline.queries import QueryRecord
 from pipeline.localization.verify import VerificationConfig, verify
@@ -151,13 +152,16 @@ class Localizer:
 
     def __init__(self, net: UNet, solvers: Sequence[LevenbergMarquardt], reader: MapReader,
                  conf: LocalizerConfig, device: str = "cpu", levels: Optional[Sequence[int]] = None,
-                 scales: Optional[Sequence[int]] = None, max_points: Optional[int] = None):
+                 scales: Optional[Sequence[int]] = None, max_points: Optional[int] = None,
+                 finest_on_demand: bool = True):
         """levels: the levels to optimise, e.g. (0, 1) for the paper's refinement mode; default all.
         scales: the image scales of the store to run (e.g. (1,)); default all, coarse to fine.
         max_points: a seeded subset of at most this many points per query (the search's coarse
-        screening: at stride 16 many points share a feature-map cell)."""
+        screening: at stride 16 many points share a feature-map cell). finest_on_demand: a query's
+        finest level is decoded where it is sampled (``pipeline.localization.finest``; the same maps
+        there to float rounding), except under whole-network bfloat16; False: in the network pass."""
         self.net, self.solvers, self.reader, self.conf, self.device = net, list(solvers), reader, conf, device
-        self.max_points = max_points
+        self.max_points, self.finest_on_demand = max_points, finest_on_demand
         if levels is not None and not set(levels) <= set(range(len(net.strides))):
             raise ValueError(f"levels {list(levels)}: the network has levels 0 (finest) to {len(net.strides) - 1}.")
         self.levels = sorted(set(levels if levels is not None else range(len(net.strides))), reverse=True)
@@ -201,7 +205,8 @@ class Localizer:
         """Dense query prediction at image scale index k, and the resize factors."""
         resized, scales = resize_max(rgb, self.reader.conf.resize // self.reader.conf.image_scales[k])
         image = to_tensor(resized)[None].to(self.device)
-        return predict_in_precision(self.net, image, self.conf.network_precision), scales
+        defer = self.finest_on_demand and self.conf.network_precision != "bfloat16"
+        return predict_in_precision(self.net, image, self.conf.network_precision, defer_finest=defer), scales
 
     @torch.no_grad()
     def localize(self, query: QueryRecord, dbs: List[int], prior: np.ndarray,
@@ -317,8 +322,7 @@ class Localizer:
             groups: Dict[Tuple, List[LevelState]] = {}
             for st in active:
                 if st.active:
-                    pred = st.cache[k][0]
-                    key = (tuple(pred["features"][0].shape), st.query.camera.to_pixloc().distortion)
+                    key = (level_shape(st.cache[k][0], 0), st.query.camera.to_pixloc().distortion)
                     groups.setdefault(key, []).append(st)
             t0 = time.perf_counter()
             for level in self.levels:
@@ -396,11 +400,14 @@ class Localizer:
         Records the evidence of the level's start and end poses (``pixloc.optim.evidence``) and,
         at the ``final`` level, of the prior, for verification."""
         stride = self.net.strides[level]
-        first = group[0].cache[k][0]["features"][level]
-        subsets = [self._subset(len(st.refs[0]), first.shape[-2] * first.shape[-1], level) for st in group]
+        shape = level_shape(group[0].cache[k][0], level)
+        subsets = [self._subset(len(st.refs[0]), shape[-2] * shape[-1], level) for st in group]
         n_max = max(len(st.refs[0]) if sub is None else len(sub) for st, sub in zip(group, subsets))
         p3d, F_ref, W_ref, mask, cams = [], [], [], [], []
-        maps = new_query_maps((len(group),) + tuple(first.shape[1:]), first)  # normalised features + confidence
+        # normalised features + confidence; a deferred finest level is decoded where it is sampled
+        maps = new_query_maps((len(group),) + shape[1:], level_like(group[0].cache[k][0], level), dtype=torch.float32)
+        deferred = {b: st.cache[k][0]["finest"] for b, st in enumerate(group)
+                    if st.cache[k][0]["features"][level] is None}
         for st, sub in zip(group, subsets):
             xyz, levels = st.refs
             f, w = levels[level]
@@ -413,16 +420,16 @@ class Localizer:
             W_ref.append(torch.cat([w, w.new_zeros(pad)]))
             mask.append(torch.arange(n_max) < n)
             pred, (sx, sy) = st.cache[k]
-            f = pred["features"][level][0]  # official: the dense map is L2-normalised (as F.normalize)
-            torch.div(f, torch.linalg.vector_norm(f, dim=0, keepdim=True).clamp_min(1e-12), out=maps[len(cams), :-1])
-            # models without confidences (photometric) weigh every pixel the same
-            maps[len(cams), -1] = pred["confidences"][level][0, 0] if "confidences" in pred else 1.0
+            if len(cams) not in deferred:  # official: the dense map is L2-normalised (as F.normalize)
+                write_level(maps[len(cams)], pred["features"][level][0],
+                            pred["confidences"][level][0] if "confidences" in pred else None)
             cams.append(st.query.camera.to_pixloc(torch.float64).scale((sx / stride, sy / stride)).float())
         device = maps.device
         problem = FeaturemetricProblem(torch.stack(p3d).to(device), torch.stack(F_ref).to(device),
                                        maps[:, :-1], Camera.stack(cams).to(device),
                                        torch.stack(W_ref).to(device), maps[:, -1],
-                                       torch.stack(mask).to(device), maps=maps)
+                                       torch.stack(mask).to(device), maps=maps,
+                                       fill=FinestFill(maps, deferred) if deferred else None)
         T = Pose.stack([st.T for st in group]).to(device)
         solver = self.solvers[level]
         lm = solver(problem, T, num_iters=self.conf.num_iters)

@@ -8,7 +8,7 @@ convs to the output levels, plus a 1x1 conv per level for the confidence
 dicts load strictly.
 """
 
-from typing import Dict, List, Optional, Sequence
+from typing import Dict, List, Optional, Sequence, Tuple
 
 import torch
 import torch.utils.checkpoint
@@ -82,6 +82,16 @@ class DecoderBlock(nn.Module):
             return self.layers(torch.cat([up, skip[..., :h, :w]], 1))
         out = self.split[0](up)
         out += self.split[1](skip[..., :h, :w])
+        return self.layers(out)
+
+    def unpadded(self, up: Tensor, skip: Tensor) -> Tensor:
+        """The block's output from its upsampled input and skip with the conv's zero padding already
+        around them (``FinestMaps.tiles``): (n, C, T + 2, T + 2) each -> (n, out, T, T)."""
+        if self.split is None:
+            conv = self.layers[0]
+            return self.layers[1:](nn.functional.conv2d(torch.cat([up, skip], 1), conv.weight, conv.bias))
+        out = nn.functional.conv2d(up, self.split[0].weight, self.split[0].bias)
+        out += nn.functional.conv2d(skip, self.split[1].weight, None)
         return self.layers(out)
 
 
@@ -163,10 +173,14 @@ class UNet(nn.Module):
         second = sorted(self.output_scales)[1]
         return sum(len(self.decoder) - 1 - j < second for j in range(len(self.decoder)))
 
-    def forward(self, image: Tensor, fine_dtype: Optional[torch.dtype] = None) -> Dict[str, List[Tensor]]:
+    def forward(self, image: Tensor, fine_dtype: Optional[torch.dtype] = None,
+                defer_finest: bool = False) -> Dict[str, List[Tensor]]:
         """``fine_dtype`` (e.g. torch.bfloat16, for inference): the ``fine_blocks`` in that precision
         (autocast), their map cast back to float32 for the finest level's heads; every coarser level's
-        maps are exactly those of the float32 pass."""
+        maps are exactly those of the float32 pass. ``defer_finest`` (inference, a network whose finest
+        level is at stride 1 with a decoder block of its own): the last decoder block is not run; the
+        finest level's entries are None and ``finest`` holds a ``FinestMaps`` that decodes it, whole or
+        in tiles where it is read."""
         if image.dim() != 4 or image.shape[1] != 3:
             raise ValueError(f"Expected images (B, 3, H, W), got {tuple(image.shape)}.")
         min_size = 2 ** (len(self.encoder) - 1)
@@ -182,22 +196,121 @@ class UNet(nn.Module):
             x = run(block, x)
             skips.append(x)
         pre, skips = [skips[-1]], skips[:-1][::-1]  # the decoder's skips, coarse to fine
+        defer = defer_finest and self.can_defer_finest and not torch.is_grad_enabled()
+        decoder = self.decoder[:-1] if defer else self.decoder
         exact = len(self.decoder) - (self.fine_blocks if fine_dtype is not None else 0)
-        for block, skip in zip(self.decoder[:exact], skips):
+        for block, skip in zip(decoder[:exact], skips):
             pre.append(run(block, pre[-1], skip))
-        if exact < len(self.decoder):
+        if exact < len(decoder):
             fine = [pre[-1].to(fine_dtype)]
             with torch.autocast(image.device.type, dtype=fine_dtype):
-                for block, skip in zip(self.decoder[exact:], skips[exact:]):
+                for block, skip in zip(decoder[exact:], skips[exact:]):
                     fine.append(run(block, fine[-1], skip))
             pre += [x.float() if len(self.decoder) - exact - k in self.output_scales else x
                     for k, x in enumerate(fine[1:], 1)]
-        pre = pre[::-1]  # fine to coarse, index = log2 stride
-        out = {"features": [adapt(pre[i]) for adapt, i in zip(self.adaptation, self.output_scales)]}
+        finest = FinestMaps(self, pre[-1], skips[-1], fine_dtype) if defer else None
+        pre = ([None] if finest else []) + pre[::-1]  # fine to coarse, index = log2 stride
+        out = {"features": [None if pre[i] is None else adapt(pre[i])
+                            for adapt, i in zip(self.adaptation, self.output_scales)]}
         if self.compute_confidence:
-            out["confidences"] = [torch.sigmoid(-unc(pre[i]))
+            out["confidences"] = [None if pre[i] is None else torch.sigmoid(-unc(pre[i]))
                                   for unc, i in zip(self.uncertainty, self.output_scales)]
+        if finest:
+            out["finest"] = finest
         return out
+
+    @property
+    def can_defer_finest(self) -> bool:
+        """Whether ``forward`` can defer the finest level: it is at stride 1, and the last decoder
+        block is read by it alone."""
+        return len(self.decoder) > 0 and min(self.output_scales) == 0 and self.fine_blocks >= 1
+
+
+TILE = 8  # the side in pixels of the tiles in which ``FinestMaps`` decodes the finest level
+
+
+class FinestMaps:
+    """The finest level of a UNet pass, decoded on demand (``UNet.forward(defer_finest=True)``): the
+    last decoder block (a 3 x 3 conv of the upsampled map before it and of the skip) and the level's
+    1 x 1 heads, over the whole map (``full``) or over TILE x TILE tiles (``tiles``) with the conv's
+    1 px of context around each. A tile's values are those of the whole map to float rounding, so the
+    LM can decode only the tiles it samples: at 1,024 px the block is most of a pass's time, and a
+    query's points fall in about a third of its tiles."""
+
+    def __init__(self, net: UNet, previous: Tensor, skip: Tensor, dtype: Optional[torch.dtype]):
+        self.block, self.dtype = net.decoder[-1], dtype
+        level = list(net.output_scales).index(0)
+        self.adapt = net.adaptation[level]
+        self.uncertainty = net.uncertainty[level] if net.compute_confidence else None
+        self.previous = previous  # (1, C, h, w): the map before the last block
+        h, w = previous.shape[-2:]
+        self.skip = skip[..., :2 * h, :2 * w]
+        self.shape = (previous.shape[0], net.output_dims[level], 2 * h, 2 * w)
+        self.grid = (-(-2 * h // TILE), -(-2 * w // TILE))  # tiles down and across
+
+    def _heads(self, x: Tensor) -> Tuple[Tensor, Optional[Tensor]]:
+        x = x.float()
+        return self.adapt(x), None if self.uncertainty is None else torch.sigmoid(-self.uncertainty(x))
+
+    def _autocast(self):
+        return torch.autocast(self.previous.device.type, dtype=self.dtype, enabled=self.dtype is not None)
+
+    def full(self) -> Tuple[Tensor, Optional[Tensor]]:
+        """The whole level: features (B, C, H, W) and confidences (B, 1, H, W) or None, as the
+        undeferred pass gives them."""
+        with self._autocast():
+            x = self.block(self.previous, self.skip)
+        return self._heads(x)
+
+    def tiles(self, ty: Tensor, tx: Tensor) -> Tuple[Tensor, Optional[Tensor]]:
+        """Tiles (ty, tx) (n,) of the first map of the batch: features (n, C, TILE, TILE) and
+        confidences (n, 1, TILE, TILE) or None; tiles that overhang the map's edge hold values there too
+        (the caller drops them)."""
+        prev, skip = self.previous[0], self.skip[0]
+        ty, tx = ty.to(prev.device), tx.to(prev.device)
+        H, W = self.shape[-2:]
+        h, w = H // 2, W // 2
+        y0, x0 = ty * TILE, tx * TILE
+        # the upsampled rows and columns y0 - 1 .. y0 + TILE (the conv's context) read the map before the
+        # block at half-resolution rows y0 / 2 - 1 .. y0 / 2 + TILE / 2 (clamped at the map's edges, as
+        # the upsampling clamps): the upsampling of that crop is the whole map's there, but for its first
+        # and last rows and columns, which read past the crop
+        span = torch.arange(TILE // 2 + 2, device=ty.device)
+        hr, hc = ((y0 // 2 - 1)[:, None] + span).clamp(0, h - 1), ((x0 // 2 - 1)[:, None] + span).clamp(0, w - 1)
+        crop = _gather(prev, hr, hc)
+        with self._autocast():
+            up = nn.functional.interpolate(crop, scale_factor=2, mode="bilinear", align_corners=False)
+        up = up[..., 1:TILE + 3, 1:TILE + 3].contiguous(memory_format=self.previous_format)
+        span = torch.arange(TILE + 2, device=ty.device)
+        rows, cols = y0[:, None] - 1 + span, x0[:, None] - 1 + span
+        skips = _gather(skip, rows.clamp(0, H - 1), cols.clamp(0, W - 1)).contiguous(memory_format=self.previous_format)
+        # the conv's zero padding: context outside the map is zero (tiles at the map's edges)
+        edge = torch.nonzero((y0 == 0) | (x0 == 0) | (y0 + TILE >= H) | (x0 + TILE >= W))[:, 0]
+        if len(edge):
+            outside = ~(((rows[edge] >= 0) & (rows[edge] < H))[:, :, None]
+                        & ((cols[edge] >= 0) & (cols[edge] < W))[:, None, :])[:, None]
+            up[edge] = up[edge].masked_fill(outside, 0)
+            skips[edge] = skips[edge].masked_fill(outside, 0)
+        with self._autocast():
+            x = self.block.unpadded(up, skips)
+        return self._heads(x)
+
+    @property
+    def previous_format(self) -> torch.memory_format:
+        return torch.channels_last if self.previous.is_contiguous(memory_format=torch.channels_last) \
+            and not self.previous.is_contiguous() else torch.contiguous_format
+
+
+def _gather(x: Tensor, rows: Tensor, cols: Tensor) -> Tensor:
+    """(n, C, R, K) crops of a (C, H, W) map at rows (n, R) and columns (n, K), channels-last where the
+    map is (its cells' channels contiguous: one row per cell)."""
+    C, H, W = x.shape
+    cells = x.permute(1, 2, 0)
+    if cells.is_contiguous():
+        idx = (rows[:, :, None] * W + cols[:, None, :]).reshape(-1)
+        crops = cells.reshape(H * W, C).index_select(0, idx)
+        return crops.reshape(len(rows), rows.shape[1], cols.shape[1], C).permute(0, 3, 1, 2)
+    return x[:, rows[:, :, None], cols[:, None, :]].permute(1, 0, 2, 3)
 
 
 # a network pass's precision (the maps it returns are float32 in every case): float32, bfloat16 autocast over
@@ -205,15 +318,20 @@ class UNet(nn.Module):
 NETWORK_PRECISIONS = {"float32": torch.float32, "bfloat16": torch.bfloat16, "bfloat16-fine": torch.bfloat16}
 
 
-def predict_in_precision(net: nn.Module, image: Tensor, precision: str = "float32") -> Dict[str, List[Tensor]]:
+def predict_in_precision(net: nn.Module, image: Tensor, precision: str = "float32",
+                         defer_finest: bool = False) -> Dict[str, List[Tensor]]:
     """``net``'s float32 maps of ``image`` from a pass in ``precision`` (``NETWORK_PRECISIONS``); a network
-    without a decoder (the photometric one) has no finest blocks and runs ``bfloat16-fine`` in float32."""
+    without a decoder (the photometric one) has no finest blocks and runs ``bfloat16-fine`` in float32.
+    ``defer_finest``: a UNet's finest level decoded on demand (``UNet.forward``), in float32 and
+    ``bfloat16-fine``."""
     if precision not in NETWORK_PRECISIONS:
         raise ValueError(f"precision must be one of {sorted(NETWORK_PRECISIONS)}, got {precision!r}.")
-    if precision == "float32" or (precision == "bfloat16-fine" and not isinstance(net, UNet)):
+    if not isinstance(net, UNet):
         return net(image)
+    if precision == "float32":
+        return net(image, defer_finest=defer_finest)
     if precision == "bfloat16-fine":
-        return net(image, fine_dtype=NETWORK_PRECISIONS[precision])
+        return net(image, fine_dtype=NETWORK_PRECISIONS[precision], defer_finest=defer_finest)
     with torch.autocast(image.device.type, dtype=NETWORK_PRECISIONS[precision]):
         pred = net(image)
     return {key: [x.float() for x in maps] for key, maps in pred.items()}

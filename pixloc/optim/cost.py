@@ -2,7 +2,7 @@
 
 from dataclasses import dataclass, replace
 from functools import cached_property
-from typing import NamedTuple, Optional, Tuple
+from typing import Callable, NamedTuple, Optional, Tuple
 
 import torch
 from torch import Tensor
@@ -26,6 +26,9 @@ class FeaturemetricProblem:
     maps: (B, C + 1, H, W), F_query and W_query stacked, when the caller has built them so
         (``new_query_maps``): F_query and W_query are then views of it, and the largest
         tensor of the problem is not copied again.
+    fill: maps decoded on demand: ``fill(p2d, rows)`` decodes the cells that sampling the maps of
+        batch rows ``rows`` (a range) at ``p2d`` (len(rows), N, 2) reads; ``maps_at`` calls it.
+    rows: this problem's rows of the batch that ``fill`` serves (None: all of them; a sub-batch's).
     """
 
     p3d_world: Tensor
@@ -36,6 +39,8 @@ class FeaturemetricProblem:
     W_query: Optional[Tensor] = None
     mask: Optional[Tensor] = None
     maps: Optional[Tensor] = None
+    fill: Optional[Callable[[Tensor, range], None]] = None
+    rows: Optional[range] = None
 
     def __post_init__(self):
         p, F, Fq = self.p3d_world, self.F_ref, self.F_query
@@ -90,6 +95,13 @@ class FeaturemetricProblem:
         out[:, C] = self.W_query
         return out
 
+    def maps_at(self, p2d: Tensor) -> Tensor:
+        """``query_maps``, to be sampled at ``p2d`` (B, N, 2): their cells there decoded first where
+        the problem's maps are decoded on demand (``fill``)."""
+        if self.fill is not None:
+            self.fill(p2d, range(self.batch_size) if self.rows is None else self.rows)
+        return self.query_maps
+
     @cached_property
     def query_maps_with_gradients(self) -> Tensor:
         """``query_maps`` with the central differences of the C feature channels appended (x, then
@@ -119,9 +131,14 @@ class FeaturemetricProblem:
             F_query, W_query = maps[:, :-1], maps[:, -1]
         else:
             maps, F_query, W_query = None, self.F_query[i], sel(self.W_query)
+        rows = None
+        if self.fill is not None:  # fill writes into these maps: a copy would not see it
+            if not isinstance(i, slice):
+                raise ValueError("A problem whose maps are decoded on demand is indexed by an int or a slice.")
+            rows = (range(self.batch_size) if self.rows is None else self.rows)[i]
         sub = replace(self, p3d_world=self.p3d_world[i], F_ref=self.F_ref[i], F_query=F_query,
                       camera=self.camera[i], W_ref=sel(self.W_ref), W_query=W_query,
-                      mask=sel(self.mask), maps=maps)
+                      mask=sel(self.mask), maps=maps, rows=rows)
         if "cell_products" in self.__dict__:  # built for the whole batch: the LM's chunks share them
             sub.__dict__["cell_products"] = CellProducts(*(sel(x) for x in self.cell_products))
         return sub
@@ -150,11 +167,12 @@ def _is_channels_last(x: Tensor) -> bool:
         and x.is_contiguous(memory_format=torch.channels_last)
 
 
-def new_query_maps(shape, like: Tensor, with_confidence: bool = True) -> Tensor:
-    """An empty (B, C [+ 1], H, W) buffer for query maps, in ``query_maps_layout``."""
+def new_query_maps(shape, like: Tensor, with_confidence: bool = True, dtype: Optional[torch.dtype] = None) -> Tensor:
+    """An empty (B, C [+ 1], H, W) buffer for query maps, in ``query_maps_layout``, of ``like``'s dtype
+    unless ``dtype`` is given."""
     B, C, H, W = shape
     C = C + int(with_confidence)
-    return torch.empty((B, C, H, W), dtype=like.dtype, device=like.device,
+    return torch.empty((B, C, H, W), dtype=like.dtype if dtype is None else dtype, device=like.device,
                        memory_format=query_maps_layout(like, C))
 
 
@@ -195,8 +213,9 @@ CELL_PRODUCTS_MAX_BYTES = 32 * 2**20
 
 
 def use_gradient_maps(problem: FeaturemetricProblem, interpolator: Interpolator) -> bool:
-    H, W = problem.F_query.shape[-2:]
-    return interpolator.gradient_maps and H * W <= GRADIENT_MAPS_MAX_CELLS_PER_POINT * problem.p3d_world.shape[1]
+    H, W = problem.F_query.shape[-2:]  # (maps decoded on demand are sampled where they are decoded)
+    return interpolator.gradient_maps and problem.fill is None \
+        and H * W <= GRADIENT_MAPS_MAX_CELLS_PER_POINT * problem.p3d_world.shape[1]
 
 
 def use_cell_products(problem: FeaturemetricProblem, interpolator: Interpolator) -> bool:
@@ -291,7 +310,7 @@ def linearize(cam_from_world: Pose, problem: FeaturemetricProblem,
         if use_gradient_maps(problem, interpolator):  # one sampling of maps and gradient maps: the same gradients
             values, valid, J_f = interpolator.sample_with_gradients(problem.query_maps_with_gradients, p2d, C)
         else:
-            values, valid, grads = interpolator(problem.query_maps, p2d, gradients=True)
+            values, valid, grads = interpolator(problem.maps_at(p2d), p2d, gradients=True)
             J_f = grads[..., :C, :]
         res = values[..., :C] - problem.F_ref
         w_query = values[..., C] if problem.W_ref is not None else None

@@ -80,3 +80,9 @@ def test_official_localization_cases(setup, config, tmp_path):
         dc = (ours.center - official.center).norm()
         assert float(dc) <= max(2e-3, 0.1 * float(moved_c)), (name, float(dc), float(moved_c))
         assert float(dR) <= max(0.01, 0.1 * float(moved_R)), (name, float(dR), float(moved_R))
+    # the finest level decoded where it is sampled (the default) against the network's whole pass
+    eager = Localizer(refiner.extractor, refiner.solvers, reader, localizer.conf, finest_on_demand=False)
+    dbs = [reader.index[n] for n in pairs[name][:refinement["num_dbs"]]]
+    a, b = (x.localize(queries[name], dbs, reader.cam_from_world[dbs[0]]) for x in (localizer, eager))
+    assert [p["iterations"] for p in a.per_level] == [p["iterations"] for p in b.per_level]
+    np.testing.assert_allclose(a.refined, b.refined, atol=1e-5)

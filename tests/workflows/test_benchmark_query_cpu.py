@@ -8,7 +8,8 @@ import pytest
 from workflows.cli import main
 
 VARIANTS = ["today", "BatchNorm folded", "channels-last", "split convs, 1x1 by oneDNN", "freed memory reused",
-            "cell products", "rival starts, every level", "rival starts, stopped where they join (default)",
+            "cell products", "rival starts, every level", "rival starts, stopped where they join",
+            "finest level decoded where sampled, without rival starts", "finest level decoded where sampled (default)",
             "bfloat16 network", "bfloat16 finest blocks", "bfloat16 finest blocks, without rival starts"]
 
 
@@ -64,10 +65,10 @@ def test_the_earlier_code_runs_the_same_query_in_its_own_process(shared, tmp_pat
         pytest.skip(f"commit {EARLIER} is not in this clone (a shallow one)")
     work = tmp_path / "query-cpu"
     assert main(["benchmark", "query-cpu", "--shared", str(shared), "--work", str(work), "--scenes", "kermit",
-                 "--limit", "1", "--variants", "rival starts, stopped where they join (default)",
+                 "--limit", "1", "--variants", "finest level decoded where sampled (default)",
                  "--earlier-code", EARLIER]) == 0
     earlier = json.loads((work / "rows.json").read_text())["earlier"]
     assert earlier["rev"] == EARLIER and earlier["cpu_s"] > 0
-    assert earlier["speedups"]["rival starts, stopped where they join (default)"] > 0
+    assert earlier["speedups"]["finest level decoded where sampled (default)"] > 0
     assert earlier["unmatched"] == 0 and earlier["max_dR"] < 0.05 and earlier["max_dt_pct"] < 0.05
     assert (work / f"code-{EARLIER}" / "pipeline").is_dir()  # its checkout, beside the maps it copied

@@ -140,3 +140,52 @@ def test_every_precision_returns_float32_maps_and_a_network_without_finest_block
         assert torch.equal(predict_in_precision(photometric, image, "bfloat16-fine")["features"][0], image)
     with pytest.raises(ValueError, match="precision must be one of"):
         predict_in_precision(net, image, "float16")
+
+
+@pytest.mark.parametrize("network", ["lite0", "lite0 prepared", "vgg16"])
+@pytest.mark.parametrize("fine_dtype", [None, torch.bfloat16])
+def test_the_deferred_finest_level_decodes_whole_or_in_tiles_to_the_same_maps(network, fine_dtype):
+    # UNet.forward(defer_finest=True) stops before the last decoder block; FinestMaps decodes the finest
+    # level whole (bit for bit the pass's) or in TILE x TILE tiles with their context (the same to float
+    # rounding), at the map's edges too (zero padding); coarser levels unchanged
+    from pixloc.nets.registry import load_refiner
+    from pixloc.nets.unet import TILE, prepare_for_inference, vgg_unet
+    torch.manual_seed(0)
+    net = (vgg_unet("vgg16") if network == "vgg16" else load_refiner("pixloc-lite0").extractor).eval()
+    if network.endswith("prepared"):
+        prepare_for_inference(net)
+    image = torch.rand(1, 3, 75, 122, generator=torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        exact = net(image, fine_dtype=fine_dtype)
+        deferred = net(image, fine_dtype=fine_dtype, defer_finest=True)
+        finest = deferred["finest"]
+        assert deferred["features"][0] is None and deferred["confidences"][0] is None
+        for key in ("features", "confidences"):
+            assert all(torch.equal(a, b) for a, b in zip(exact[key][1:], deferred[key][1:]))
+        features, confidences = finest.full()
+        assert torch.equal(features, exact["features"][0]) and torch.equal(confidences, exact["confidences"][0])
+        H, W = features.shape[-2:]
+        assert finest.shape == tuple(features.shape)
+        gy, gx = finest.grid
+        ty, tx = (t.reshape(-1) for t in torch.meshgrid(torch.arange(gy), torch.arange(gx), indexing="ij"))
+        order = torch.randperm(len(ty), generator=torch.Generator().manual_seed(1))  # any order, any subset
+        f, c = finest.tiles(ty[order], tx[order])
+        for maps, whole in ((f, features), (c, confidences)):
+            tiled = torch.empty_like(maps)
+            tiled[order] = maps
+            tiled = tiled.reshape(gy, gx, -1, TILE, TILE).permute(2, 0, 3, 1, 4).reshape(-1, gy * TILE, gx * TILE)
+            torch.testing.assert_close(tiled[:, :H, :W], whole[0], atol=1e-5, rtol=0)
+
+
+def test_the_finest_level_is_computed_where_it_cannot_be_deferred():
+    # in training (gradients on) and in a network whose finest level has no block of its own
+    torch.manual_seed(0)
+    net = lite0_unet().eval()
+    assert net.can_defer_finest
+    out = net(torch.rand(1, 3, 64, 96), defer_finest=True)
+    assert "finest" not in out and out["features"][0].requires_grad
+    coarse_only = lite0_unet(output_scales=(2, 4), output_dims=(128, 128)).eval()
+    assert not coarse_only.can_defer_finest
+    with torch.no_grad():
+        out = coarse_only(torch.rand(1, 3, 64, 96), defer_finest=True)
+    assert "finest" not in out and all(x is not None for x in out["features"])

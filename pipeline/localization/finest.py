@@ -1,0 +1,147 @@
+"""The finest level's query maps decoded where the LM and verification read them.
+
+At 1,024 px the last decoder block, which only the finest level reads, is most of a query's network
+time, and the LM samples the finest map only near its points' projections: about a third of its
+8 x 8 px tiles over the CPU benchmark's queries. A query's pass therefore stops before that block
+(``pixloc.nets.unet.FinestMaps``), and ``FinestFill`` decodes the tiles around the points that a
+sampling of the maps is about to read (``FeaturemetricProblem.maps_at``), into the query-maps buffer
+of the level's LM batch. The values are those of the whole map to float rounding; cells not decoded
+hold NaN, so that a read that bypassed the fill could not pass for features.
+"""
+
+from typing import Dict, Optional, Tuple
+
+import torch
+from torch import Tensor
+
+from pixloc.nets.unet import TILE, FinestMaps
+
+# a first request for more than this fraction of a map's tiles decodes the whole map in one pass,
+# cheaper per pixel than tiles with their context (docs/benchmarks.md, "The CPU query")
+WHOLE_ABOVE = 0.5
+
+
+def write_level(maps: Tensor, features: Tensor, confidences: Optional[Tensor]) -> None:
+    """Write one query's level into its rows of a query-maps buffer ``maps`` (C + 1, H, W): the
+    features (C, H, W) L2-normalised per pixel (as official PixLoc's dense maps) and the confidence
+    (1, H, W) (None: models without confidences weigh every pixel the same)."""
+    torch.div(features, torch.linalg.vector_norm(features, dim=0, keepdim=True).clamp_min(1e-12), out=maps[:-1])
+    maps[-1] = confidences[0] if confidences is not None else 1.0
+
+
+def level_shape(pred: Dict, level: int) -> Tuple[int, ...]:
+    """The shape (B, C, H, W) of a prediction's features at ``level``, deferred or not."""
+    maps = pred["features"][level]
+    return tuple(maps.shape) if maps is not None else tuple(pred["finest"].shape)
+
+
+def level_like(pred: Dict, level: int) -> Tensor:
+    """A tensor of a prediction's device and memory layout at ``level`` (``new_query_maps``; the map
+    before a deferred level's block is bfloat16 under ``bfloat16-fine``, its maps float32)."""
+    maps = pred["features"][level]
+    return maps if maps is not None else pred["finest"].previous
+
+
+class Decoded:
+    """One query's finest level, normalised, as far as it is decoded (kept with its ``FinestMaps`` in the
+    query's cache, so that its starts, rivals and verification share the tiles): ``rows`` (H x W, C + 1) a
+    row per pixel, valid where ``done`` (tiles down, across) is set, and ``tiles`` the count decoded."""
+
+    def __init__(self, finest: FinestMaps):
+        _, C, H, W = finest.shape
+        self.finest, self.size = finest, (H, W)
+        self.rows = torch.empty(H * W, C + 1, device=finest.previous.device)
+        self.done = torch.zeros(finest.grid, dtype=torch.bool)
+        self.tiles = 0
+
+    @classmethod
+    def of(cls, finest: FinestMaps) -> "Decoded":
+        if not hasattr(finest, "decoded"):
+            finest.decoded = cls(finest)
+        return finest.decoded
+
+    def decode(self, ids: Tensor) -> None:
+        """Decode the tiles ``ids`` (flat indices into ``done``) not decoded yet; a first request for
+        more than ``WHOLE_ABOVE`` of them decodes the whole map in one pass (cheaper per pixel)."""
+        ids = ids[~self.done.view(-1)[ids]]
+        if len(ids) == 0:
+            return
+        H, W = self.size
+        if self.tiles == 0 and len(ids) > WHOLE_ABOVE * self.done.numel():
+            features, confidences = self.finest.full()
+            view = self.rows.view(H, W, -1).permute(2, 0, 1)
+            write_level(view, features[0], None if confidences is None else confidences[0])
+            self.done.fill_(True)
+            self.tiles = self.done.numel()
+            return
+        features, confidences = self.finest.tiles(ids // self.done.shape[1], ids % self.done.shape[1])
+        n, C = features.shape[:2]
+        out = torch.empty(n, TILE, TILE, C + 1, device=features.device)  # a row per pixel
+        write_level(out.permute(3, 0, 1, 2), features.transpose(0, 1), None if confidences is None
+                    else confidences.transpose(0, 1))
+        pixels, inside = tile_pixels(ids, self.done.shape[1], H, W)
+        values = out.reshape(-1, C + 1)
+        self.rows.index_copy_(0, pixels.to(self.rows.device), values if inside is None else values[inside])
+        self.done.view(-1)[ids] = True
+        self.tiles += n
+
+
+def tile_pixels(ids: Tensor, across: int, H: int, W: int) -> Tuple[Tensor, Optional[Tensor]]:
+    """The flat pixel indices (y W + x) of tiles ``ids`` (flat, ``across`` tiles a row), tile by tile
+    in row order, and which of the tiles' TILE x TILE pixels lie inside the map (None: all of them)."""
+    span = torch.arange(TILE, device=ids.device)
+    ys = ((ids // across)[:, None] * TILE + span)[:, :, None].expand(-1, TILE, TILE).reshape(-1)
+    xs = ((ids % across)[:, None] * TILE + span)[:, None, :].expand(-1, TILE, TILE).reshape(-1)
+    if H % TILE or W % TILE:  # tiles overhanging the map's right and bottom edges
+        inside = (ys < H) & (xs < W)
+        return (ys * W + xs)[inside], inside
+    return ys * W + xs, None
+
+
+class FinestFill:
+    """``FeaturemetricProblem.fill`` for a batch whose rows ``finest`` (row -> ``FinestMaps``) have
+    their finest level deferred: their rows of ``maps`` (B, C + 1, H, W) get the query's decoded tiles
+    (``Decoded``) where they are sampled; the rest of them holds NaN."""
+
+    def __init__(self, maps: Tensor, finest: Dict[int, FinestMaps]):
+        self.maps, self.decoded = maps, {b: Decoded.of(f) for b, f in finest.items()}
+        self.done = {b: torch.zeros(f.grid, dtype=torch.bool) for b, f in finest.items()}
+        for b in finest:
+            maps[b].fill_(float("nan"))
+
+    def __call__(self, p2d: Tensor, rows) -> None:
+        for j, b in enumerate(rows):
+            if b in self.decoded:
+                self._fill(b, p2d[j])
+
+    @torch.no_grad()
+    def _fill(self, b: int, p2d: Tensor) -> None:
+        done = self.done[b]
+        if bool(done.all()):
+            return
+        H, W = self.maps.shape[-2:]
+        p = p2d.detach().cpu()
+        p = p[torch.isfinite(p).all(-1)]
+        x0, y0 = p[:, 0].floor(), p[:, 1].floor()
+        # a bilinear sample with central differences at +-1 px reads cells x0 - 1 .. x0 + 2, y0 - 1 .. y0 + 2
+        near = (x0 + 2 >= 0) & (x0 - 1 <= W - 1) & (y0 + 2 >= 0) & (y0 - 1 <= H - 1)
+        x0, y0 = x0[near], y0[near]
+        tx = torch.stack([(x0 - 1).clamp(0, W - 1), (x0 + 2).clamp(0, W - 1)]).long() // TILE
+        ty = torch.stack([(y0 - 1).clamp(0, H - 1), (y0 + 2).clamp(0, H - 1)]).long() // TILE
+        ids = (ty[:, None] * done.shape[1] + tx[None]).reshape(-1).unique()
+        ids = ids[~done.view(-1)[ids]]
+        if len(ids) == 0:
+            return
+        decoded = self.decoded[b]
+        decoded.decode(ids)
+        cells = self.maps[b].permute(1, 2, 0)
+        if len(ids) == done.numel():  # the whole map
+            cells.copy_(decoded.rows.view(H, W, -1))
+        else:
+            pixels, _ = tile_pixels(ids, done.shape[1], H, W)
+            values = decoded.rows.index_select(0, pixels.to(decoded.rows.device)).to(self.maps.device)
+            if cells.is_contiguous():  # channels-last: a row per cell
+                cells.view(H * W, -1).index_copy_(0, pixels.to(self.maps.device), values)
+            else:
+                self.maps[b][:, pixels // W, pixels % W] = values.T
+        done.view(-1)[ids] = True
