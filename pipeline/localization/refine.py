@@ -157,9 +157,10 @@ class Localizer:
         """levels: the levels to optimise, e.g. (0, 1) for the paper's refinement mode; default all.
         scales: the image scales of the store to run (e.g. (1,)); default all, coarse to fine.
         max_points: a seeded subset of at most this many points per query (the search's coarse
-        screening: at stride 16 many points share a feature-map cell). finest_on_demand: a query's
-        finest level is decoded where it is sampled (``pipeline.localization.finest``; the same maps
-        there to float rounding), except under whole-network bfloat16; False: in the network pass."""
+        screening: at stride 16 many points share a feature-map cell). finest_on_demand: on CPU, a
+        query's finest level is decoded where it is sampled (``pipeline.localization.finest``; the same
+        maps there to float rounding), except under whole-network bfloat16; False, or on a GPU (where the
+        pass is cheap and a tile request would wait for the device at every LM iteration): in the pass."""
         self.net, self.solvers, self.reader, self.conf, self.device = net, list(solvers), reader, conf, device
         self.max_points, self.finest_on_demand = max_points, finest_on_demand
         if levels is not None and not set(levels) <= set(range(len(net.strides))):
@@ -205,7 +206,8 @@ class Localizer:
         """Dense query prediction at image scale index k, and the resize factors."""
         resized, scales = resize_max(rgb, self.reader.conf.resize // self.reader.conf.image_scales[k])
         image = to_tensor(resized)[None].to(self.device)
-        defer = self.finest_on_demand and self.conf.network_precision != "bfloat16"
+        defer = self.finest_on_demand and self.conf.network_precision != "bfloat16" \
+            and torch.device(self.device).type == "cpu"
         return predict_in_precision(self.net, image, self.conf.network_precision, defer_finest=defer), scales
 
     @torch.no_grad()
