@@ -399,8 +399,8 @@ class Localizer:
 
     def _solve_level(self, group: List[LevelState], k: int, image_scale: int, level: int, final: bool) -> None:
         """One LM batch for ``group`` at one level; points are padded and masked to a common N.
-        Records the evidence of the level's start and end poses (``pixloc.optim.evidence``) and,
-        at the ``final`` level, of the prior, for verification."""
+        Records the evidence of the level's start and end poses (``pixloc.optim.evidence``) and, at the
+        ``final`` level, the contrast and uncertainty of its end pose, for verification."""
         stride = self.net.strides[level]
         shape = level_shape(group[0].cache[k][0], level)
         subsets = [self._subset(len(st.refs[0]), shape[-2] * shape[-1], level) for st in group]
@@ -437,10 +437,8 @@ class Localizer:
         lm = solver(problem, T, num_iters=self.conf.num_iters)
         start = alignment_evidence(problem, T, solver.loss_fn, solver.interpolator)
         end = alignment_evidence(problem, lm.pose, solver.loss_fn, solver.interpolator)
-        at_prior, contrast = None, {}
+        contrast = {}
         if final:
-            prior = Pose.stack([st.prior_T for st in group]).to(device)
-            at_prior = alignment_evidence(problem, prior, solver.loss_fn, solver.interpolator)
             contrast = {f"contrast_{px:g}px": alignment_contrast(problem, lm.pose, solver.loss_fn,
                                                                  solver.interpolator, px) for px in CONTRAST_SHIFTS}
             contrast.update(alignment_uncertainty(problem, lm.pose, solver.loss_fn, solver.interpolator))
@@ -462,23 +460,21 @@ class Localizer:
                 continue
             st.T = lm.pose[b].cpu()
             if final:
-                result.evidence = evidence_summary(result.per_level, {
-                    key: float(at_prior[key][b]) for key in at_prior if key != "points"},
-                    {key: float(v[b]) for key, v in contrast.items()},
+                result.evidence = evidence_summary(result.per_level, {key: float(v[b]) for key, v in contrast.items()},
                     np.asarray(result.prior), st.T.to_matrix(orthonormal=True),
                     problem.p3d_world[b][problem.mask[b]].cpu().numpy())
 
 
-def evidence_summary(per_level: List[Dict], at_prior: Dict[str, float], contrast: Dict[str, float],
+def evidence_summary(per_level: List[Dict], contrast: Dict[str, float],
                      prior: np.ndarray, refined: np.ndarray, p3d: np.ndarray) -> Dict[str, float]:
     """The evidence of a refinement, for ``verify``: at the finest level, the inlier fractions
-    (plain and confidence-weighted), valid fraction and cost at the refined pose and at the
-    prior; the sharpness of the cost around the refined pose (``contrast_*px``); the motion
-    from the prior and between the last two levels, the translations relative to the median
-    depth of the points at the refined pose (scale-free)."""
+    (plain and confidence-weighted), valid fraction and cost at the refined pose; the sharpness of the
+    cost around the refined pose (``contrast_*px``); the motion from the prior and between the last two
+    levels, the translations relative to the median depth of the points at the refined pose
+    (scale-free). (The same figures at the prior, never read by ``verify``, are no longer recorded:
+    at the finest level they cost a query the decoding of the tiles around the prior's projections.)"""
     last = per_level[-1]
     out = {f"{key}": last[f"{key}_end"] for key in ("inliers", "weighted_inliers", "valid", "cost")}
-    out.update({f"{key}_prior": v for key, v in at_prior.items()})
     out.update(contrast)
     depth = p3d @ refined[:, :3].T + refined[:, 3]
     depth = float(np.median(depth[:, 2])) if len(depth) else float("nan")
