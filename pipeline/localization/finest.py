@@ -19,6 +19,7 @@ from pixloc.nets.unet import TILE, FinestMaps
 # a first request for more than this fraction of a map's tiles decodes the whole map in one pass,
 # cheaper per pixel than tiles with their context (docs/benchmarks.md, "The CPU query")
 WHOLE_ABOVE = 0.5
+CHUNK = 1024  # tiles decoded in one network call
 
 
 def write_level(maps: Tensor, features: Tensor, confidences: Optional[Tensor]) -> None:
@@ -44,14 +45,15 @@ def level_like(pred: Dict, level: int) -> Tensor:
 
 class Decoded:
     """One query's finest level, normalised, as far as it is decoded (kept with its ``FinestMaps`` in the
-    query's cache, so that its starts, rivals and verification share the tiles): ``rows`` (H x W, C + 1) a
-    row per pixel, valid where ``done`` (tiles down, across) is set, and ``tiles`` the count decoded."""
+    query's cache, so that its starts, rivals and verification share the tiles): the decoded tiles'
+    pixels, a row each (``values``), and ``tiles`` the count decoded. Only decoded tiles are held: about
+    a third of a 1,024 px map at Cambridge settings."""
 
     def __init__(self, finest: FinestMaps):
         _, C, H, W = finest.shape
         self.finest, self.size = finest, (H, W)
-        self.rows = torch.empty(H * W, C + 1, device=finest.previous.device)
-        self.done = torch.zeros(finest.grid, dtype=torch.bool)
+        self.slot = torch.full(finest.grid, -1, dtype=torch.long)  # per tile: its block of ``data``, or -1
+        self.data = torch.empty(0, TILE * TILE, C + 1, device=finest.previous.device)
         self.tiles = 0
 
     @classmethod
@@ -60,30 +62,47 @@ class Decoded:
             finest.decoded = cls(finest)
         return finest.decoded
 
+    @property
+    def done(self) -> Tensor:
+        return self.slot >= 0
+
     def decode(self, ids: Tensor) -> None:
-        """Decode the tiles ``ids`` (flat indices into ``done``) not decoded yet; a first request for
-        more than ``WHOLE_ABOVE`` of them decodes the whole map in one pass (cheaper per pixel)."""
-        ids = ids[~self.done.view(-1)[ids]]
+        """Decode the tiles ``ids`` (flat indices into the tile grid) not decoded yet; a first request
+        for more than ``WHOLE_ABOVE`` of them decodes the whole map in one pass (cheaper per pixel)."""
+        ids = ids[self.slot.view(-1)[ids] < 0]
         if len(ids) == 0:
             return
-        H, W = self.size
-        if self.tiles == 0 and len(ids) > WHOLE_ABOVE * self.done.numel():
+        (H, W), (down, across) = self.size, self.slot.shape
+        if self.tiles == 0 and len(ids) > WHOLE_ABOVE * self.slot.numel():
             features, confidences = self.finest.full()
-            view = self.rows.view(H, W, -1).permute(2, 0, 1)
-            write_level(view, features[0], None if confidences is None else confidences[0])
-            self.done.fill_(True)
-            self.tiles = self.done.numel()
+            C = features.shape[1]
+            whole = features.new_zeros(down * TILE, across * TILE, C + 1)  # a row per pixel, tiles padded
+            write_level(whole[:H, :W].permute(2, 0, 1), features[0], None if confidences is None else confidences[0])
+            ids = torch.arange(self.slot.numel())
+            values = whole.view(down, TILE, across, TILE, C + 1).transpose(1, 2).reshape(-1, TILE * TILE, C + 1)
+            self._append(ids, values)
             return
-        features, confidences = self.finest.tiles(ids // self.done.shape[1], ids % self.done.shape[1])
-        n, C = features.shape[:2]
-        out = torch.empty(n, TILE, TILE, C + 1, device=features.device)  # a row per pixel
-        write_level(out.permute(3, 0, 1, 2), features.transpose(0, 1), None if confidences is None
-                    else confidences.transpose(0, 1))
-        pixels, inside = tile_pixels(ids, self.done.shape[1], H, W)
-        values = out.reshape(-1, C + 1)
-        self.rows.index_copy_(0, pixels.to(self.rows.device), values if inside is None else values[inside])
-        self.done.view(-1)[ids] = True
-        self.tiles += n
+        for chunk in ids.split(CHUNK):  # the tiles' intermediate maps, ~25 KB a tile, a chunk at a time
+            features, confidences = self.finest.tiles(chunk // across, chunk % across)
+            n, C = features.shape[:2]
+            values = torch.empty(n, TILE, TILE, C + 1, device=features.device)  # a row per pixel
+            write_level(values.permute(3, 0, 1, 2), features.transpose(0, 1), None if confidences is None
+                        else confidences.transpose(0, 1))
+            self._append(chunk, values.view(n, TILE * TILE, C + 1))
+
+    def _append(self, ids: Tensor, values: Tensor) -> None:
+        need = self.tiles + len(ids)
+        if need > len(self.data):  # room for twice as many: appending stays linear
+            grown = self.data.new_empty((max(need, 2 * len(self.data)),) + tuple(self.data.shape[1:]))
+            grown[:self.tiles] = self.data[:self.tiles]
+            self.data = grown
+        self.data[self.tiles:need] = values
+        self.slot.view(-1)[ids] = torch.arange(self.tiles, need)
+        self.tiles = need
+
+    def values(self, ids: Tensor) -> Tensor:
+        """The pixels of decoded tiles ``ids``, a row each, tile by tile in row order (``tile_pixels``)."""
+        return self.data.index_select(0, self.slot.view(-1)[ids].to(self.data.device)).reshape(-1, self.data.shape[-1])
 
 
 def tile_pixels(ids: Tensor, across: int, H: int, W: int) -> Tuple[Tensor, Optional[Tensor]]:
@@ -134,14 +153,12 @@ class FinestFill:
             return
         decoded = self.decoded[b]
         decoded.decode(ids)
+        pixels, inside = tile_pixels(ids, done.shape[1], H, W)
+        values = decoded.values(ids).to(self.maps.device)
+        values = values if inside is None else values[inside]
         cells = self.maps[b].permute(1, 2, 0)
-        if len(ids) == done.numel():  # the whole map
-            cells.copy_(decoded.rows.view(H, W, -1))
+        if cells.is_contiguous():  # channels-last: a row per cell
+            cells.view(H * W, -1).index_copy_(0, pixels.to(self.maps.device), values)
         else:
-            pixels, _ = tile_pixels(ids, done.shape[1], H, W)
-            values = decoded.rows.index_select(0, pixels.to(decoded.rows.device)).to(self.maps.device)
-            if cells.is_contiguous():  # channels-last: a row per cell
-                cells.view(H * W, -1).index_copy_(0, pixels.to(self.maps.device), values)
-            else:
-                self.maps[b][:, pixels // W, pixels % W] = values.T
+            self.maps[b][:, pixels // W, pixels % W] = values.T
         done.view(-1)[ids] = True

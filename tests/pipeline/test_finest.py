@@ -72,6 +72,7 @@ def test_the_lm_and_evidence_read_the_same_values_from_tiles_decoded_where_they_
     for b in (0, 1):
         total = fill.done[b].numel()
         assert 0 < fill.decoded[b].tiles < WHOLE_ABOVE * total  # 40 points: a few tiles, not the map
+        assert len(fill.decoded[b].data) <= 2 * fill.decoded[b].tiles  # and the query holds only those
         decoded = fill.done[b].repeat_interleave(TILE, 0).repeat_interleave(TILE, 1)
         assert bool(torch.isnan(lazy.maps[b][:, ~decoded]).all())
         assert not bool(torch.isnan(lazy.maps[b][:, decoded]).any())
