@@ -58,13 +58,10 @@ class Decoded:
 
     @classmethod
     def of(cls, finest: FinestMaps) -> "Decoded":
-        if not hasattr(finest, "decoded"):
+        """The query's ``Decoded``, made on first use."""
+        if finest.decoded is None:
             finest.decoded = cls(finest)
         return finest.decoded
-
-    @property
-    def done(self) -> Tensor:
-        return self.slot >= 0
 
     def decode(self, ids: Tensor) -> None:
         """Decode the tiles ``ids`` (flat indices into the tile grid) not decoded yet; a first request

@@ -247,6 +247,7 @@ class FinestMaps:
         self.skip = skip[..., :2 * h, :2 * w]
         self.shape = (previous.shape[0], net.output_dims[level], 2 * h, 2 * w)
         self.grid = (-(-2 * h // TILE), -(-2 * w // TILE))  # tiles down and across
+        self.decoded = None  # what a caller decoded of it, kept with it (pipeline.localization.finest.Decoded)
 
     def _heads(self, x: Tensor) -> Tuple[Tensor, Optional[Tensor]]:
         x = x.float()
