@@ -14,7 +14,7 @@ from pipeline.store.layout import AnotherMap
 
 from . import executor, presets
 from .build_map import plan_build, prepare_structure, run_dask, run_sync
-from .localize import store_lock
+from .locks import store_lock
 from .options import Flag, add_flags, build, given
 from .sources import KINDS, POSED_FORMATS, MapSource, describe_source, load_scene
 

@@ -22,7 +22,7 @@ from pipeline.mapping.features import FeatureConfig
 from pipeline.localization.refine import LocalizerConfig
 from pipeline.scene import CameraRecord
 from pipeline.localization.retrieval import RetrievalConfig
-from pipeline.localization.shard import LocalizationJob
+from pipeline.localization.shard import PRIORS, LocalizationJob
 from pipeline.data.synthetic import SyntheticConfig, ensure_generated, read_synthetic
 from pipeline.textfiles import write_atomic
 
@@ -132,6 +132,9 @@ def format_table(summary: Dict[str, Dict]) -> str:
     return "\n".join(lines)
 
 
+FROM_A_FILE = ("poses", "hloc")  # priors read from the user's files, which the demo's scene has none of
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--output", type=Path, default=Path("outputs/demo"), help="output folder (default outputs/demo)")
     p.add_argument("--model", default="pixloc-lite0", help="feature model (default: the shipped pixloc-lite0)")
@@ -141,7 +144,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="queries of each condition (day, dusk, night, occluded)")
     p.add_argument("--workers", type=at_least(1), default=2, help="Dask workers (processes)")
     p.add_argument("--sync", action="store_true", help="localize in this process, without Dask")
-    p.add_argument("--prior", choices=["top1", "average", "hypotheses", "search", "sift"], default="top1",
+    p.add_argument("--prior", choices=[p for p in PRIORS if p not in FROM_A_FILE], default="top1",
                    help="pose prior of the localization (see pixloc localize --help; sift: SIFT + PnP, refined)")
     p.set_defaults(func=main)
 

@@ -20,9 +20,7 @@ import contextlib
 import dataclasses
 import json
 import logging
-import os
 import shutil
-import socket
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, List, Optional
@@ -43,16 +41,15 @@ from pipeline.localization.shard import LocalizationJob, localize_shard, retriev
 from pipeline.progress import count
 from pipeline.queries import QueryRecord
 from pipeline.regions import camera_centres, region_order
-from pipeline.store import location
 from pipeline.store.feature_groups import feature_key
 from pipeline.store.check import store_fingerprint
 from pipeline.store.layout import StoreError
 from pipeline.textfiles import InputError, read_json, write_atomic
 
 from . import executor
+from .locks import LOCK, output_lock
 
 logger = logging.getLogger(__name__)
-LOCK = ".pixloc.lock"
 ORDERS = ("auto", "list", "region")
 REGION_MIN_QUERIES = 64  # ``auto`` shards by region from this many queries on
 RETRIEVAL_PART = 32  # queries per task of the retrieval stage
@@ -63,8 +60,7 @@ class AnotherRun(ValueError):
     """The output folder holds a finished or partial run of another job, query list, order or map."""
 
 
-class OutputLocked(ValueError):
-    """Another run is writing to the output folder."""
+
 
 
 @dataclass
@@ -305,63 +301,6 @@ def _job_json(job: LocalizationJob, names: List[str], shard_size: int, order: st
     if thresholds:
         out["thresholds"] = [list(t) for t in thresholds]
     return json.loads(json.dumps(out))
-
-
-@contextlib.contextmanager
-def output_lock(output: Path):
-    """Exclusive use of ``output`` by this process (``file_lock`` on ``output/.pixloc.lock``)."""
-    output.mkdir(parents=True, exist_ok=True)
-    with file_lock(output / LOCK, f"{output} is in use by another pixloc run"):
-        yield
-
-
-@contextlib.contextmanager
-def file_lock(path: Path, busy: str):
-    """Hold the lock file ``path``; a live holder's lock is refused (OutputLocked, ``busy`` and
-    the holder), a dead one's (a killed run) taken over."""
-    me = f"{socket.gethostname()} {os.getpid()}"
-    for _ in range(2):
-        try:
-            fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
-        except FileExistsError:
-            holder = path.read_text().split() if path.exists() else []
-            if len(holder) == 2 and holder[0] == socket.gethostname() and not _alive(int(holder[1])):
-                path.unlink(missing_ok=True)  # left by a run that was killed
-                continue
-            raise OutputLocked(f"{busy} ({' pid '.join(holder) or 'unknown'}); wait for it to finish, or remove "
-                               f"{path} if no run is going on.") from None
-        with os.fdopen(fd, "w") as f:
-            f.write(me)
-        break
-    try:
-        yield
-    finally:
-        path.unlink(missing_ok=True)
-
-
-def store_lock(store, work_dir: Optional[Path] = None):
-    """The lock a build takes on its store: ``STORE.lock`` beside a local store (the store itself
-    may be erased and recreated under it by --overwrite); for a store in object storage,
-    ``store.lock`` in the build's local work folder, which stops a second build from this host
-    only: builds from several hosts into one bucket are the caller's to serialise
-    (docs/cluster.md)."""
-    if location.is_url(store):
-        path = Path(work_dir or location.work_dir(store)) / "store.lock"
-    else:
-        store = Path(store)
-        path = store.with_name(store.name + ".lock")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    return file_lock(path, f"{store} is being built by another pixloc build-map")
-
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
 
 
 def _start(plan: LocalizationPlan, run_calls) -> None:

@@ -36,7 +36,7 @@ from pipeline.data.training_data import PairConfig, PairDataset
 from pixloc.nets.registry import load_refiner, save_model
 from pixloc.training import Trainer, TrainConfig, reprojection_px
 
-from .localize import output_lock
+from .locks import output_lock
 from .options import at_least, build, check_keys
 from .training_sources import default_data_root, load_sources
 

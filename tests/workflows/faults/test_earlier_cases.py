@@ -28,7 +28,8 @@ from pipeline.localization.shard import LocalizationJob
 from pipeline.store.feature_groups import feature_key
 from pipeline.store.layout import StoreError, open_store
 from pipeline.store.check import check_store
-from workflows.localize import OutputLocked, output_lock, plan_localization, run_sync
+from workflows.localize import plan_localization, run_sync
+from workflows.locks import OutputLocked, output_lock
 from workflows.sources import load_queries
 
 ROOT = Path(__file__).resolve().parents[3]

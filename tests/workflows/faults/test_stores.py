@@ -11,7 +11,8 @@ from pipeline.store.feature_groups import feature_key
 from pipeline.mapping.readers.rgbd import read_7scenes
 from pipeline.store.layout import StoreError, open_store
 from pipeline.store.check import check_store
-from workflows.localize import plan_localization, run_sync, store_lock
+from workflows.localize import plan_localization, run_sync
+from workflows.locks import store_lock
 
 from .conftest import FCONF, pixloc
 
