@@ -238,7 +238,7 @@ class FinestMaps:
     query's points fall in about a third of its tiles."""
 
     def __init__(self, net: UNet, previous: Tensor, skip: Tensor, dtype: Optional[torch.dtype]):
-        self.block, self.dtype = net.decoder[-1], dtype
+        self.block, self.dtype, self.memory_format = net.decoder[-1], dtype, net.memory_format
         level = list(net.output_scales).index(0)
         self.adapt = net.adaptation[level]
         self.uncertainty = net.uncertainty[level] if net.compute_confidence else None
@@ -281,10 +281,10 @@ class FinestMaps:
         crop = _gather(prev, hr, hc)
         with self._autocast():
             up = nn.functional.interpolate(crop, scale_factor=2, mode="bilinear", align_corners=False)
-        up = up[..., 1:TILE + 3, 1:TILE + 3].contiguous(memory_format=self.previous_format)
+        up = up[..., 1:TILE + 3, 1:TILE + 3].contiguous(memory_format=self.memory_format)
         span = torch.arange(TILE + 2, device=ty.device)
         rows, cols = y0[:, None] - 1 + span, x0[:, None] - 1 + span
-        skips = _gather(skip, rows.clamp(0, H - 1), cols.clamp(0, W - 1)).contiguous(memory_format=self.previous_format)
+        skips = _gather(skip, rows.clamp(0, H - 1), cols.clamp(0, W - 1)).contiguous(memory_format=self.memory_format)
         # the conv's zero padding: context outside the map is zero (tiles at the map's edges)
         edge = torch.nonzero((y0 == 0) | (x0 == 0) | (y0 + TILE >= H) | (x0 + TILE >= W))[:, 0]
         if len(edge):
@@ -295,11 +295,6 @@ class FinestMaps:
         with self._autocast():
             x = self.block.unpadded(up, skips)
         return self._heads(x)
-
-    @property
-    def previous_format(self) -> torch.memory_format:
-        return torch.channels_last if self.previous.is_contiguous(memory_format=torch.channels_last) \
-            and not self.previous.is_contiguous() else torch.contiguous_format
 
 
 def _gather(x: Tensor, rows: Tensor, cols: Tensor) -> Tensor:
