@@ -194,8 +194,10 @@ class Camera(TensorWrapper):
 
     def J_cam2image(self, p3d: Tensor) -> Tensor:
         """(..., N, 2, 3) Jacobian of ``cam2image``."""
-        p, _ = self.project(p3d)
-        return self.J_denormalize() @ self.J_distort(p) @ self.J_project(p3d)
+        J = self.J_project(p3d)
+        if self.distortion != "none":
+            J = self.J_distort(self.project(p3d)[0]) @ J
+        return J * self.f[..., None, :, None]  # J_denormalize, a diagonal
 
     def image2cam(self, p2d: Tensor) -> Tensor:
         """Pixels (..., N, 2) -> camera-frame points on the plane z = 1, (..., N, 3)."""

@@ -125,6 +125,13 @@ class Pose(TensorWrapper):
         eye = torch.eye(3, dtype=p3d_out.dtype, device=p3d_out.device).expand(p3d_out.shape + (3,))
         return torch.cat([eye, -lie.skew(p3d_out)], -1)
 
+    @staticmethod
+    def J_left(J: Tensor, p3d_out: Tensor) -> Tensor:
+        """``J @ J_transform(p3d_out)`` for a Jacobian J (..., N, K, 3) at the transformed points, without
+        the (..., N, 3, 6) factor: [J | rows p x J_k], since J_k . (-[p]x u) = (p x J_k) . u. Elementwise,
+        where the product is K x 6 matrices of 3 terms each (an LM iteration's, 2 x 6 per point)."""
+        return torch.cat([J, torch.linalg.cross(p3d_out[..., None, :].expand_as(J), J, dim=-1)], -1)
+
     def log(self) -> Tensor:
         """(..., 6) = (rho, w), inverse of ``Pose.exp``."""
         return lie.se3_log(self.R, self.t)

@@ -324,7 +324,7 @@ def linearize(cam_from_world: Pose, problem: FeaturemetricProblem,
     confidence = None
     if problem.W_ref is not None:
         confidence = (problem.W_ref * w_query).masked_fill(~valid, 0.0)
-    J_p2d_pose = problem.camera.J_cam2image(p3d_cam) @ cam_from_world.J_transform(p3d_cam)
+    J_p2d_pose = Pose.J_left(problem.camera.J_cam2image(p3d_cam), p3d_cam)
     return Linearization(sq, valid, confidence, Jf_r, Jf_Jf, J_p2d_pose, res, J_f)
 
 

@@ -105,6 +105,15 @@ def test_J_transform_matches_autograd(shape):
         torch.testing.assert_close(J[..., n, :, :], Jn)
 
 
+@pytest.mark.parametrize("shape", BATCH_SHAPES)
+def test_J_left_is_the_product_with_J_transform_and_differentiable(shape):
+    T = random_pose(shape)
+    p = T.transform(torch.randn(*shape, 6, 3, dtype=torch.float64))
+    J = torch.randn(*shape, 6, 2, 3, dtype=torch.float64, requires_grad=True)
+    torch.testing.assert_close(Pose.J_left(J, p), J @ T.J_transform(p))
+    torch.autograd.gradcheck(lambda j: Pose.J_left(j, p), (J,))
+
+
 def test_exp_and_log_are_differentiable_at_zero():
     xi = torch.zeros(6, dtype=torch.float64, requires_grad=True)
     torch.autograd.gradcheck(lambda x: Pose.exp(x).data, (xi,))
