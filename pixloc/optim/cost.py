@@ -230,18 +230,29 @@ def use_cell_products(problem: FeaturemetricProblem, interpolator: Interpolator)
         and use_gradient_maps(problem, interpolator)
 
 
+# the pairs (j, k), j <= k, of a sample's 4 cells, and the inner products s_p . s_q of its value (p = 0) and
+# x and y gradients (1, 2) that ``linearize`` reads, (p, q) = (0, 0), (1, 0), (2, 0), (1, 1), (2, 1), (2, 2)
+_CELL_PAIRS = [(j, k) for j in range(4) for k in range(j, 4)]
+_SAMPLE_PRODUCTS = [(0, 0), (1, 0), (2, 0), (1, 1), (2, 1), (2, 2)]
+
+
 class CellProducts(NamedTuple):
     """What the bilinear samples of a small map need, computed once per problem.
 
     A bilinear sample of the maps at a point is a weighted sum of 4 cells, and its gradient maps'
     samples too (``append_gradient_maps``): so the squared residual |v - f|^2, J_f^T r and J_f^T J_f of
     ``linearize`` are sums of inner products of those cells with each other and with the point's
-    reference feature f. With e_0, e_1, e_2 the features and their x and y gradient maps, and the 4
-    cells j0, j0 + 1, j0 + W, j0 + W + 1 of a sample whose top-left cell is j0:
-    ``patches`` (B, HW, 16 x 9): e_p(j) . e_q(k) for the 16 pairs (j, k) of those cells and p, q;
+    reference feature f. With e_0, e_1, e_2 the features and their x and y gradient maps, s_p the
+    sample of e_p with weights b_j at the 4 cells j0, j0 + 1, j0 + W, j0 + W + 1 of a sample whose
+    top-left cell is j0, s_p . s_q = sum over the 10 pairs j <= k of b_j b_k c_jk, with c_jj =
+    e_p(j) . e_q(j) and c_jk = e_p(j) . e_q(k) + e_p(k) . e_q(j):
+    ``patches`` (B, HW, 10 x 6): c_jk for the pairs (``_CELL_PAIRS``) and the 6 products (p, q) that
+    ``linearize`` reads (``_SAMPLE_PRODUCTS``; s_1 . s_2 = s_2 . s_1);
     ``ref`` (B, N, HW x 3): f_i . e_p(j) for every cell j; ``ref_sq`` (B, N): |f_i|^2;
-    ``confidence`` (B, HW) or None. An LM iteration then reads 144 + 12 numbers per point instead
-    of sampling 3 C + 1 channels at 4 cells: the same figures to float rounding."""
+    ``confidence`` (B, HW) or None. An LM iteration then reads 60 + 12 numbers per point instead
+    of sampling 3 C + 1 channels at 4 cells: the same figures to float rounding. (The 144 products of
+    every (j, k, p, q) and a ``take`` of flat indices, before: a linearization of 5 x 2,349 points on
+    the 10 x 16 cells of a 256 px query took 7.2 ms, 4.1 ms since, on one core.)"""
 
     patches: Tensor
     ref: Tensor
@@ -259,10 +270,14 @@ class CellProducts(NamedTuple):
         gram = (e @ e.transpose(1, 2)).reshape(B, H * W, 3, H * W, 3).permute(0, 1, 3, 2, 4)  # B x j x k x p x q
         corners = (torch.arange(H * W, device=maps.device)[:, None]
                    + torch.tensor([0, 1, W, W + 1], device=maps.device)).clamp(max=H * W - 1)  # HW x 4
-        patches = gram[:, corners[:, :, None], corners[:, None, :]]  # B x HW x 4 x 4 x 3 x 3
+        j, k_ = (torch.tensor(x, device=maps.device) for x in zip(*_CELL_PAIRS))
+        p, q = (torch.tensor(x, device=maps.device) for x in zip(*_SAMPLE_PRODUCTS))
+        cj, ck = corners[:, j, None], corners[:, k_, None]  # HW x 10 x 1
+        pairs = gram[:, cj, ck, p, q]  # B x HW x 10 x 6: e_p(j) . e_q(k)
+        pairs = pairs + torch.where((j == k_)[:, None], 0.0, gram[:, ck, cj, p, q])  # + e_p(k) . e_q(j), j < k
         ref = problem.F_ref @ e.transpose(1, 2)  # B x N x (HW x 3)
         confidence = cells[..., C].contiguous() if k > C else None
-        return cls(patches.reshape(B, H * W, 144), ref, (problem.F_ref ** 2).sum(-1), confidence)
+        return cls(pairs.reshape(B, H * W, 60).contiguous(), ref, (problem.F_ref ** 2).sum(-1), confidence)
 
     def linearize(self, p2d: Tensor, size: Tuple[int, int]) -> Tuple[Tensor, Tensor, Tensor, Optional[Tensor]]:
         """At points p2d (B, N, 2) of a map of ``size`` (H, W): |r|^2 (B, N), J_f^T r (B, N, 2),
@@ -277,21 +292,22 @@ class CellProducts(NamedTuple):
         j0 = (y0 * W + x0).long()  # B x N, the top-left cell
         b = torch.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy], -1)  # B x N x 4
         rows = j0 + (torch.arange(B, device=p.device) * (H * W))[:, None]
-        patch = self.patches.reshape(B * H * W, 144).index_select(0, rows.reshape(-1)).reshape(B, N, 16, 9)
-        q = (patch * (b[..., :, None] * b[..., None, :]).reshape(B, N, 16, 1)).sum(2)  # s_p . s_q, B x N x 9
+        patch = self.patches.reshape(B * H * W, 60).index_select(0, rows.reshape(-1)).reshape(B, N, 10, 6)
+        j, k = (torch.tensor(x, device=p.device) for x in zip(*_CELL_PAIRS))
+        bb = b.index_select(-1, j) * b.index_select(-1, k)  # B x N x 10: b_j b_k
+        q = (patch * bb[..., None]).sum(2)  # s_p . s_q, B x N x 6 (_SAMPLE_PRODUCTS)
         # f . s_p for the samples s_0 = v, s_1 = d v / dx, s_2 = d v / dy: cells j0, j0 + 1 and j0 + W, j0 + W + 1
+        # (a gather along the rows: 3-10x faster than a take of flat indices into the whole batch)
         offsets = torch.cat([torch.arange(6), torch.arange(6) + 3 * W]).to(p.device)
-        at = (torch.arange(B * N, device=p.device) * (H * W * 3)).reshape(B, N, 1) + 3 * j0[..., None] + offsets
-        ref = self.ref.contiguous()  # a sub-batch's rows of the batch's products
-        r = (b[..., None] * ref.take(at.clamp(max=ref.numel() - 1)).reshape(B, N, 4, 3)).sum(2)
+        at = (3 * j0[..., None] + offsets).clamp(max=self.ref.shape[-1] - 1)
+        r = (b[..., None] * self.ref.gather(2, at).reshape(B, N, 4, 3)).sum(2)
         sq = (q[..., 0] - 2 * r[..., 0] + self.ref_sq).clamp(min=0)
-        Jf_r = torch.stack([q[..., 3] - r[..., 1], q[..., 6] - r[..., 2]], -1)
-        Jf_Jf = q[..., [4, 5, 7, 8]].reshape(B, N, 2, 2)
+        Jf_r = torch.stack([q[..., 1] - r[..., 1], q[..., 2] - r[..., 2]], -1)
+        Jf_Jf = q.index_select(-1, torch.tensor([3, 4, 4, 5], device=p.device)).reshape(B, N, 2, 2)
         confidence = None
         if self.confidence is not None:
-            corners = (rows[..., None] + torch.tensor([0, 1, W, W + 1], device=p.device)).clamp(
-                max=self.confidence.numel() - 1)
-            confidence = (b * self.confidence.contiguous().take(corners)).sum(-1)
+            corners = (j0[..., None] + torch.tensor([0, 1, W, W + 1], device=p.device)).clamp(max=H * W - 1)
+            confidence = (b * self.confidence.gather(1, corners.reshape(B, N * 4)).reshape(B, N, 4)).sum(-1)
         return sq, Jf_r, Jf_Jf, confidence
 
 
