@@ -40,6 +40,13 @@ def test_the_exact_speed_ups_keep_todays_pose_and_recall(rows):
         assert r["max_dR"] < 0.05 and r["recalls"] == today["recalls"], r
 
 
+def test_rounds_give_each_variant_its_median_run():
+    from workflows.benchmarks.query_cpu import _median_run
+    rounds = [{"cpu": 3.0, "results": "a"}, {"cpu": 1.0, "results": "b"}, {"cpu": 2.0, "results": "c"}]
+    median = _median_run(rounds)
+    assert median["cpu"] == 2.0 and median["results"] == "c" and median["cpu_rounds"] == [3.0, 1.0, 2.0]
+
+
 def test_the_search_runs_one_network_pass_per_image_scale_for_all_its_starts(rows):
     assert rows["search"]["passes"] == 2.0  # the store's image scales [4, 1]
     assert rows["search"]["runs"] > 10  # its starts, screened and refined, share those passes

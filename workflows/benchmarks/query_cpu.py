@@ -32,7 +32,9 @@ and bfloat16, its one-off compile time printed apart. Also measured: the ``searc
 passes per query against its LM runs (one pass per image scale serves every start). With ``--onnx``,
 one network pass is also timed in ONNX Runtime (not a dependency). With ``--earlier-code REV``, the
 same queries are also run by the code of commit REV (``earlier_code``), the real baseline that ``today``
-emulates, and the default's speed-up and pose differences are given against it.
+emulates, and the default's speed-up and pose differences are given against it. With ``--rounds R``, every
+variant and the earlier code run R times, one round after the other, and the tables give each one's median
+(the machine's drift then falls on every variant alike).
 """
 
 import argparse
@@ -125,6 +127,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--earlier-code", metavar="REV", help="also run the queries with the code of commit REV (a git "
                    "worktree in --work, its own process and defaults, a copy of the maps), e.g. 8975496, the code "
                    "when issue 31 was filed: the real baseline that 'today' emulates")
+    p.add_argument("--rounds", type=int, default=1, help="run the variants (and the earlier code) this many times, "
+                   "one round after the other, and give each one's median CPU time: the rounds spread the machine's "
+                   "drift over every variant alike (its timings vary by some 20 %% between runs); 'today' emulates "
+                   "the earlier code's memory settings in a fresh process only (in later rounds it ran 1.7-1.8 "
+                   "against 2.5 CPU s): --earlier-code is the baseline")
 
 
 def _run(variant: Variant, refiner, parts, compile_s: Dict[str, float]) -> Dict:
@@ -267,12 +274,19 @@ def main(args: argparse.Namespace) -> int:
     if args.variants:
         variants = [v for v in VARIANTS + COMPILED if v.name == "today" or v.name in args.variants]
     compile_s: Dict[str, float] = {}
-    runs = {}
-    for v in variants:
-        runs[v.name] = dict(_run(v, refiner, parts, compile_s), scenes=scenes)
-        print(f"- {v.name}: {runs[v.name]['cpu'] / n:.3f} CPU s per query", flush=True)
+    rounds: Dict[str, List[Dict]] = {}
+    earlier_rounds: List[Dict] = []
+    for k in range(max(args.rounds, 1)):
+        for v in variants:
+            rounds.setdefault(v.name, []).append(_run(v, refiner, parts, compile_s))
+            print(f"- {v.name}{f' (round {k + 1})' if args.rounds > 1 else ''}: "
+                  f"{rounds[v.name][-1]['cpu'] / n:.3f} CPU s per query", flush=True)
+        if args.earlier_code:
+            earlier_rounds.append(run_earlier(args.earlier_code, args.work, args.shared, args.scenes, args.limit))
+    runs = {name: dict(_median_run(rs), scenes=scenes) for name, rs in rounds.items()}
     today = runs["today"]
     rows = [dict(variant=v.name, cpu_s=runs[v.name]["cpu"] / n, speedup=today["cpu"] / runs[v.name]["cpu"],
+                 cpu_s_rounds=[c / n for c in runs[v.name]["cpu_rounds"]],
                  before_lm_s=runs[v.name]["before"] / n, features_s=runs[v.name]["network"] / n,
                  lm_s=runs[v.name]["lm"] / n, **_differences(runs[v.name], today, metric),
                  recalls=_recalls(runs[v.name], by_scene)) for v in variants]
@@ -294,21 +308,31 @@ def main(args: argparse.Namespace) -> int:
     if onnx:
         print(f"- one network pass at 1024 x 672 px: today {onnx['today']:.3f} s, prepared {onnx['prepared']:.3f} s, "
               f"ONNX Runtime {onnx['onnxruntime']:.3f} s")
-    earlier = _earlier(args, parts, runs, by_scene, metric) if args.earlier_code else None
+    earlier = _earlier(args, parts, runs, earlier_rounds, by_scene, metric) if args.earlier_code else None
     (args.work / "rows.json").write_text(json.dumps({"queries": n, "rows": rows, "search": passes,
                                                      "compile_s": compile_s, "onnx": onnx, "earlier": earlier},
                                                     indent=1))
     return 0
 
 
-def _earlier(args: argparse.Namespace, parts, runs: Dict, by_scene, metric) -> Dict:
-    """The queries run by the code of ``--earlier-code`` (``earlier_code``), against the default variant."""
-    earlier = run_earlier(args.earlier_code, args.work, args.shared, args.scenes, args.limit)
+def _median_run(rounds: List[Dict]) -> Dict:
+    """A variant's run of median CPU time over its rounds (every round gives the same poses), with every
+    round's CPU seconds (``cpu_rounds``)."""
+    ranked = sorted(rounds, key=lambda r: r["cpu"])
+    return dict(ranked[(len(ranked) - 1) // 2], cpu_rounds=[r["cpu"] for r in rounds])
+
+
+def _earlier(args: argparse.Namespace, parts, runs: Dict, rounds: List[Dict], by_scene, metric) -> Dict:
+    """The queries run by the code of ``--earlier-code`` (``earlier_code``) in each round, against the
+    default variant: speed-ups of the median CPU times, and of each round's."""
+    earlier = sorted(rounds, key=lambda r: r["cpu_s"])[(len(rounds) - 1) // 2]
     keys = [(f"{name}/{q.name}", key) for name, _, queries, key in parts for q in queries]
     n = len(keys)
     # each variant's speed-up against it (today's and the default's among them)
-    out = {"rev": args.earlier_code, "cpu_s": earlier["cpu_s"] / n,
-           "speedups": {name: earlier["cpu_s"] / run["cpu"] for name, run in runs.items()}}
+    out = {"rev": args.earlier_code, "cpu_s": earlier["cpu_s"] / n, "cpu_s_rounds": [r["cpu_s"] / n for r in rounds],
+           "speedups": {name: earlier["cpu_s"] / run["cpu"] for name, run in runs.items()},
+           "speedups_per_round": {name: [e["cpu_s"] / c for e, c in zip(rounds, run["cpu_rounds"])]
+                                  for name, run in runs.items()}}
     default = runs.get(DEFAULT_VARIANT)
     if default is not None:
         refined = {k: r.refined for (k, _), r in zip(keys, default["results"])}
@@ -322,5 +346,7 @@ def _earlier(args: argparse.Namespace, parts, runs: Dict, by_scene, metric) -> D
               f"default's: max |dc| {out['max_dt_mm']:.3f} mm (metric), {out['max_dt_pct']:.4f} % (others), max dR "
               f"{out['max_dR']:.4f} deg, {out['unmatched']} refined by one only")
     for name, speedup in out["speedups"].items():
-        print(f"  {name}: {speedup:.2f}x faster than it")
+        per_round = out["speedups_per_round"][name]
+        print(f"  {name}: {speedup:.2f}x faster than it" + (
+            f" (rounds: {', '.join(f'{x:.2f}x' for x in per_round)})" if len(per_round) > 1 else ""))
     return out
