@@ -41,9 +41,9 @@ def test_the_exact_speed_ups_keep_todays_pose_and_recall(rows):
 
 
 def test_rounds_give_each_variant_its_median_run():
-    from workflows.benchmarks.query_cpu import _median_run
+    from workflows.benchmarks.query_cpu import median_run
     rounds = [{"cpu": 3.0, "results": "a"}, {"cpu": 1.0, "results": "b"}, {"cpu": 2.0, "results": "c"}]
-    median = _median_run(rounds)
+    median = median_run(rounds)
     assert median["cpu"] == 2.0 and median["results"] == "c" and median["cpu_rounds"] == [3.0, 1.0, 2.0]
 
 

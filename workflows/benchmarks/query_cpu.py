@@ -283,7 +283,7 @@ def main(args: argparse.Namespace) -> int:
                   f"{rounds[v.name][-1]['cpu'] / n:.3f} CPU s per query", flush=True)
         if args.earlier_code:
             earlier_rounds.append(run_earlier(args.earlier_code, args.work, args.shared, args.scenes, args.limit))
-    runs = {name: dict(_median_run(rs), scenes=scenes) for name, rs in rounds.items()}
+    runs = {name: dict(median_run(rs), scenes=scenes) for name, rs in rounds.items()}
     today = runs["today"]
     rows = [dict(variant=v.name, cpu_s=runs[v.name]["cpu"] / n, speedup=today["cpu"] / runs[v.name]["cpu"],
                  cpu_s_rounds=[c / n for c in runs[v.name]["cpu_rounds"]],
@@ -315,7 +315,7 @@ def main(args: argparse.Namespace) -> int:
     return 0
 
 
-def _median_run(rounds: List[Dict]) -> Dict:
+def median_run(rounds: List[Dict]) -> Dict:
     """A variant's run of median CPU time over its rounds (every round gives the same poses), with every
     round's CPU seconds (``cpu_rounds``)."""
     ranked = sorted(rounds, key=lambda r: r["cpu"])
