@@ -316,8 +316,8 @@ def main(args: argparse.Namespace) -> int:
 
 
 def median_run(rounds: List[Dict]) -> Dict:
-    """A variant's run of median CPU time over its rounds (every round gives the same poses), with every
-    round's CPU seconds (``cpu_rounds``)."""
+    """A variant's run of median CPU time over its rounds (the lower middle one of an even count; every
+    round gives the same poses), with every round's CPU seconds (``cpu_rounds``)."""
     ranked = sorted(rounds, key=lambda r: r["cpu"])
     return dict(ranked[(len(ranked) - 1) // 2], cpu_rounds=[r["cpu"] for r in rounds])
 
