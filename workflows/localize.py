@@ -60,9 +60,6 @@ class AnotherRun(ValueError):
     """The output folder holds a finished or partial run of another job, query list, order or map."""
 
 
-
-
-
 @dataclass
 class LocalizationPlan:
     """What a localization run will do. ``todo`` maps shard index -> the queries to (re)run: a

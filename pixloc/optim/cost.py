@@ -232,8 +232,8 @@ def use_cell_products(problem: FeaturemetricProblem, interpolator: Interpolator)
 
 # the pairs (j, k), j <= k, of a sample's 4 cells, and the inner products s_p . s_q of its value (p = 0) and
 # x and y gradients (1, 2) that ``linearize`` reads, (p, q) = (0, 0), (1, 0), (2, 0), (1, 1), (2, 1), (2, 2)
-_CELL_PAIRS = [(j, k) for j in range(4) for k in range(j, 4)]
-_SAMPLE_PRODUCTS = [(0, 0), (1, 0), (2, 0), (1, 1), (2, 1), (2, 2)]
+_CELL_PAIRS = torch.tensor([(j, k) for j in range(4) for k in range(j, 4)]).T  # 2 x 10
+_SAMPLE_PRODUCTS = torch.tensor([(0, 0), (1, 0), (2, 0), (1, 1), (2, 1), (2, 2)]).T  # 2 x 6
 
 
 class CellProducts(NamedTuple):
@@ -270,8 +270,8 @@ class CellProducts(NamedTuple):
         gram = (e @ e.transpose(1, 2)).reshape(B, H * W, 3, H * W, 3).permute(0, 1, 3, 2, 4)  # B x j x k x p x q
         corners = (torch.arange(H * W, device=maps.device)[:, None]
                    + torch.tensor([0, 1, W, W + 1], device=maps.device)).clamp(max=H * W - 1)  # HW x 4
-        j, k_ = (torch.tensor(x, device=maps.device) for x in zip(*_CELL_PAIRS))
-        p, q = (torch.tensor(x, device=maps.device) for x in zip(*_SAMPLE_PRODUCTS))
+        j, k_ = _CELL_PAIRS.to(maps.device)
+        p, q = _SAMPLE_PRODUCTS.to(maps.device)
         cj, ck = corners[:, j, None], corners[:, k_, None]  # HW x 10 x 1
         pairs = gram[:, cj, ck, p, q]  # B x HW x 10 x 6: e_p(j) . e_q(k)
         pairs = pairs + torch.where((j == k_)[:, None], 0.0, gram[:, ck, cj, p, q])  # + e_p(k) . e_q(j), j < k
@@ -293,7 +293,7 @@ class CellProducts(NamedTuple):
         b = torch.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy], -1)  # B x N x 4
         rows = j0 + (torch.arange(B, device=p.device) * (H * W))[:, None]
         patch = self.patches.reshape(B * H * W, 60).index_select(0, rows.reshape(-1)).reshape(B, N, 10, 6)
-        j, k = (torch.tensor(x, device=p.device) for x in zip(*_CELL_PAIRS))
+        j, k = _CELL_PAIRS.to(p.device)
         bb = b.index_select(-1, j) * b.index_select(-1, k)  # B x N x 10: b_j b_k
         q = (patch * bb[..., None]).sum(2)  # s_p . s_q, B x N x 6 (_SAMPLE_PRODUCTS)
         # f . s_p for the samples s_0 = v, s_1 = d v / dx, s_2 = d v / dy: cells j0, j0 + 1 and j0 + W, j0 + W + 1
