@@ -8,6 +8,7 @@ convs to the output levels, plus a 1x1 conv per level for the confidence
 dicts load strictly.
 """
 
+import functools
 from typing import Dict, List, Optional, Sequence, Tuple
 
 import torch
@@ -349,14 +350,27 @@ def fold_batchnorm(module: nn.Module) -> nn.Module:
 class PointwiseConv(nn.Module):
     """A 1x1 convolution run by oneDNN, for inference on channels-last CPU maps: on one thread
     and a batch of one, PyTorch sends 1x1 convs to a slower path that also returns them in the
-    default layout (a copy, and slower sampling and normalisation of the maps downstream)."""
+    default layout (a copy, and slower sampling and normalisation of the maps downstream).
+
+    Under bfloat16 autocast (``--network-precision bfloat16``) on a CPU where oneDNN has no bfloat16 path
+    (it needs AVX-512 or AVX-NE-CONVERT), the conv goes through ``conv2d``, which autocast runs in bfloat16
+    everywhere, emulated where the CPU has no such instructions."""
 
     def __init__(self, conv: nn.Conv2d):
         super().__init__()
         self.weight, self.bias = conv.weight, conv.bias
 
     def forward(self, x: Tensor) -> Tensor:
+        if x.dtype != torch.float32 and not onednn_bfloat16():
+            return nn.functional.conv2d(x, self.weight, self.bias)
         return torch.ops.aten.mkldnn_convolution(x, self.weight, self.bias, [0, 0], [1, 1], [1, 1], 1)
+
+
+@functools.lru_cache(maxsize=None)
+def onednn_bfloat16() -> bool:
+    """Whether oneDNN's convolutions run in bfloat16 on this CPU (its bfloat16 kernels need AVX-512 or
+    AVX-NE-CONVERT; without them they refuse the input)."""
+    return bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
 
 
 def _pointwise_convs(module: nn.Module) -> None:

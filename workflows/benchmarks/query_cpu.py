@@ -55,7 +55,7 @@ from pipeline.localization.results import result_to_record
 from pipeline.localization.retrieval import RetrievalConfig
 from pipeline.localization.shard import LocalizationJob, localize_queries
 from pipeline.mapping.features import FeatureConfig
-from pipeline.runtime import set_malloc, torch_threads
+from pipeline.runtime import native_bfloat16, set_malloc, torch_threads
 from pipeline.store.reader import MapReader
 from pixloc.nets.registry import DEFAULT_MODEL, load_refiner
 from pixloc.nets.unet import fold_batchnorm, prepare_for_inference
@@ -268,6 +268,9 @@ def main(args: argparse.Namespace) -> int:
     print(f"CPU time per query at Cambridge settings: {n} queries of {', '.join(args.scenes)}, "
           f"{FEATURES.resize} px, image scales {list(FEATURES.image_scales)}, {CAMBRIDGE.num_dbs} references, "
           f"{CAMBRIDGE.num_iters} LM iterations per level, one torch thread, model {DEFAULT_MODEL}", flush=True)
+    bf16 = {True: "native", False: "emulated: the bfloat16 rows are slower here than on a CPU with AVX512-BF16",
+            None: "unknown"}[native_bfloat16()]
+    print(f"- this CPU: {torch.backends.cpu.get_cpu_capability()}, bfloat16 {bf16}", flush=True)
     default = next(v for v in VARIANTS if v.name == DEFAULT_VARIANT)
     _run(default, refiner, parts, {})  # untimed: the images and store blocks are read once
     variants = VARIANTS + (COMPILED if args.compile else [])

@@ -142,6 +142,25 @@ def test_every_precision_returns_float32_maps_and_a_network_without_finest_block
         predict_in_precision(net, image, "float16")
 
 
+def test_the_prepared_network_runs_in_every_precision_on_any_cpu():
+    # its 1x1 convs go through oneDNN (PointwiseConv), whose bfloat16 path needs AVX-512 (or AVX-NE-CONVERT):
+    # on other CPUs a whole-network bfloat16 pass failed every query ("bf16 path needs the cpu support ...")
+    import copy
+    from pixloc.nets.registry import load_refiner
+    from pixloc.nets.unet import NETWORK_PRECISIONS, prepare_for_inference, predict_in_precision
+    image = torch.rand(1, 3, 64, 96)
+    net = prepare_for_inference(copy.deepcopy(load_refiner("pixloc-lite0").extractor).eval())
+    with torch.no_grad():
+        exact = predict_in_precision(net, image)
+        for precision in NETWORK_PRECISIONS:
+            maps = predict_in_precision(net, image, precision)
+            for a, b in zip(exact["features"], maps["features"]):
+                assert b.dtype == torch.float32, precision
+                a, b = (torch.nn.functional.normalize(x[0], dim=0) for x in (a, b))
+                cosine = (a * b).sum(0)
+                assert float(cosine.mean()) > 0.99, precision  # reduced precision, the same maps nearly
+
+
 @pytest.mark.parametrize("network", ["lite0", "lite0 prepared", "vgg16"])
 @pytest.mark.parametrize("fine_dtype", [None, torch.bfloat16])
 def test_the_deferred_finest_level_decodes_whole_or_in_tiles_to_the_same_maps(network, fine_dtype):
