@@ -234,6 +234,7 @@ def use_cell_products(problem: FeaturemetricProblem, interpolator: Interpolator)
 # x and y gradients (1, 2) that ``linearize`` reads, (p, q) = (0, 0), (1, 0), (2, 0), (1, 1), (2, 1), (2, 2)
 _CELL_PAIRS = torch.tensor([(j, k) for j in range(4) for k in range(j, 4)]).T  # 2 x 10
 _SAMPLE_PRODUCTS = torch.tensor([(0, 0), (1, 0), (2, 0), (1, 1), (2, 1), (2, 2)]).T  # 2 x 6
+_JF_JF = torch.tensor([3, 4, 4, 5])  # J_f^T J_f from those 6: (1, 1), (2, 1), (1, 2) = (2, 1), (2, 2)
 
 
 class CellProducts(NamedTuple):
@@ -303,7 +304,7 @@ class CellProducts(NamedTuple):
         r = (b[..., None] * self.ref.gather(2, at).reshape(B, N, 4, 3)).sum(2)
         sq = (q[..., 0] - 2 * r[..., 0] + self.ref_sq).clamp(min=0)
         Jf_r = torch.stack([q[..., 1] - r[..., 1], q[..., 2] - r[..., 2]], -1)
-        Jf_Jf = q.index_select(-1, torch.tensor([3, 4, 4, 5], device=p.device)).reshape(B, N, 2, 2)
+        Jf_Jf = q.index_select(-1, _JF_JF.to(p.device)).reshape(B, N, 2, 2)
         confidence = None
         if self.confidence is not None:
             corners = (j0[..., None] + torch.tensor([0, 1, W, W + 1], device=p.device)).clamp(max=H * W - 1)

@@ -321,14 +321,18 @@ def main(args: argparse.Namespace) -> int:
 def median_run(rounds: List[Dict]) -> Dict:
     """A variant's run of median CPU time over its rounds (the lower middle one of an even count; every
     round gives the same poses), with every round's CPU seconds (``cpu_rounds``)."""
-    ranked = sorted(rounds, key=lambda r: r["cpu"])
-    return dict(ranked[(len(ranked) - 1) // 2], cpu_rounds=[r["cpu"] for r in rounds])
+    return dict(_middle(rounds, "cpu"), cpu_rounds=[r["cpu"] for r in rounds])
+
+
+def _middle(rounds: List[Dict], key: str) -> Dict:
+    """The round of median ``key`` (the lower middle one of an even count)."""
+    return sorted(rounds, key=lambda r: r[key])[(len(rounds) - 1) // 2]
 
 
 def _earlier(args: argparse.Namespace, parts, runs: Dict, rounds: List[Dict], by_scene, metric) -> Dict:
     """The queries run by the code of ``--earlier-code`` (``earlier_code``) in each round, against the
     default variant: speed-ups of the median CPU times, and of each round's."""
-    earlier = sorted(rounds, key=lambda r: r["cpu_s"])[(len(rounds) - 1) // 2]
+    earlier = _middle(rounds, "cpu_s")
     keys = [(f"{name}/{q.name}", key) for name, _, queries, key in parts for q in queries]
     n = len(keys)
     # each variant's speed-up against it (today's and the default's among them)
