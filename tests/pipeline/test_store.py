@@ -7,6 +7,7 @@ from torch.nn.functional import grid_sample
 
 from pipeline.mapping.build import build_map
 from pipeline.models import network
+from pipeline.runtime import torch_threads
 from pipeline.mapping.features import FeatureConfig
 from pipeline.images import read_image, resize_max, to_tensor
 from pipeline.scene import CameraRecord, Scene, SceneError
@@ -57,10 +58,8 @@ def test_stored_features_equal_the_network_at_projections(built, maupertuis):
     edges = np.cumsum([0] + list(group.attrs["dims"]))
     for k, s in enumerate(CONF.image_scales):
         resized, (sx, _) = resize_max(rgb, CONF.resize // s)
-        with torch.no_grad():
-            torch.set_num_threads(1)
+        with torch.no_grad(), torch_threads(1):
             pred = net(to_tensor(resized)[None])
-            torch.set_num_threads(2)
         for level, stride in enumerate(net.strides):
             fmap = pred["features"][level]
             h, w = fmap.shape[-2:]
