@@ -98,6 +98,7 @@ def build_parser() -> argparse.ArgumentParser:
     from .benchmarks import lm as bench_lm
     from .benchmarks import localize as bench_localize
     from .benchmarks import query_cpu as bench_query_cpu
+    from .benchmarks import query_rate as bench_query_rate
     from .benchmarks import train_step as bench_train_step
     from .benchmarks import rgbd as bench_rgbd
     from .benchmarks import scale as bench_scale
@@ -110,6 +111,8 @@ def build_parser() -> argparse.ArgumentParser:
             ("build-map", bench_build_map, "map building: images/s and bytes per observation, 1 vs 2 workers"),
             ("localize", bench_localize, "queries/s with stored features vs the official re-extraction"),
             ("query-cpu", bench_query_cpu, "CPU seconds per query at Cambridge settings per speed-up, with its poses"),
+            ("query-rate", bench_query_rate,
+             "queries/s at Cambridge settings with batched queries, on a GPU or the CPU, per batch size"),
             ("train-step", bench_train_step, "training steps per CPU hour per change, and what is not the model"),
             ("verification", bench_verification, "precision and rejections of pose verification per threshold"),
             ("rgbd", bench_rgbd,

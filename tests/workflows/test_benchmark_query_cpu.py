@@ -1,5 +1,6 @@
 """``pixloc benchmark query-cpu`` on one query: a row per speed-up, real times, and the exact
-speed-ups giving today's pose and recall (the whole run: docs/benchmarks.md, "The CPU query")."""
+speed-ups giving today's pose and recall (the whole run: docs/benchmarks.md, "The CPU query"); and
+``pixloc benchmark query-rate`` on its maps: batching gives the same poses."""
 
 import json
 
@@ -14,8 +15,12 @@ VARIANTS = ["today", "BatchNorm folded", "channels-last", "split convs, 1x1 by o
 
 
 @pytest.fixture(scope="module")
-def rows(shared, tmp_path_factory):
-    work = tmp_path_factory.mktemp("query-cpu")
+def work(tmp_path_factory):
+    return tmp_path_factory.mktemp("query-cpu")
+
+
+@pytest.fixture(scope="module")
+def rows(shared, work):
     assert main(["benchmark", "query-cpu", "--shared", str(shared), "--work", str(work), "--scenes", "kermit",
                  "--limit", "1"]) == 0
     return json.loads((work / "rows.json").read_text())
@@ -79,3 +84,19 @@ def test_the_earlier_code_runs_the_same_query_in_its_own_process(shared, tmp_pat
     assert earlier["speedups"]["finest level decoded where sampled (default)"] > 0
     assert earlier["unmatched"] == 0 and earlier["max_dR"] < 0.05 and earlier["max_dt_pct"] < 0.05
     assert (work / f"code-{EARLIER}" / "pipeline").is_dir()  # its checkout, beside the maps it copied
+
+
+def test_query_rate_batches_copies_of_the_queries_and_keeps_their_poses(rows, shared, work, capsys):
+    """The GPU goal's command (docs/benchmarks.md, "Queries per second"), on the CPU: the maps of the
+    query-cpu run above; 3 copies of its query in batches of 1 and of 3 give the same pose, refined."""
+    assert main(["benchmark", "query-rate", "--shared", str(shared), "--work", str(work), "--scenes", "kermit",
+                 "--limit", "1", "--device", "cpu", "--copies", "3", "--batches", "1", "3"]) == 0
+    out = capsys.readouterr().out
+    rate = json.loads((work / "rate.json").read_text())
+    assert rate["queries"] == 3 and [r["batch"] for r in rate["rows"]] == [1, 3]
+    default = next(r for r in rows["rows"] if r["variant"] == "finest level decoded where sampled (default)")
+    for r in rate["rows"]:
+        assert r["queries_per_s"] > 0 and r["cpu_s"] > 0
+        assert r["unmatched"] == 0 and r["max_dt_pct"] < 0.01 and r["max_dR"] < 0.01, r
+        assert r["recalls"] == default["recalls"]  # query-cpu's default, on the same query
+    assert f"| 3 | 3 | {rate['rows'][1]['wall_s']:.1f} |" in out and "goal on a GPU: 20" in out

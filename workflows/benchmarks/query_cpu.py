@@ -176,7 +176,7 @@ def _differences(run: Dict, today: Dict, metric: Dict[str, bool]) -> Dict:
                             {k: scale for k, (_, scale) in zip(keys, run["scenes"])})
 
 
-def _recalls(run: Dict, by_scene) -> List[float]:
+def recalls(run: Dict, by_scene) -> List[float]:
     """Recall (%) at every threshold of the accuracy benchmark, pooled over the scenes (the metric
     thresholds over the metric scenes)."""
     rows = []
@@ -250,19 +250,25 @@ def onnx_network_seconds(refiner, work: Path, size=(672, 1024)) -> Dict[str, flo
                 "onnxruntime": best(lambda: session.run(None, {"image": image.numpy()}))}
 
 
-def main(args: argparse.Namespace) -> int:
-    fconf = FEATURES
+def scene_parts(args: argparse.Namespace):
+    """The map parts of ``args.scenes`` at the Cambridge settings in ``args.work`` (built on first use, at most
+    ``args.limit`` queries each): [(name, store, queries, scene)], per scene (ground truth, scale, metric),
+    per scene whether it is metric, and (scene, scale) per query in the parts' order."""
     args.work.mkdir(parents=True, exist_ok=True)
     parts, by_scene, metric = [], {}, {}
     for key in args.scenes:
-        found = accuracy.scene_parts(key, args, fconf) if key != "sacre_coeur" else \
-            sacre_coeur(args.shared, args.work, fconf)
+        found = accuracy.scene_parts(key, args, FEATURES) if key != "sacre_coeur" else \
+            sacre_coeur(args.shared, args.work, FEATURES)
         found = [(n, s, q[:args.limit or None]) for n, s, q in found]
         gt = {q.name: q.cam_from_world_gt for _, _, qs in found for q in qs}
         metric[key] = accuracy.OWN_SPLITS[key] if key in accuracy.OWN_SPLITS else accuracy.SPLITS[key].metric
         by_scene[key] = (gt, accuracy.scene_scale(found[0][1]), metric[key])
         parts += [(n, s, q, key) for n, s, q in found]
-    scenes = [(key, by_scene[key][1]) for _, _, qs, key in parts for _ in qs]
+    return parts, by_scene, metric, [(key, by_scene[key][1]) for _, _, qs, key in parts for _ in qs]
+
+
+def main(args: argparse.Namespace) -> int:
+    parts, by_scene, metric, scenes = scene_parts(args)
     n = len(scenes)
     refiner = load_refiner(DEFAULT_MODEL).eval()
     print(f"CPU time per query at Cambridge settings: {n} queries of {', '.join(args.scenes)}, "
@@ -292,7 +298,7 @@ def main(args: argparse.Namespace) -> int:
                  cpu_s_rounds=[c / n for c in runs[v.name]["cpu_rounds"]],
                  before_lm_s=runs[v.name]["before"] / n, features_s=runs[v.name]["network"] / n,
                  lm_s=runs[v.name]["lm"] / n, **_differences(runs[v.name], today, metric),
-                 recalls=_recalls(runs[v.name], by_scene)) for v in variants]
+                 recalls=recalls(runs[v.name], by_scene)) for v in variants]
     header = ["variant", "CPU s/query", "vs today", "before the LM s", "features s", "LM s", "max |dc| mm (metric)",
               "max |dc| % (others)", "max dR deg", "refined by one only"] + accuracy.RECALLS
     print("\n| " + " | ".join(header) + " |\n|" + "---|" * len(header))
