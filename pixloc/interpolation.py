@@ -30,15 +30,15 @@ def _bilinear(maps: Tensor, p2d: Tensor, gradients: bool) -> Tuple[Tensor, Optio
     out = grid_sample(maps, grid[:, None], mode="bilinear", align_corners=True)
     if not gradients:
         return out.reshape(b, c, n).transpose(-1, -2), None
-    taps = out.reshape(b, c, 5, n).transpose(1, 3)  # B x N x 5 x C: the value, x - 1, x + 1, y - 1, y + 1
-    plus, minus = taps[:, :, 2::2], taps[:, :, 1::2]  # B x N x 2 x C
-    # laid out (B, N, 2, C) in memory: the solver contracts over C with contiguous rows. At inference the
-    # differences are written there at once (twice as fast as differences, a division and a stack)
-    if torch.is_grad_enabled():
-        grads = ((plus - minus) / 2).contiguous()
-    else:
-        grads = torch.sub(plus, minus, out=maps.new_empty((b, n, 2, c))).mul_(0.5)
-    return taps[:, :, 0], grads.transpose(-1, -2)
+    taps = out.reshape(b, c, 5, n)  # the value, x - 1, x + 1, y - 1, y + 1
+    values, plus, minus = taps[:, :, 0].transpose(-1, -2), taps[:, :, 2::2], taps[:, :, 1::2]
+    if torch.is_grad_enabled():  # (B, N, 2, C) in memory: a training unroll's matmuls over C read rows
+        grads = torch.stack([(plus[:, :, 0] - minus[:, :, 0]).transpose(-1, -2) / 2,
+                             (plus[:, :, 1] - minus[:, :, 1]).transpose(-1, -2) / 2], -2)
+        return values, grads.transpose(-1, -2)
+    # at inference (B, C, 2, N), as grid_sample writes samples: the LM sums over C along rows of points
+    # (``pixloc.optim.cost.linearize``); (x + 1) - (x - 1) halved is the official (x1 - x0) / 2
+    return values, (plus - minus).mul_(0.5).permute(0, 3, 1, 2)
 
 
 def append_gradient_maps(maps: Tensor, channels: int,
@@ -162,9 +162,8 @@ class Interpolator:
         valid = mask_in_image(p2d, p2d.new_tensor([w, h]), self.pad)
         grid = ((p2d / p2d.new_tensor([w - 1, h - 1])) * 2 - 1).clamp(min=-2, max=2)
         out = grid_sample(stacked, grid[:, None], mode="bilinear", align_corners=True)
-        out = out.reshape(b, total, -1).transpose(-1, -2)  # B x N x (K + 2 channels)
-        n = out.shape[1]
-        # laid out (B, N, 2, C) in memory, as _bilinear's: the solver contracts over C. The copy pays:
-        # a strided view (rows of the channels-last sample) made build_system's matmuls 3.5x slower
-        grads = out[..., k:].reshape(b, n, 2, channels).contiguous().transpose(-1, -2)
-        return out[..., :k], valid, grads
+        out = out.reshape(b, total, -1)  # B x (K + 2 channels) x N
+        # laid out (B, 2, C, N) in memory, as grid_sample writes them: the solver sums over C along rows of
+        # points (``pixloc.optim.cost.linearize``)
+        grads = out[:, k:].reshape(b, 2, channels, -1).permute(0, 3, 2, 1)
+        return out[:, :k].transpose(-1, -2), valid, grads

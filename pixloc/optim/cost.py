@@ -111,6 +111,11 @@ class FeaturemetricProblem:
         return append_gradient_maps(maps, C, query_maps_layout(maps, maps.shape[1] + 2 * C))
 
     @cached_property
+    def F_ref_channels_first(self) -> Tensor:
+        """F_ref as (B, C, N), contiguous: the layout of the query maps' samples (``linearize``)."""
+        return self.F_ref.transpose(1, 2).contiguous()
+
+    @cached_property
     def cell_products(self) -> "CellProducts":
         """``CellProducts`` of the maps with gradients: built once per problem, read at every LM iteration."""
         return CellProducts.of(self)
@@ -141,6 +146,8 @@ class FeaturemetricProblem:
                       mask=sel(self.mask), maps=maps, rows=rows)
         if "cell_products" in self.__dict__:  # built for the whole batch: the LM's chunks share them
             sub.__dict__["cell_products"] = CellProducts(*(sel(x) for x in self.cell_products))
+        if "F_ref_channels_first" in self.__dict__:
+            sub.__dict__["F_ref_channels_first"] = sel(self.F_ref_channels_first)
         return sub
 
 
@@ -329,12 +336,23 @@ def linearize(cam_from_world: Pose, problem: FeaturemetricProblem,
         else:
             values, valid, grads = interpolator(problem.maps_at(p2d), p2d, gradients=True)
             J_f = grads[..., :C, :]
-        res = values[..., :C] - problem.F_ref
         w_query = values[..., C] if problem.W_ref is not None else None
-        J_fT = J_f.transpose(-1, -2)  # B x N x 2 x C, rows contiguous (see _bilinear)
-        sq = (res ** 2).sum(-1)
-        Jf_r = (J_fT @ res[..., None])[..., 0]  # B x N x 2
-        Jf_Jf = J_fT @ J_fT.transpose(-1, -2)  # B x N x 2 x 2
+        if torch.is_grad_enabled():  # a training unroll: batched 2 x C matmuls, faster to differentiate
+            res = values[..., :C] - problem.F_ref
+            J_fT = J_f.transpose(-1, -2).contiguous()  # B x N x 2 x C, rows contiguous
+            sq = (res ** 2).sum(-1)
+            Jf_r = (J_fT @ res[..., None])[..., 0]  # B x N x 2
+            Jf_Jf = J_fT @ J_fT.transpose(-1, -2)  # B x N x 2 x 2
+        else:
+            # the samplers give values and gradients channels first, as grid_sample writes them (B x C x N
+            # and B x 2 x C x N, rows of points contiguous): the sums over C run along those rows, with no
+            # transpose (the matmuls of the points' rows took twice as long, their transposes included)
+            r = values.transpose(1, 2)[:, :C] - problem.F_ref_channels_first  # B x C x N
+            G = J_f.permute(0, 3, 2, 1)  # B x 2 x C x N
+            res = r.transpose(1, 2)
+            sq = (r * r).sum(1)
+            Jf_r = (G * r[:, None]).sum(2).transpose(1, 2)  # B x N x 2
+            Jf_Jf = (G[:, :, None] * G[:, None]).sum(3).permute(0, 3, 1, 2)  # B x N x 2 x 2
     valid = valid & visible
     if problem.mask is not None:
         valid = valid & problem.mask

@@ -194,3 +194,22 @@ def test_problems_that_stopped_are_no_longer_linearized(monkeypatch):
         torch.testing.assert_close(batched.pose.data[i], single.pose.data[0], atol=1e-5, rtol=0)
         assert int(batched.iterations[i]) == int(single.iterations[0])
         assert float(batched.cost[i, iterations[i] - 1]) == pytest.approx(float(single.cost[0, -1]), rel=1e-5)
+
+
+@pytest.mark.parametrize("gradient_maps", [False, True])
+def test_inference_sums_over_channels_give_the_training_linearization(gradient_maps):
+    """At inference the products over the channels are sums along the samples' rows of points (their
+    layout as grid_sample writes them); a training unroll keeps the batched matmuls: the same figures."""
+    problem, T = make_problems(2, 12000, 16, "cpu", seed=6)  # 120 x 160 maps: gradient maps where allowed
+    conf = torch.rand(2, 12000, dtype=torch.float64), torch.rand(2, *problem.F_query.shape[-2:], dtype=torch.float64)
+    double = FeaturemetricProblem(problem.p3d_world.double(), problem.F_ref.double(), problem.F_query.double(),
+                                  problem.camera.double(), *conf)
+    interp = Interpolator("linear", pad=2, gradient_maps=gradient_maps)
+    assert use_gradient_maps(double, interp) == gradient_maps
+    trained = linearize(T.double(), double, interp)
+    with torch.no_grad():
+        inferred = linearize(T.double(), double, interp)
+    assert torch.equal(trained.valid, inferred.valid) and trained.valid.float().mean() > 0.5
+    for key in ("sq", "Jf_r", "Jf_Jf", "confidence", "res", "J_f"):
+        torch.testing.assert_close(getattr(inferred, key), getattr(trained, key), rtol=0, atol=1e-12, msg=key)
+    assert inferred.J_f.stride(1) == 1  # channels first: rows of points contiguous
