@@ -24,6 +24,7 @@ from typing import Dict
 
 import torch
 
+from pipeline.localization.results import result_to_record
 from pipeline.localization.retrieval import RetrievalConfig
 from pipeline.localization.shard import LocalizationJob, localize_queries
 from pipeline.localization.refine import Localizer
@@ -65,7 +66,7 @@ def _run(parts, batch: int, copies: int, device: str) -> Dict:
     refiner, digest = localization_model(DEFAULT_MODEL, device)
     conf = query_cpu.CAMBRIDGE
     results, wall, cpu = {}, 0.0, 0.0
-    for p, (name, store, queries, _) in enumerate(parts):
+    for p, (_, store, queries, _) in enumerate(parts):
         reader = MapReader(store, store_feature_config(store), digest)
         job = LocalizationJob(str(store), reader.conf, DEFAULT_MODEL, conf, RetrievalConfig(k=5), prior="top1",
                               device=device)
@@ -114,7 +115,7 @@ def main(args: argparse.Namespace) -> int:
         diff = pose_differences(theirs, ours, {k: metric[s] for k, s in scene_of.items()},
                                 {k: by_scene[s][1] for k, s in scene_of.items()})
         copy0 = sorted(k for k in run["results"] if k[1] == 0)
-        recall = query_cpu.recalls({"records": [query_cpu.result_to_record(run["results"][k], {}) for k in copy0],
+        recall = query_cpu.recalls({"records": [result_to_record(run["results"][k], {}) for k in copy0],
                                     "scenes": [(scene_of[k], None) for k in copy0]}, by_scene)
         rows.append((b, run, diff, recall))
     header = ["queries per batch", "queries", "wall s", "queries/s", f"x batches of {args.batches[0]}",
