@@ -352,7 +352,8 @@ def linearize(cam_from_world: Pose, problem: FeaturemetricProblem,
             res = r.transpose(1, 2)
             sq = (r * r).sum(1)
             Jf_r = (G * r[:, None]).sum(2).transpose(1, 2)  # B x N x 2
-            Jf_Jf = (G[:, :, None] * G[:, None]).sum(3).permute(0, 3, 1, 2)  # B x N x 2 x 2
+            xx_yy, xy = (G * G).sum(2), (G[:, 0] * G[:, 1]).sum(1)  # the 3 products of J_f^T J_f, not 4
+            Jf_Jf = torch.stack([xx_yy[:, 0], xy, xy, xx_yy[:, 1]], -1).reshape(*xy.shape, 2, 2)  # B x N x 2 x 2
     valid = valid & visible
     if problem.mask is not None:
         valid = valid & problem.mask
