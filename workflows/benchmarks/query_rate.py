@@ -8,10 +8,11 @@ its rival starts), in the same map folder. Each query is repeated ``--copies`` t
 as large as ``--batches`` asks (the copies are renamed; they read the same image). A batch is what a shard
 of ``pixloc localize --shard-size B`` runs: its queries' network passes one after the other, then one LM
 batch per level (``pipeline.localization.shard.localize_queries``), on one torch thread as a worker does.
-Every batch size runs after an untimed pass at the largest one. The rate is queries over wall seconds, the
-device synchronised before the clock stops. Batching must not change a pose: every batch size's poses
-are compared with those of batches of 1, and the recall of the first copies is pooled over the scenes at
-the accuracy benchmark's thresholds.
+Every batch size runs after an untimed pass at the largest one, on a ``MapReader`` of its own, so that each
+timed run starts with the same cold block cache (the untimed pass warms only the OS's page cache). The rate
+is queries over wall seconds, the device synchronised before the clock stops. Batching must not change a
+pose: every batch size's poses are compared with those of batches of 1, and the recall of the first copies
+is pooled over the scenes at the accuracy benchmark's thresholds.
 """
 
 import argparse
