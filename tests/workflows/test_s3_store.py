@@ -53,12 +53,13 @@ def test_a_map_in_a_bucket_is_built_localized_checked_and_repaired(shared, s3, e
     build_dir, worker_dir = tmp_path / "build", tmp_path / "workers"
     build_dir.mkdir()
     worker_dir.mkdir()
-    build = ["build-map", "strecha", scene, "--hold-out", "0003.jpg", "--store", STORE,
-             "--resize", "512", "--image-scales", "1"]  # what a bucket changes does not depend on the size
+    # the map of 0001, 0002, 0004 and 0005, for the query 0003: what a bucket changes does not depend on the size
+    build = ["build-map", "strecha", scene, "--hold-out", "0000.jpg", "0003.jpg", "0006.jpg", "0007.jpg",
+             "--store", STORE, "--resize", "512", "--image-scales", "1"]
 
     # built by the local cluster's workers, each writing its images' objects; the work folder is local
     out = pixloc(env, build_dir, *build, "--workers", "2")
-    assert "7 images extracted" in out.stdout
+    assert "4 images extracted" in out.stdout
     assert (build_dir / "hj.work" / "build-map.log").is_file() and not (build_dir / "hj.zarr").exists()
     keys = [o["Key"] for o in client(s3).list_objects_v2(Bucket="maps", Prefix="hj.zarr/")["Contents"]]
     assert "hj.zarr/zarr.json" in keys and len(keys) > 50
@@ -78,7 +79,7 @@ def test_a_map_in_a_bucket_is_built_localized_checked_and_repaired(shared, s3, e
     result = [line for line in out.stdout.splitlines() if line.startswith("all") and " result " in line]
     assert result and "0.25 m, 2 deg: 100.0%" in result[0], out.stdout  # the held-out photo, from the bucket
     record = json.loads((tmp_path / "out" / "records.jsonl").read_text().splitlines()[0])
-    assert record["success"] and record["store_io"]["bytes_read"] > 1e6
+    assert record["success"] and record["store_io"]["bytes_read"] > 1e5  # its references, from the bucket
     assert json.loads((tmp_path / "out" / "job.json").read_text())["job"]["store"] == STORE
     assert not list(worker_dir.iterdir())  # the workers wrote nothing where they ran
 
@@ -87,7 +88,7 @@ def test_a_map_in_a_bucket_is_built_localized_checked_and_repaired(shared, s3, e
     assert "all chunks verified" in out.stdout
     s3_client = client(s3)
     features = sorted(k for k in keys if "/s0/features/c/" in k)
-    flipped, deleted = features[2], features[4]
+    flipped, deleted = features[0], features[-1]  # of the first image and of the last
     body = bytearray(s3_client.get_object(Bucket="maps", Key=flipped)["Body"].read())
     body[len(body) // 2] ^= 0xFF
     s3_client.put_object(Bucket="maps", Key=flipped, Body=bytes(body))
@@ -102,7 +103,7 @@ def test_a_map_in_a_bucket_is_built_localized_checked_and_repaired(shared, s3, e
 
     # the same build command rebuilds only them, and the store is whole again
     out = pixloc(env, build_dir, *build, "--sync")
-    assert "2 images extracted, 5 already done" in out.stdout, out.stdout
+    assert "2 images extracted, 2 already done" in out.stdout, out.stdout
     assert "all chunks verified" in pixloc(env, tmp_path, "check-store", STORE).stdout
 
 
