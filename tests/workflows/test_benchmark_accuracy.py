@@ -13,7 +13,7 @@ from workflows.cli import main
 def run(shared, tmp_path_factory):
     work = tmp_path_factory.mktemp("accuracy")
     rc = main(["benchmark", "accuracy", "--shared", str(shared), "--work", str(work), "--scenes", "kermit",
-               "berlin", "--priors", "top1", "sift", "--limit", "1"])
+               "templeRing", "--priors", "top1", "sift", "--limit", "1"])  # templeRing: 2 folds, a query each
     return rc, json.loads((work / "rows.json").read_text()), work
 
 
@@ -21,12 +21,12 @@ def test_the_table_has_a_row_per_scene_and_prior_and_the_pooled_rows(run):
     rc, rows, _ = run
     assert rc == 0
     assert [(r["scene"], r["prior"]) for r in rows] == [
-        (scene, prior) for scene in ("kermit", "berlin", "all") for prior in ("top1", "sift", "sift-pnp", "reference")]
+        (scene, prior) for scene in ("kermit", "templeRing", "all") for prior in ("top1", "sift", "sift-pnp", "reference")]
     for r in rows:
-        assert r["queries"] == (2 if r["scene"] == "all" else 1)
+        assert r["queries"] == {"kermit": 1, "templeRing": 2, "all": 3}[r["scene"]]
         assert all(r[k] is None or 0 <= r[k] <= 1 for k in RECALLS)
         assert (r["accepted"] is None) == (r["prior"] in ("sift-pnp", "reference"))
-    # neither scene is metric (Bundler and OpenSfM units): no figure in metres
+    # neither scene is metric (Bundler and Middlebury units): no figure in metres
     assert all(r[k] is None for r in rows for k in RECALLS[3:])
     scales = {r["scene"]: r["scale"] for r in rows if r["scene"] != "all"}
     assert all(s > 0 for s in scales.values())
@@ -35,7 +35,7 @@ def test_the_table_has_a_row_per_scene_and_prior_and_the_pooled_rows(run):
 def test_sift_places_both_queries_and_no_wrong_pose_is_accepted(run):
     _, rows, _ = run
     get = {(r["scene"], r["prior"]): r for r in rows}
-    for scene in ("kermit", "berlin"):
+    for scene in ("kermit", "templeRing"):
         assert get[scene, "sift"][RECALLS[1]] == 1.0 and get[scene, "sift-pnp"][RECALLS[1]] == 1.0
         assert get[scene, "sift"]["median_t_pct"] < 1.0 and get[scene, "sift"]["median_R"] < 1.0
         assert get[scene, "reference"]["start_t_pct"] > 5.0  # the top-1 reference is far: a real prior to refine
@@ -46,7 +46,7 @@ def test_sift_places_both_queries_and_no_wrong_pose_is_accepted(run):
 def test_a_rerun_reads_the_runs_back(run, shared):
     _, rows, work = run
     before = {(r["scene"], r["prior"]): r["s_per_query"] for r in rows}
-    main(["benchmark", "accuracy", "--shared", str(shared), "--work", str(work), "--scenes", "kermit", "berlin",
+    main(["benchmark", "accuracy", "--shared", str(shared), "--work", str(work), "--scenes", "kermit", "templeRing",
           "--priors", "top1", "sift", "--limit", "1"])
     again = json.loads((work / "rows.json").read_text())
     assert {(r["scene"], r["prior"]): r["s_per_query"] for r in again} == before  # the same runs, not new ones
@@ -72,7 +72,7 @@ def test_paired_counts_closer_farther_gained_and_lost():
 
 def test_a_run_paired_with_itself_has_no_difference(run, shared, capsys):
     _, _, work = run
-    main(["benchmark", "accuracy", "--shared", str(shared), "--work", str(work), "--scenes", "kermit", "berlin",
+    main(["benchmark", "accuracy", "--shared", str(shared), "--work", str(work), "--scenes", "kermit", "templeRing",
           "--priors", "top1", "sift", "--limit", "1", "--paired", str(work)])
     out = capsys.readouterr().out
-    assert "| all | sift | 2 | 0 | 0 | 1.000 | 0 / 0 | 0 / 0 | 0 / 0 |" in out
+    assert "| all | sift | 3 | 0 | 0 | 1.000 | 0 / 0 | 0 / 0 | 0 / 0 |" in out
