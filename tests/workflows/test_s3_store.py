@@ -88,7 +88,7 @@ def test_a_map_in_a_bucket_is_built_localized_checked_and_repaired(shared, s3, e
     assert "all chunks verified" in out.stdout
     s3_client = client(s3)
     features = sorted(k for k in keys if "/s0/features/c/" in k)
-    flipped, deleted = features[0], features[-1]  # of the first image and of the last
+    flipped, deleted = features[0], features[-1]  # chunks of two images (each named below)
     body = bytearray(s3_client.get_object(Bucket="maps", Key=flipped)["Body"].read())
     body[len(body) // 2] ^= 0xFF
     s3_client.put_object(Bucket="maps", Key=flipped, Body=bytes(body))
