@@ -20,10 +20,11 @@ def run(shared, tmp_path_factory):
 def test_the_table_has_a_row_per_scene_and_prior_and_the_pooled_rows(run):
     rc, rows, _ = run
     assert rc == 0
+    priors = ("top1", "sift", "sift-pnp", "reference")
     assert [(r["scene"], r["prior"]) for r in rows] == [
-        (scene, prior) for scene in ("kermit", "templeRing", "all") for prior in ("top1", "sift", "sift-pnp", "reference")]
+        (scene, prior) for scene in ("kermit", "templeRing", "all") for prior in priors]
     for r in rows:
-        assert r["queries"] == {"kermit": 1, "templeRing": 2, "all": 3}[r["scene"]]
+        assert r["queries"] == {"kermit": 1, "templeRing": 2, "all": 3}[r["scene"]]  # a query per fold
         assert all(r[k] is None or 0 <= r[k] <= 1 for k in RECALLS)
         assert (r["accepted"] is None) == (r["prior"] in ("sift-pnp", "reference"))
     # neither scene is metric (Bundler and Middlebury units): no figure in metres
