@@ -33,9 +33,7 @@ def _bilinear(maps: Tensor, p2d: Tensor, gradients: bool) -> Tuple[Tensor, Optio
     taps = out.reshape(b, c, 5, n)  # the value, x - 1, x + 1, y - 1, y + 1
     values, plus, minus = taps[:, :, 0].transpose(-1, -2), taps[:, :, 2::2], taps[:, :, 1::2]
     if torch.is_grad_enabled():  # (B, N, 2, C) in memory: a training unroll's matmuls over C read rows
-        grads = torch.stack([(plus[:, :, 0] - minus[:, :, 0]).transpose(-1, -2) / 2,
-                             (plus[:, :, 1] - minus[:, :, 1]).transpose(-1, -2) / 2], -2)
-        return values, grads.transpose(-1, -2)
+        return values, ((plus - minus) / 2).permute(0, 3, 2, 1).contiguous().transpose(-1, -2)
     # at inference (B, C, 2, N), as grid_sample writes samples: the LM sums over C along rows of points
     # (``pixloc.optim.cost.linearize``); (x + 1) - (x - 1) halved is the official (x1 - x0) / 2
     return values, (plus - minus).mul_(0.5).permute(0, 3, 1, 2)
