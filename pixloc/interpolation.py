@@ -39,6 +39,70 @@ def _bilinear(maps: Tensor, p2d: Tensor, gradients: bool) -> Tuple[Tensor, Optio
     return values, (plus - minus).mul_(0.5).permute(0, 3, 1, 2)
 
 
+# the 12 cells that the 5 taps of ``_bilinear`` at a point read, as offsets from its top-left cell (x0, y0):
+# rows y0 and y0 + 1 at columns x0 - 1 .. x0 + 2 (the value and the taps at x +- 1), then rows y0 - 1 and
+# y0 + 2 at columns x0 and x0 + 1 (the taps at y +- 1)
+_TAP_CELLS_X = (-1, 0, 1, 2, -1, 0, 1, 2, 0, 1, 0, 1)
+_TAP_CELLS_Y = (0, 0, 0, 0, 1, 1, 1, 1, -1, -1, 2, 2)
+# where the 20 nonzero cell weights go among the 3 x 12 (value, d/dx, d/dy) of ``_tap_weights``, in the order
+# [q, -q / 2, q / 2, -q / 2, q / 2] for q the bilinear weights of the cells (x0, y0), (x0 + 1, y0),
+# (x0, y0 + 1), (x0 + 1, y0 + 1)
+_TAP_WEIGHT_SLOTS = (1, 2, 5, 6, 12, 13, 16, 17, 14, 15, 18, 19, 32, 33, 25, 26, 29, 30, 34, 35)
+
+
+def _tap_weights(fx: Tensor, fy: Tensor) -> Tensor:
+    """(..., 3, 12): the weights of the 12 cells (``_TAP_CELLS_X``, ``_TAP_CELLS_Y``) in the bilinear
+    value and in the central differences at +- 1 px along x and y, at fractions fx, fy (...)."""
+    q = torch.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy], -1)
+    half = q * 0.5
+    src = torch.cat([q, -half, half, -half, half], -1)
+    out = q.new_zeros(*q.shape[:-1], 36).index_copy_(-1, torch.tensor(_TAP_WEIGHT_SLOTS, device=q.device), src)
+    return out.reshape(*q.shape[:-1], 3, 12)
+
+
+def can_reduce_taps(maps: Tensor) -> bool:
+    """Whether ``reduce_taps`` can read ``maps`` in place: on CPU, laid out channels-last (the rows of
+    cells that it gathers are then views of the map), at least 2 x 2 cells."""
+    return maps.device.type == "cpu" and maps.dim() == 4 and min(maps.shape[-2:]) >= 2 \
+        and maps.permute(0, 2, 3, 1).is_contiguous()
+
+
+def reduce_taps(maps: Tensor, p2d: Tensor, F_ref: Tensor) -> Tuple[Tensor, Tensor, Tensor, Tensor]:
+    """The official 5-tap samples of ``_bilinear`` at p2d (B, N, 2), reduced against reference features
+    F_ref (B, N, C), without forming the samples: |r|^2 (B, N), J_f^T r (B, N, 2) and J_f^T J_f
+    (B, N, 2, 2) for r = F(p) - F_ref and J_f the gradients of the first C channels, and the values of
+    the channels after C (B, N, K - C). For inference on CPU (``can_reduce_taps``): maps (B, K, H, W),
+    K >= C, channels-last.
+
+    The value and the taps at x +- 1 and y +- 1 read 12 cells around a point, whose channels are
+    contiguous rows of a channels-last map: they are gathered as rows, and the 3 samples are one
+    (3 x 12) @ (12 x K) product per point, the products over C one (3 x C) @ (C x 3). grid_sample reads
+    the same cells a channel at a time, and the reductions then ran over 5 (B, C, N) samples: 1.5-1.8x
+    slower for the 129-channel maps of a 1,024 px query. The same figures to float rounding (coordinates
+    as ``_bilinear`` clamps them, zeros outside the map, and zeros at non-finite coordinates)."""
+    b, k, h, w = maps.shape
+    C = F_ref.shape[-1]
+    p = torch.nan_to_num(p2d, nan=-1e9)  # far outside: zeros, as grid_sample gives non-finite points
+    # the clamp of ``_bilinear``'s grid to twice the map, then to where every tap reads outside it (zeros)
+    x = p[..., 0].clamp((1 - w) / 2, 3 * (w - 1) / 2).clamp(-3, w + 2)
+    y = p[..., 1].clamp((1 - h) / 2, 3 * (h - 1) / 2).clamp(-3, h + 2)
+    x0, y0 = x.floor(), y.floor()
+    cx = x0.long()[..., None] + torch.tensor(_TAP_CELLS_X, device=p.device)
+    cy = y0.long()[..., None] + torch.tensor(_TAP_CELLS_Y, device=p.device)
+    rows = cy.clamp(0, h - 1) * w + cx.clamp(0, w - 1) + (torch.arange(b, device=p.device) * (h * w))[:, None, None]
+    cells = maps.permute(0, 2, 3, 1).reshape(b * h * w, k).index_select(0, rows.reshape(-1))
+    # zero padding: the cells outside the map are zeros (not the border cells their rows were clamped to,
+    # which a map decoded where it is read may not hold: ``pipeline.localization.finest``)
+    outside = ((cx < 0) | (cx >= w) | (cy < 0) | (cy >= h)).reshape(-1)
+    cells.index_fill_(0, outside.nonzero()[:, 0], 0.0)
+    samples = _tap_weights(x - x0, y - y0) @ cells.reshape(b, -1, 12, k)  # B x N x 3 (value, d/dx, d/dy) x K
+    rest = samples[:, :, 0, C:].clone()
+    samples[..., C:] = 0
+    samples[:, :, 0, :C] -= F_ref
+    gram = samples @ samples.transpose(-1, -2)  # B x N x 3 x 3: r . r, J_f^T r, J_f^T J_f
+    return gram[..., 0, 0], gram[..., 1:, 0], gram[..., 1:, 1:], rest
+
+
 def append_gradient_maps(maps: Tensor, channels: int,
                          memory_format: torch.memory_format = torch.contiguous_format) -> Tensor:
     """(B, K + 2 channels, H, W): ``maps`` (B, K, H, W), then the central differences of its first

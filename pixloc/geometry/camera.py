@@ -1,5 +1,6 @@
 """Batched cameras: pinhole intrinsics plus a COLMAP lens distortion model."""
 
+from functools import cached_property
 from typing import Optional, Sequence, Tuple, Union
 
 import torch
@@ -150,9 +151,16 @@ class Camera(TensorWrapper):
         J = torch.stack([1 / z, o, -x / z ** 2, o, 1 / z, -y / z ** 2], -1)
         return J.reshape(p3d.shape[:-1] + (2, 3))
 
+    @cached_property
+    def _distortion_terms(self) -> tuple:
+        """What the distortion model computes from the parameters alone (the radial models' validity
+        limit), once per camera object: the LM projects through the same camera at every iteration."""
+        prepare = DISTORTIONS[self.distortion].prepare
+        return () if prepare is None else (prepare(self.dist),)
+
     def distort(self, p: Tensor) -> Tuple[Tensor, Tensor]:
         """p: (..., N, 2) normalized -> distorted (..., N, 2) and model validity (..., N)."""
-        return DISTORTIONS[self.distortion].distort(p, self.dist)
+        return DISTORTIONS[self.distortion].distort(p, self.dist, *self._distortion_terms)
 
     def J_distort(self, p: Tensor) -> Tensor:
         """(..., N, 2, 2) Jacobian of ``distort`` w.r.t. p."""
@@ -191,6 +199,26 @@ class Camera(TensorWrapper):
         p, valid_model = self.distort(p)
         p2d = self.denormalize(p)
         return p2d, visible & valid_model & self.in_image(p2d)
+
+    def cam2image_with_J(self, p3d: Tensor) -> Tuple[Tensor, Tensor, Tensor]:
+        """``cam2image`` and ``J_cam2image`` at once, as an LM linearization needs them: the projection
+        is shared, and the Jacobian is formed elementwise, J_distort times [I | -p] / z scaled by the
+        focal lengths, not as batched 2 x 2 by 2 x 3 matmuls. The same pixels and validity as
+        ``cam2image``, the same Jacobian to float rounding."""
+        z = p3d[..., -1]
+        visible = z > self.eps
+        z = z.clamp(min=self.eps)
+        p = p3d[..., :-1] / z[..., None]
+        p_d, valid_model = self.distort(p)
+        p2d = self.denormalize(p_d)
+        valid = visible & valid_model & self.in_image(p2d)
+        scale = (self.f[..., None, :] / z[..., None])[..., None]  # (..., N, 2, 1): f / z per row
+        if self.distortion == "none":
+            J = torch.cat([torch.diag_embed(scale[..., 0]), -(scale * p[..., None])], -1)
+        else:
+            J_d = self.J_distort(p)
+            J = torch.cat([J_d, -(J_d * p[..., None, :]).sum(-1, keepdim=True)], -1) * scale
+        return p2d, valid, J
 
     def J_cam2image(self, p3d: Tensor) -> Tensor:
         """(..., N, 2, 3) Jacobian of ``cam2image``."""

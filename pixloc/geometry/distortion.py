@@ -7,7 +7,7 @@ All functions take p: (..., N, 2) and params: (..., D) and return
 (..., N, 2, 2).
 """
 
-from typing import Callable, Dict, NamedTuple, Tuple
+from typing import Any, Callable, Dict, NamedTuple, Optional, Tuple
 
 import torch
 from torch import Tensor
@@ -36,24 +36,34 @@ def _assemble(J_diag: Tensor, J_cross: Tensor) -> Tensor:
     return torch.diag_embed(J_diag) + torch.diag_embed(J_cross).flip(-1)
 
 
-def _radial_tangential(p: Tensor, d: Tensor) -> Tuple[Tensor, Tensor]:
-    """RADIAL (k1, k2) and OPENCV (k1, k2, p1, p2), as official PixLoc."""
+def _radial_limit(d: Tensor) -> Tuple[Tensor, Tensor]:
+    """Where the RADIAL and OPENCV models are valid, from their parameters d (..., D) alone: (limited,
+    limit) (..., 1, 1), a point valid where not limited or r^2 < limit.
+
+    Beyond the inflection point of r (1 + k1 r^2 + k2 r^4), far points fold back into the image:
+    official PixLoc rejects r^2 above a root of 1 + 3 k1 r^2 + 5 k2 r^4 = 0. Its exact cases are kept
+    (the root (sqrt(9 k1^2 - 20 k2) - 3 k1) / (10 k2), no limit for k1 < 0 with k2 = 0, 1 / (3 k1)
+    for k1 > 0 with k2 <= 0) so that validity masks, hence LM steps, match the official ones."""
     d = d[..., None, :]
     k1, k2 = d[..., 0:1], d[..., 1:2]
-    r2 = (p ** 2).sum(-1, keepdim=True)
-    out = p + p * (k1 * r2 + k2 * r2 ** 2)
-    # Beyond the inflection point of r (1 + k1 r^2 + k2 r^4), far points fold
-    # back into the image: official PixLoc rejects r^2 above a root of
-    # 1 + 3 k1 r^2 + 5 k2 r^4 = 0. Its exact cases are kept (the root
-    # (sqrt(9 k1^2 - 20 k2) - 3 k1) / (10 k2), no limit for k1 < 0 with k2 = 0,
-    # 1 / (3 k1) for k1 > 0 with k2 <= 0) so that validity masks, hence LM
-    # steps, match the official ones.
     limited = ((k2 > 0) & ((9 * k1 ** 2 - 20 * k2) > 0)) | ((k2 <= 0) & (k1 > 0))
     k2_safe = torch.where(k2 > 0, k2, torch.ones_like(k2))
     k1_safe = torch.where(k1 == 0, torch.ones_like(k1), k1)
     disc = (9 * k1 ** 2 - 20 * k2).clamp(min=0)
     limit = torch.abs(torch.where(
         k2 > 0, (torch.sqrt(disc) - 3 * k1) / (10 * k2_safe), 1 / (3 * k1_safe)))
+    return limited, limit
+
+
+def _radial_tangential(p: Tensor, d: Tensor, limits: Optional[Tuple[Tensor, Tensor]] = None
+                       ) -> Tuple[Tensor, Tensor]:
+    """RADIAL (k1, k2) and OPENCV (k1, k2, p1, p2), as official PixLoc. ``limits``: ``_radial_limit(d)``
+    if already computed (a camera keeps it: ``Camera.distort``)."""
+    limited, limit = _radial_limit(d) if limits is None else limits
+    d = d[..., None, :]
+    k1, k2 = d[..., 0:1], d[..., 1:2]
+    r2 = (p ** 2).sum(-1, keepdim=True)
+    out = p + p * (k1 * r2 + k2 * r2 ** 2)
     valid = (~limited | (r2 < limit))[..., 0]
     if d.shape[-1] > 2:
         out = out + _tangential(p, d[..., 2:4], r2)
@@ -144,14 +154,16 @@ def _J_fisheye(p: Tensor, d: Tensor) -> Tensor:
 
 class DistortionModel(NamedTuple):
     num_params: int
-    distort: Callable[[Tensor, Tensor], Tuple[Tensor, Tensor]]
+    distort: Callable[..., Tuple[Tensor, Tensor]]
     J_distort: Callable[[Tensor, Tensor], Tensor]
+    # what ``distort`` computes from the parameters alone, passed to it as a third argument where given
+    prepare: Optional[Callable[[Tensor], Any]] = None
 
 
 DISTORTIONS: Dict[str, DistortionModel] = {
     "none": DistortionModel(0, _none, _J_none),
-    "radial": DistortionModel(2, _radial_tangential, _J_radial_tangential),
-    "opencv": DistortionModel(4, _radial_tangential, _J_radial_tangential),
+    "radial": DistortionModel(2, _radial_tangential, _J_radial_tangential, _radial_limit),
+    "opencv": DistortionModel(4, _radial_tangential, _J_radial_tangential, _radial_limit),
     "full_opencv": DistortionModel(8, _full_opencv, _J_full_opencv),
     "fisheye": DistortionModel(4, _fisheye, _J_fisheye),
 }

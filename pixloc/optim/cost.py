@@ -8,7 +8,7 @@ import torch
 from torch import Tensor
 
 from ..geometry import Camera, Pose
-from ..interpolation import Interpolator, append_gradient_maps, mask_in_image
+from ..interpolation import Interpolator, append_gradient_maps, can_reduce_taps, mask_in_image, reduce_taps
 
 
 @dataclass(frozen=True)
@@ -237,6 +237,15 @@ def use_cell_products(problem: FeaturemetricProblem, interpolator: Interpolator)
         and use_gradient_maps(problem, interpolator)
 
 
+def use_reduced_taps(problem: FeaturemetricProblem, interpolator: Interpolator) -> bool:
+    """Where the maps are sampled with the 5 official taps (not gradient maps nor cell products), at
+    inference (a training unroll differentiates the samples), on channels-last CPU maps
+    (``pixloc.interpolation.can_reduce_taps``): ``reduce_taps`` gives the LM's products without the
+    samples."""
+    return interpolator.mode == "linear" and not torch.is_grad_enabled() \
+        and not use_gradient_maps(problem, interpolator) and can_reduce_taps(problem.query_maps)
+
+
 # the pairs (j, k), j <= k, of a sample's 4 cells, and the inner products s_p . s_q of its value (p = 0) and
 # x and y gradients (1, 2) that ``linearize`` reads, (p, q) = (0, 0), (1, 0), (2, 0), (1, 1), (2, 1), (2, 2)
 _CELL_PAIRS = torch.tensor([(j, k) for j in range(4) for k in range(j, 4)]).T  # 2 x 10
@@ -323,13 +332,19 @@ def linearize(cam_from_world: Pose, problem: FeaturemetricProblem,
               interpolator: Interpolator) -> Linearization:
     """Residuals r_i = F_q(pi(T P_i)) - F_ref,i and their Jacobian factors."""
     p3d_cam = cam_from_world.transform(problem.p3d_world)
-    p2d, visible = problem.camera.cam2image(p3d_cam)
+    p2d, visible, J_p2d_cam = problem.camera.cam2image_with_J(p3d_cam)
     C = problem.F_ref.shape[-1]
     res = J_f = None
     if use_cell_products(problem, interpolator):  # small maps: inner products of their cells, once per level
         H, W = problem.F_query.shape[-2:]
         valid = mask_in_image(p2d, p2d.new_tensor([W, H]), interpolator.pad)
         sq, Jf_r, Jf_Jf, w_query = problem.cell_products.linearize(p2d, (H, W))
+    elif use_reduced_taps(problem, interpolator):  # the 5 taps' cells gathered and reduced at once
+        maps = problem.maps_at(p2d)
+        H, W = maps.shape[-2:]
+        valid = mask_in_image(p2d, p2d.new_tensor([W, H]), interpolator.pad)
+        sq, Jf_r, Jf_Jf, rest = reduce_taps(maps, p2d, problem.F_ref)
+        w_query = rest[..., 0] if problem.W_ref is not None else None
     else:
         if use_gradient_maps(problem, interpolator):  # one sampling of maps and gradient maps: the same gradients
             values, valid, J_f = interpolator.sample_with_gradients(problem.query_maps_with_gradients, p2d, C)
@@ -360,7 +375,7 @@ def linearize(cam_from_world: Pose, problem: FeaturemetricProblem,
     confidence = None
     if problem.W_ref is not None:
         confidence = (problem.W_ref * w_query).masked_fill(~valid, 0.0)
-    J_p2d_pose = Pose.J_left(problem.camera.J_cam2image(p3d_cam), p3d_cam)
+    J_p2d_pose = Pose.J_left(J_p2d_cam, p3d_cam)
     return Linearization(sq, valid, confidence, Jf_r, Jf_Jf, J_p2d_pose, res, J_f)
 
 

@@ -1,7 +1,7 @@
 import pytest
 import torch
 
-from pixloc.interpolation import Interpolator, append_gradient_maps
+from pixloc.interpolation import Interpolator, append_gradient_maps, can_reduce_taps, reduce_taps
 
 
 def linear_map(C=4, H=20, W=30, dtype=torch.float64):
@@ -65,6 +65,53 @@ def test_gradient_maps_give_the_official_gradients_everywhere_in_the_map(layout)
     assert torch.equal(valid2, valid)
     with pytest.raises(ValueError, match="linear"):
         Interpolator("cubic").sample_with_gradients(stacked, p, 4)
+
+
+@pytest.mark.parametrize("shape", [(2, 9, 7, 11), (3, 17, 40, 64), (1, 5, 2, 3)])
+def test_reduced_taps_give_the_products_of_the_official_samples(shape):
+    """``reduce_taps`` (the LM at inference on CPU) gives |r|^2, J_f^T r and J_f^T J_f of the official
+    5 taps and the values of the channels after C, without sampling: inside, on the border, outside,
+    far outside and on tiny maps (zeros outside the map on both sides)."""
+    b, k, h, w = shape
+    g = torch.Generator().manual_seed(k)
+    maps = torch.randn(shape, generator=g, dtype=torch.float64).contiguous(memory_format=torch.channels_last)
+    p = torch.rand(b, 300, 2, generator=g, dtype=torch.float64) * torch.tensor([w + 8.0, h + 8.0]) - 4
+    p[0, :4] = torch.tensor([[0.0, 0.0], [w - 1.0, h - 1.0], [1e9, -1e9], [-1.5, h - 0.5]], dtype=torch.float64)
+    p[0, 4:10] = torch.randint(0, min(h, w), (6, 2), generator=g).to(p)  # on cells' centres
+    F = torch.randn(b, 300, k - 1, generator=g, dtype=torch.float64)
+    assert can_reduce_taps(maps) and not can_reduce_taps(maps.contiguous())
+    sq, Jf_r, Jf_Jf, rest = reduce_taps(maps, p, F)
+    values, _, grads = Interpolator("linear", pad=0)(maps, p, gradients=True)
+    r, J = values[..., :-1] - F, grads[..., :-1, :]
+    for got, want in ((sq, (r * r).sum(-1)), (Jf_r, (J * r[..., None]).sum(-2)),
+                      (Jf_Jf, J.transpose(-1, -2) @ J), (rest, values[..., -1:])):
+        torch.testing.assert_close(got, want, rtol=0, atol=1e-12)
+    p[0, 0] = float("nan")  # zeros, as grid_sample gives
+    assert all(torch.isfinite(x).all() for x in reduce_taps(maps, p, F))
+
+
+def test_reduced_taps_read_only_the_cells_of_their_taps():
+    """A map decoded only where it is read (``pipeline.localization.finest``) holds garbage elsewhere:
+    ``reduce_taps`` reads only the cells inside the map that the official taps read, so points far
+    outside or at non-finite coordinates give zeros, and points near the border their taps' figures."""
+    g = torch.Generator().manual_seed(3)
+    clean = torch.randn(1, 9, 40, 60, generator=g, dtype=torch.float64)
+    p = torch.tensor([[[30.3, 20.7], [-1e6, 5.0], [float("nan"), 3.0], [float("inf"), float("-inf")],
+                       [-0.4, 10.2], [59.5, 39.2], [-2.5, -2.5], [62.9, 20.0]]], dtype=torch.float64)
+    decoded = torch.zeros(40, 60, dtype=torch.bool)  # the taps' cells of the points near the map
+    for x, y in p[0, [0, 4, 5, 6, 7]].floor().long().tolist():
+        decoded[max(y - 1, 0):max(y + 3, 0), max(x - 1, 0):max(x + 3, 0)] = True
+    maps = clean.masked_fill(~decoded, float("nan")).contiguous(memory_format=torch.channels_last)
+    F = torch.randn(1, 8, 8, generator=g, dtype=torch.float64)
+    sq, Jf_r, Jf_Jf, rest = reduce_taps(maps, p, F)
+    values, _, grads = Interpolator("linear", pad=0)(clean, torch.nan_to_num(p, nan=-1e9), gradients=True)
+    r, J = values[..., :-1] - F, grads[..., :-1, :]
+    torch.testing.assert_close(sq, (r * r).sum(-1), rtol=0, atol=1e-12)
+    torch.testing.assert_close(Jf_r, (J * r[..., None]).sum(-2), rtol=0, atol=1e-12)
+    torch.testing.assert_close(Jf_Jf, J.transpose(-1, -2) @ J, rtol=0, atol=1e-12)
+    torch.testing.assert_close(rest, values[..., -1:], rtol=0, atol=1e-12)
+    assert (Jf_Jf[0, 1:4] == 0).all() and (Jf_r[0, 1:4] == 0).all()  # far outside: zero samples
+    torch.testing.assert_close(sq[0, 1:4], (F[0, 1:4] ** 2).sum(-1), rtol=0, atol=1e-12)
 
 
 @pytest.mark.parametrize("mode,pad", [("linear", 0), ("linear", 2), ("cubic", 2)])

@@ -7,7 +7,7 @@ from pixloc.geometry import lie
 from pixloc.interpolation import Interpolator
 from pixloc.optim import (ConstantDamping, FeaturemetricProblem, LearnedDamping, LevenbergMarquardt,
                           build_system, linearize)
-from pixloc.optim.cost import use_gradient_maps
+from pixloc.optim.cost import use_gradient_maps, use_reduced_taps
 from workflows.benchmarks.lm import make_problems
 
 
@@ -196,20 +196,29 @@ def test_problems_that_stopped_are_no_longer_linearized(monkeypatch):
         assert float(batched.cost[i, iterations[i] - 1]) == pytest.approx(float(single.cost[0, -1]), rel=1e-5)
 
 
-@pytest.mark.parametrize("gradient_maps", [False, True])
-def test_inference_sums_over_channels_give_the_training_linearization(gradient_maps):
+@pytest.mark.parametrize("sampler", ["taps", "gradient maps", "reduced taps"])
+def test_inference_sums_over_channels_give_the_training_linearization(sampler):
     """At inference the products over the channels are sums along the samples' rows of points (their
-    layout as grid_sample writes them); a training unroll keeps the batched matmuls: the same figures."""
+    layout as grid_sample writes them), or, on channels-last maps, reduced from the taps' cells without
+    the samples (``reduce_taps``); a training unroll keeps the batched matmuls: the same figures."""
     problem, T = make_problems(2, 12000, 16, "cpu", seed=6)  # 120 x 160 maps: gradient maps where allowed
     conf = torch.rand(2, 12000, dtype=torch.float64), torch.rand(2, *problem.F_query.shape[-2:], dtype=torch.float64)
-    double = FeaturemetricProblem(problem.p3d_world.double(), problem.F_ref.double(), problem.F_query.double(),
+    F_query = problem.F_query.double()
+    if sampler == "reduced taps":
+        F_query = F_query.contiguous(memory_format=torch.channels_last)
+    double = FeaturemetricProblem(problem.p3d_world.double(), problem.F_ref.double(), F_query,
                                   problem.camera.double(), *conf)
-    interp = Interpolator("linear", pad=2, gradient_maps=gradient_maps)
-    assert use_gradient_maps(double, interp) == gradient_maps
+    interp = Interpolator("linear", pad=2, gradient_maps=sampler == "gradient maps")
+    assert use_gradient_maps(double, interp) == (sampler == "gradient maps")
     trained = linearize(T.double(), double, interp)
     with torch.no_grad():
+        assert use_reduced_taps(double, interp) == (sampler == "reduced taps")
         inferred = linearize(T.double(), double, interp)
     assert torch.equal(trained.valid, inferred.valid) and trained.valid.float().mean() > 0.5
-    for key in ("sq", "Jf_r", "Jf_Jf", "confidence", "res", "J_f"):
+    keys = ("sq", "Jf_r", "Jf_Jf", "confidence") + (() if sampler == "reduced taps" else ("res", "J_f"))
+    for key in keys:
         torch.testing.assert_close(getattr(inferred, key), getattr(trained, key), rtol=0, atol=1e-12, msg=key)
-    assert inferred.J_f.stride(1) == 1  # channels first: rows of points contiguous
+    if sampler == "reduced taps":
+        assert inferred.res is None and inferred.J_f is None
+    else:
+        assert inferred.J_f.stride(1) == 1  # channels first: rows of points contiguous
