@@ -133,13 +133,15 @@ class FinestFill:
         for b in finest if self.poison else ():
             maps[b].fill_(float("nan"))
 
-    def __call__(self, p2d: Tensor, rows) -> None:
+    def __call__(self, p2d: Tensor, rows, gradients: bool = True) -> None:
+        """Decode the cells of rows ``rows`` that sampling at ``p2d`` reads: with the official central
+        differences (``gradients``), or values only (verification's costs around a pose)."""
         for j, b in enumerate(rows):
             if b in self.decoded:
-                self._fill(b, p2d[j])
+                self._fill(b, p2d[j], gradients)
 
     @torch.no_grad()
-    def _fill(self, b: int, p2d: Tensor) -> None:
+    def _fill(self, b: int, p2d: Tensor, gradients: bool = True) -> None:
         done = self.done[b]
         if bool(done.all()):
             return
@@ -147,11 +149,13 @@ class FinestFill:
         p = p2d.detach().cpu()
         p = p[torch.isfinite(p).all(-1)]
         x0, y0 = p[:, 0].floor(), p[:, 1].floor()
-        # a bilinear sample with central differences at +-1 px reads cells x0 - 1 .. x0 + 2, y0 - 1 .. y0 + 2
-        near = (x0 + 2 >= 0) & (x0 - 1 <= W - 1) & (y0 + 2 >= 0) & (y0 - 1 <= H - 1)
+        # a bilinear sample with central differences at +-1 px reads cells x0 - 1 .. x0 + 2, y0 - 1 .. y0 + 2,
+        # a value alone x0 .. x0 + 1, y0 .. y0 + 1
+        lo, hi = (1, 2) if gradients else (0, 1)
+        near = (x0 + hi >= 0) & (x0 - lo <= W - 1) & (y0 + hi >= 0) & (y0 - lo <= H - 1)
         x0, y0 = x0[near], y0[near]
-        tx = torch.stack([(x0 - 1).clamp(0, W - 1), (x0 + 2).clamp(0, W - 1)]).long() // TILE
-        ty = torch.stack([(y0 - 1).clamp(0, H - 1), (y0 + 2).clamp(0, H - 1)]).long() // TILE
+        tx = torch.stack([(x0 - lo).clamp(0, W - 1), (x0 + hi).clamp(0, W - 1)]).long() // TILE
+        ty = torch.stack([(y0 - lo).clamp(0, H - 1), (y0 + hi).clamp(0, H - 1)]).long() // TILE
         wanted = torch.zeros(done.numel(), dtype=torch.bool)  # the tiles read, marked: sorted ids without a sort
         wanted[(ty[:, None] * done.shape[1] + tx[None]).reshape(-1)] = True
         ids = (wanted & ~done.view(-1)).nonzero()[:, 0]

@@ -26,8 +26,9 @@ class FeaturemetricProblem:
     maps: (B, C + 1, H, W), F_query and W_query stacked, when the caller has built them so
         (``new_query_maps``): F_query and W_query are then views of it, and the largest
         tensor of the problem is not copied again.
-    fill: maps decoded on demand: ``fill(p2d, rows)`` decodes the cells that sampling the maps of
-        batch rows ``rows`` (a range) at ``p2d`` (len(rows), N, 2) reads; ``maps_at`` calls it.
+    fill: maps decoded on demand: ``fill(p2d, rows, gradients)`` decodes the cells that sampling the
+        maps of batch rows ``rows`` (a range) at ``p2d`` (len(rows), N, 2) reads, with central
+        differences or values only; ``maps_at`` calls it.
     rows: this problem's rows of the batch that ``fill`` serves (None: all of them; a sub-batch's).
     """
 
@@ -39,7 +40,7 @@ class FeaturemetricProblem:
     W_query: Optional[Tensor] = None
     mask: Optional[Tensor] = None
     maps: Optional[Tensor] = None
-    fill: Optional[Callable[[Tensor, range], None]] = None
+    fill: Optional[Callable[[Tensor, range, bool], None]] = None
     rows: Optional[range] = None
 
     def __post_init__(self):
@@ -95,11 +96,12 @@ class FeaturemetricProblem:
         out[:, C] = self.W_query
         return out
 
-    def maps_at(self, p2d: Tensor) -> Tensor:
-        """``query_maps``, to be sampled at ``p2d`` (B, N, 2): their cells there decoded first where
-        the problem's maps are decoded on demand (``fill``)."""
+    def maps_at(self, p2d: Tensor, gradients: bool = True) -> Tensor:
+        """``query_maps``, to be sampled at ``p2d`` (B, N, 2), with the official central differences
+        (``gradients``) or values only: the cells that sampling reads decoded first where the problem's
+        maps are decoded on demand (``fill``)."""
         if self.fill is not None:
-            self.fill(p2d, range(self.batch_size) if self.rows is None else self.rows)
+            self.fill(p2d, range(self.batch_size) if self.rows is None else self.rows, gradients)
         return self.query_maps
 
     @cached_property

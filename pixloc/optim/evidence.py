@@ -24,7 +24,7 @@ def _costs(problem: FeaturemetricProblem, cam_from_world: Pose, loss_fn: Callabl
     the points in the camera frame and their projections."""
     p3d = cam_from_world.transform(problem.p3d_world)
     p2d, visible = problem.camera.cam2image(p3d)
-    values, valid, _ = interpolator(problem.maps_at(p2d), p2d, gradients=False)
+    values, valid, _ = interpolator(problem.maps_at(p2d, gradients=False), p2d, gradients=False)
     if problem.mask is not None:
         valid = valid & problem.mask
     C = problem.F_ref.shape[-1]

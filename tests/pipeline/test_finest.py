@@ -79,6 +79,22 @@ def test_the_lm_and_evidence_read_the_same_values_from_tiles_decoded_where_they_
         torch.testing.assert_close(lazy.maps[b][:, decoded], eager.maps[b][:, decoded], atol=1e-5, rtol=0)
 
 
+def test_values_alone_decode_only_the_cells_they_read(passes):
+    """Verification's costs read values only (x0 .. x0 + 1): their fill decodes the tiles of those cells,
+    not of the LM's central differences (x0 - 1 .. x0 + 2), with the same evidence as the whole pass."""
+    eager, values, taps = _problem(passes, False, n=400), _problem(passes, True, n=400), _problem(passes, True, n=400)
+    interpolator, loss = Interpolator(gradient_maps=True), get_loss("scaled_barron(0, 0.1)")
+    pose = Pose.from_aa(torch.tensor([[0.01, -0.02, 0.005]] * 2), torch.tensor([[0.02, 0.0, -0.01]] * 2))
+    ev_a = alignment_evidence(eager, pose, loss, interpolator)
+    ev_b = alignment_evidence(values, pose, loss, interpolator)
+    for key in ev_a:  # a read of a cell not decoded would be NaN
+        torch.testing.assert_close(ev_b[key], ev_a[key], atol=1e-6, rtol=1e-6)
+    linearize(pose, taps, interpolator)
+    for b in (0, 1):
+        assert 0 < values.fill.done[b].sum() < taps.fill.done[b].sum()  # the tiles each batch's maps got
+        assert not bool((values.fill.done[b] & ~taps.fill.done[b]).any())
+
+
 def test_a_first_request_for_most_of_the_map_decodes_it_whole_and_rows_share_a_querys_tiles(net, passes):
     lazy, eager = _problem(passes, True, n=4000), _problem(passes, False, n=4000)
     again = _problem(passes, True, n=4000)  # another batch with the same queries (a rival's, a start's)
