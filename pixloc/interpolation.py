@@ -42,12 +42,12 @@ def _bilinear(maps: Tensor, p2d: Tensor, gradients: bool) -> Tuple[Tensor, Optio
 # the 12 cells that the 5 taps of ``_bilinear`` at a point read, as offsets from its top-left cell (x0, y0):
 # rows y0 and y0 + 1 at columns x0 - 1 .. x0 + 2 (the value and the taps at x +- 1), then rows y0 - 1 and
 # y0 + 2 at columns x0 and x0 + 1 (the taps at y +- 1)
-_TAP_CELLS_X = (-1, 0, 1, 2, -1, 0, 1, 2, 0, 1, 0, 1)
-_TAP_CELLS_Y = (0, 0, 0, 0, 1, 1, 1, 1, -1, -1, 2, 2)
+_TAP_CELLS_X = torch.tensor([-1, 0, 1, 2, -1, 0, 1, 2, 0, 1, 0, 1])
+_TAP_CELLS_Y = torch.tensor([0, 0, 0, 0, 1, 1, 1, 1, -1, -1, 2, 2])
 # where the 20 nonzero cell weights go among the 3 x 12 (value, d/dx, d/dy) of ``_tap_weights``, in the order
 # [q, -q / 2, q / 2, -q / 2, q / 2] for q the bilinear weights of the cells (x0, y0), (x0 + 1, y0),
 # (x0, y0 + 1), (x0 + 1, y0 + 1)
-_TAP_WEIGHT_SLOTS = (1, 2, 5, 6, 12, 13, 16, 17, 14, 15, 18, 19, 32, 33, 25, 26, 29, 30, 34, 35)
+_TAP_WEIGHT_SLOTS = torch.tensor([1, 2, 5, 6, 12, 13, 16, 17, 14, 15, 18, 19, 32, 33, 25, 26, 29, 30, 34, 35])
 
 
 def _tap_weights(fx: Tensor, fy: Tensor) -> Tensor:
@@ -56,7 +56,7 @@ def _tap_weights(fx: Tensor, fy: Tensor) -> Tensor:
     q = torch.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy], -1)
     half = q * 0.5
     src = torch.cat([q, -half, half, -half, half], -1)
-    out = q.new_zeros(*q.shape[:-1], 36).index_copy_(-1, torch.tensor(_TAP_WEIGHT_SLOTS, device=q.device), src)
+    out = q.new_zeros(*q.shape[:-1], 36).index_copy_(-1, _TAP_WEIGHT_SLOTS.to(q.device), src)
     return out.reshape(*q.shape[:-1], 3, 12)
 
 
@@ -87,8 +87,8 @@ def reduce_taps(maps: Tensor, p2d: Tensor, F_ref: Tensor) -> Tuple[Tensor, Tenso
     x = p[..., 0].clamp((1 - w) / 2, 3 * (w - 1) / 2).clamp(-3, w + 2)
     y = p[..., 1].clamp((1 - h) / 2, 3 * (h - 1) / 2).clamp(-3, h + 2)
     x0, y0 = x.floor(), y.floor()
-    cx = x0.long()[..., None] + torch.tensor(_TAP_CELLS_X, device=p.device)
-    cy = y0.long()[..., None] + torch.tensor(_TAP_CELLS_Y, device=p.device)
+    cx = x0.long()[..., None] + _TAP_CELLS_X.to(p.device)
+    cy = y0.long()[..., None] + _TAP_CELLS_Y.to(p.device)
     rows = cy.clamp(0, h - 1) * w + cx.clamp(0, w - 1) + (torch.arange(b, device=p.device) * (h * w))[:, None, None]
     cells = maps.permute(0, 2, 3, 1).reshape(b * h * w, k).index_select(0, rows.reshape(-1))
     # zero padding: the cells outside the map are zeros (not the border cells their rows were clamped to,

@@ -143,14 +143,6 @@ class Camera(TensorWrapper):
         valid = z > self.eps
         return p3d[..., :-1] / z.clamp(min=self.eps)[..., None], valid
 
-    def J_project(self, p3d: Tensor) -> Tensor:
-        """(..., N, 2, 3) Jacobian of ``project``."""
-        x, y, z = p3d.unbind(-1)
-        z = z.clamp(min=self.eps)
-        o = torch.zeros_like(z)
-        J = torch.stack([1 / z, o, -x / z ** 2, o, 1 / z, -y / z ** 2], -1)
-        return J.reshape(p3d.shape[:-1] + (2, 3))
-
     @cached_property
     def _distortion_terms(self) -> tuple:
         """What the distortion model computes from the parameters alone (the radial models' validity
@@ -201,18 +193,14 @@ class Camera(TensorWrapper):
         return p2d, visible & valid_model & self.in_image(p2d)
 
     def cam2image_with_J(self, p3d: Tensor) -> Tuple[Tensor, Tensor, Tensor]:
-        """``cam2image`` and ``J_cam2image`` at once, as an LM linearization needs them: the projection
-        is shared, and the Jacobian is formed elementwise, J_distort times [I | -p] / z scaled by the
-        focal lengths, not as batched 2 x 2 by 2 x 3 matmuls. The same pixels and validity as
-        ``cam2image``, the same Jacobian to float rounding."""
-        z = p3d[..., -1]
-        visible = z > self.eps
-        z = z.clamp(min=self.eps)
-        p = p3d[..., :-1] / z[..., None]
+        """``cam2image`` and its Jacobian (..., N, 2, 3) at once, as an LM linearization needs them: the
+        projection is shared, and the Jacobian is formed elementwise, J_distort times [I | -p] / z
+        scaled by the focal lengths (the depth clamped as ``project`` clamps it)."""
+        p, visible = self.project(p3d)
         p_d, valid_model = self.distort(p)
         p2d = self.denormalize(p_d)
         valid = visible & valid_model & self.in_image(p2d)
-        scale = (self.f[..., None, :] / z[..., None])[..., None]  # (..., N, 2, 1): f / z per row
+        scale = (self.f[..., None, :] / p3d[..., -1:].clamp(min=self.eps))[..., None]  # (..., N, 2, 1): f / z per row
         if self.distortion == "none":
             J = torch.cat([torch.diag_embed(scale[..., 0]), -(scale * p[..., None])], -1)
         else:
@@ -222,10 +210,7 @@ class Camera(TensorWrapper):
 
     def J_cam2image(self, p3d: Tensor) -> Tensor:
         """(..., N, 2, 3) Jacobian of ``cam2image``."""
-        J = self.J_project(p3d)
-        if self.distortion != "none":
-            J = self.J_distort(self.project(p3d)[0]) @ J
-        return J * self.f[..., None, :, None]  # J_denormalize, a diagonal
+        return self.cam2image_with_J(p3d)[2]
 
     def image2cam(self, p2d: Tensor) -> Tensor:
         """Pixels (..., N, 2) -> camera-frame points on the plane z = 1, (..., N, 3)."""
