@@ -12,12 +12,13 @@ import pytest
 import torch
 
 from pipeline.localization.finest import POISON_ENV, FinestFill
+from pixloc.nets.unet import FinestMaps
 
 ROOT = Path(__file__).resolve().parents[1]
 # cells of the finest level not decoded hold NaN in every test, in this process and the workers it
 # starts: a read that bypassed the decoding fails there, where in a run it would read stale memory
 os.environ[POISON_ENV] = "1"
-FinestFill.poison = True
+FinestFill.poison = FinestMaps.poison = True
 
 # pytest-xdist's workers share the cores: one worker's torch (and the CLI processes it starts) gets
 # its share of them, not all of them each (2 workers x 2 threads on 2 cores ran 13 % slower), unless

@@ -1,14 +1,14 @@
 """The finest level's query maps decoded where the LM and verification read them.
 
-At 1,024 px the last decoder block, which only the finest level reads, is most of a query's network
-time, and the LM samples the finest map only near its points' projections: about a third of its
-8 x 8 px tiles over the CPU benchmark's queries. A query's pass therefore stops before that block
-(``pixloc.nets.unet.FinestMaps``), and ``FinestFill`` decodes the tiles around the points that a
-sampling of the maps is about to read (``FeaturemetricProblem.maps_at``), into the query-maps buffer
-of the level's LM batch. The values are those of the whole map to float rounding. Cells not decoded
-are left as allocated: writing NaN into them (``FinestFill.poison``, which the tests turn on to show
-that no read bypasses the fill) cost a query 35 ms per 90 MB map, most of it the first touch of pages
-that nothing else reads.
+At 1,024 px the decoder blocks that only the finest level reads (at strides 2 and 1) are most of a
+query's network time, and the LM samples the finest map only near its points' projections: about a third
+of its 8 x 8 px tiles over the CPU benchmark's queries. A query's pass therefore stops before those blocks
+(``pixloc.nets.unet.FinestMaps``, which decodes the map at stride 2 where the finest tiles read it), and
+``FinestFill`` decodes the tiles around the points that a sampling of the maps is about to read
+(``FeaturemetricProblem.maps_at``), into the query-maps buffer of the level's LM batch. The values are
+those of the whole map to float rounding. Cells not decoded are left as allocated: writing NaN into them
+(``FinestFill.poison``, which the tests turn on to show that no read bypasses the fill) cost a query 35 ms
+per 90 MB map, most of it the first touch of pages that nothing else reads.
 """
 
 import os
@@ -17,13 +17,12 @@ from typing import Dict, Optional, Tuple
 import torch
 from torch import Tensor
 
-from pixloc.nets.unet import TILE, FinestMaps
+from pixloc.nets.unet import POISON_ENV, TILE, FinestMaps, tile_cells
 
 # a first request for more than this fraction of a map's tiles decodes the whole map in one pass,
 # cheaper per pixel than tiles with their context (docs/benchmarks.md, "The CPU query")
 WHOLE_ABOVE = 0.5
 CHUNK = 1024  # tiles decoded in one network call
-POISON_ENV = "PIXLOC_POISON_UNDECODED"  # 1: cells not decoded hold NaN (FinestFill.poison)
 
 
 def write_level(maps: Tensor, features: Tensor, confidences: Optional[Tensor]) -> None:
@@ -41,10 +40,10 @@ def level_shape(pred: Dict, level: int) -> Tuple[int, ...]:
 
 
 def level_like(pred: Dict, level: int) -> Tensor:
-    """A tensor of a prediction's device and memory layout at ``level`` (``new_query_maps``; the map
-    before a deferred level's block is bfloat16 under ``bfloat16-fine``, its maps float32)."""
+    """A tensor of a prediction's device and memory layout at ``level`` (``new_query_maps``; for a deferred
+    level, the map before its deferred blocks)."""
     maps = pred["features"][level]
-    return maps if maps is not None else pred["finest"].previous
+    return maps if maps is not None else pred["finest"].source
 
 
 class Decoded:
@@ -57,7 +56,7 @@ class Decoded:
         _, C, H, W = finest.shape
         self.finest, self.size = finest, (H, W)
         self.slot = torch.full(finest.grid, -1, dtype=torch.long)  # per tile: its block of ``data``, or -1
-        self.data = torch.empty(0, TILE * TILE, C + 1, device=finest.previous.device)
+        self.data = torch.empty(0, TILE * TILE, C + 1, device=finest.source.device)
         self.tiles = 0
 
     @classmethod
@@ -109,13 +108,7 @@ class Decoded:
 def tile_pixels(ids: Tensor, across: int, H: int, W: int) -> Tuple[Tensor, Optional[Tensor]]:
     """The flat pixel indices (y W + x) of tiles ``ids`` (flat, ``across`` tiles a row), tile by tile
     in row order, and which of the tiles' TILE x TILE pixels lie inside the map (None: all of them)."""
-    span = torch.arange(TILE, device=ids.device)
-    ys = ((ids // across)[:, None] * TILE + span)[:, :, None].expand(-1, TILE, TILE).reshape(-1)
-    xs = ((ids % across)[:, None] * TILE + span)[:, None, :].expand(-1, TILE, TILE).reshape(-1)
-    if H % TILE or W % TILE:  # tiles overhanging the map's right and bottom edges
-        inside = (ys < H) & (xs < W)
-        return (ys * W + xs)[inside], inside
-    return ys * W + xs, None
+    return tile_cells(ids // across, ids % across, H, W)
 
 
 class FinestFill:

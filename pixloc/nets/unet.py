@@ -9,6 +9,7 @@ dicts load strictly.
 """
 
 import functools
+import os
 from typing import Dict, List, Optional, Sequence, Tuple
 
 import torch
@@ -55,7 +56,7 @@ class DecoderBlock(nn.Module):
 
     def __init__(self, previous: int, skip: int, out: int):
         super().__init__()
-        self.skip_channels = skip
+        self.skip_channels, self.out_channels = skip, out
         self.layers = nn.Sequential(
             nn.Conv2d(previous + skip, out, kernel_size=3, padding=1, bias=False),
             nn.BatchNorm2d(out), nn.ReLU(inplace=True))
@@ -179,9 +180,9 @@ class UNet(nn.Module):
         """``fine_dtype`` (e.g. torch.bfloat16, for inference): the ``fine_blocks`` in that precision
         (autocast), their map cast back to float32 for the finest level's heads; every coarser level's
         maps are exactly those of the float32 pass. ``defer_finest`` (inference, a network whose finest
-        level is at stride 1 with a decoder block of its own): the last decoder block is not run; the
-        finest level's entries are None and ``finest`` holds a ``FinestMaps`` that decodes it, whole or
-        in tiles where it is read."""
+        level is at stride 1 with a decoder block of its own): the ``fine_blocks``, which only the finest
+        level reads, are not run; the finest level's entries are None and ``finest`` holds a ``FinestMaps``
+        that decodes it, whole or in tiles where it is read."""
         if image.dim() != 4 or image.shape[1] != 3:
             raise ValueError(f"Expected images (B, 3, H, W), got {tuple(image.shape)}.")
         min_size = 2 ** (len(self.encoder) - 1)
@@ -198,7 +199,7 @@ class UNet(nn.Module):
             skips.append(x)
         pre, skips = [skips[-1]], skips[:-1][::-1]  # the decoder's skips, coarse to fine
         defer = defer_finest and self.can_defer_finest and not torch.is_grad_enabled()
-        decoder = self.decoder[:-1] if defer else self.decoder
+        decoder = self.decoder[:len(self.decoder) - self.fine_blocks] if defer else self.decoder
         exact = len(self.decoder) - (self.fine_blocks if fine_dtype is not None else 0)
         for block, skip in zip(decoder[:exact], skips):
             pre.append(run(block, pre[-1], skip))
@@ -209,8 +210,8 @@ class UNet(nn.Module):
                     fine.append(run(block, fine[-1], skip))
             pre += [x.float() if len(self.decoder) - exact - k in self.output_scales else x
                     for k, x in enumerate(fine[1:], 1)]
-        finest = FinestMaps(self, pre[-1], skips[-1], fine_dtype) if defer else None
-        pre = ([None] if finest else []) + pre[::-1]  # fine to coarse, index = log2 stride
+        finest = FinestMaps(self, pre[-1], skips[len(decoder):], fine_dtype) if defer else None
+        pre = [None] * (self.fine_blocks if finest else 0) + pre[::-1]  # fine to coarse, index = log2 stride
         out = {"features": [None if pre[i] is None else adapt(pre[i])
                             for adapt, i in zip(self.adaptation, self.output_scales)]}
         if self.compute_confidence:
@@ -228,26 +229,38 @@ class UNet(nn.Module):
 
 
 TILE = 8  # the side in pixels of the tiles in which ``FinestMaps`` decodes the finest level
+# the grid of tiles of the deferred maps before the finest starts this many cells above and left of the
+# map: a finest tile (ty, tx) reads rows and columns 4 t - 1 .. 4 t + 4 of the map before it, one such
+# tile for odd t and two for even t, where a grid at 0 needs two for every t (4 per finest tile, not 2.25)
+STAGE_ORIGIN = 2
+POISON_ENV = "PIXLOC_POISON_UNDECODED"  # 1: cells not decoded hold NaN (``FinestMaps.poison``, and the pipeline's)
 
 
 class FinestMaps:
     """The finest level of a UNet pass, decoded on demand (``UNet.forward(defer_finest=True)``): the
-    last decoder block (a 3 x 3 conv of the upsampled map before it and of the skip) and the level's
-    1 x 1 heads, over the whole map (``full``) or over TILE x TILE tiles (``tiles``) with the conv's
-    1 px of context around each. A tile's values are those of the whole map to float rounding, so the
-    LM can decode only the tiles it samples: at 1,024 px the block is most of a pass's time, and a
-    query's points fall in about a third of its tiles."""
+    decoder blocks that only it reads (``UNet.fine_blocks``: 3 x 3 convs of the upsampled map before
+    each and of its skip) and the level's 1 x 1 heads, over the whole map (``full``) or over TILE x TILE
+    tiles (``tiles``) with the convs' 1 px of context around each. A tile's values are those of the whole
+    map to float rounding, so the LM can decode only the tiles it samples: at 1,024 px the blocks at
+    strides 2 and 1 are most of a pass's time, and a query's points fall in about a third of the finest
+    level's tiles. The maps of the blocks before the last are decoded in tiles too, into a map each,
+    where a tile of the next block reads them (a third of the map at stride 2 at Cambridge settings): cells
+    not decoded are left as allocated (NaN with ``poison``, which the tests turn on)."""
 
-    def __init__(self, net: UNet, previous: Tensor, skip: Tensor, dtype: Optional[torch.dtype]):
-        self.block, self.dtype, self.memory_format = net.decoder[-1], dtype, net.memory_format
+    poison = os.environ.get(POISON_ENV) == "1"
+
+    def __init__(self, net: UNet, source: Tensor, skips: Sequence[Tensor], dtype: Optional[torch.dtype]):
+        self.blocks = list(net.decoder)[len(net.decoder) - len(skips):]
+        self.dtype, self.memory_format = dtype, net.memory_format
         level = list(net.output_scales).index(0)
         self.adapt = net.adaptation[level]
         self.uncertainty = net.uncertainty[level] if net.compute_confidence else None
-        self.previous = previous  # (1, C, h, w): the map before the last block
-        h, w = previous.shape[-2:]
-        self.skip = skip[..., :2 * h, :2 * w]
-        self.shape = (previous.shape[0], net.output_dims[level], 2 * h, 2 * w)
-        self.grid = (-(-2 * h // TILE), -(-2 * w // TILE))  # tiles down and across
+        self.source = source  # (1, C, h, w): the map before the first deferred block
+        h, w = source.shape[-2:]
+        self.skips = [skip[..., :h << j, :w << j] for j, skip in enumerate(skips, 1)]  # each block's, cropped
+        self.shape = (source.shape[0], net.output_dims[level]) + tuple(self.skips[-1].shape[-2:])
+        self.grid = _grid(self.shape[-2:])  # tiles down and across
+        self.stages: List[Optional[Tuple[Tensor, Tensor]]] = [None] * (len(skips) - 1)  # (map, tiles decoded)
         self.decoded = None  # what a caller decoded of it, kept with it (pipeline.localization.finest.Decoded)
 
     def _heads(self, x: Tensor) -> Tuple[Tensor, Optional[Tensor]]:
@@ -255,31 +268,40 @@ class FinestMaps:
         return self.adapt(x), None if self.uncertainty is None else torch.sigmoid(-self.uncertainty(x))
 
     def _autocast(self):
-        return torch.autocast(self.previous.device.type, dtype=self.dtype, enabled=self.dtype is not None)
+        return torch.autocast(self.source.device.type, dtype=self.dtype, enabled=self.dtype is not None)
 
     def full(self) -> Tuple[Tensor, Optional[Tensor]]:
         """The whole level: features (B, C, H, W) and confidences (B, 1, H, W) or None, as the
         undeferred pass gives them."""
+        x = self.source if self.dtype is None else self.source.to(self.dtype)
         with self._autocast():
-            x = self.block(self.previous, self.skip)
+            for block, skip in zip(self.blocks, self.skips):
+                x = block(x, skip)
         return self._heads(x)
 
     def tiles(self, ty: Tensor, tx: Tensor) -> Tuple[Tensor, Optional[Tensor]]:
         """Tiles (ty, tx) (n,) of the first map of the batch: features (n, C, TILE, TILE) and
         confidences (n, 1, TILE, TILE) or None; tiles that overhang the map's edge hold values there too
         (the caller drops them)."""
-        prev, skip = self.previous[0], self.skip[0]
-        ty, tx = ty.to(prev.device), tx.to(prev.device)
-        H, W = self.shape[-2:]
+        device = self.source.device
+        return self._heads(self._block_tiles(len(self.blocks) - 1, ty.to(device), tx.to(device)))
+
+    def _block_tiles(self, j: int, ty: Tensor, tx: Tensor, origin: int = 0) -> Tensor:
+        """Deferred block j's map at tiles (ty, tx) (n,) of a grid that starts ``origin`` (even) cells above
+        and left of the map: (n, C, TILE, TILE)."""
+        skip = self.skips[j][0]
+        H, W = skip.shape[-2:]
         h, w = H // 2, W // 2
-        y0, x0 = ty * TILE, tx * TILE
+        y0, x0 = ty * TILE - origin, tx * TILE - origin
         # the upsampled rows and columns y0 - 1 .. y0 + TILE (the conv's context) read the map before the
         # block at half-resolution rows y0 / 2 - 1 .. y0 / 2 + TILE / 2 (clamped at the map's edges, as
         # the upsampling clamps): the upsampling of that crop is the whole map's there, but for its first
         # and last rows and columns, which read past the crop
         span = torch.arange(TILE // 2 + 2, device=ty.device)
         hr, hc = ((y0 // 2 - 1)[:, None] + span).clamp(0, h - 1), ((x0 // 2 - 1)[:, None] + span).clamp(0, w - 1)
-        crop = _gather(prev, hr, hc)
+        crop = _gather(self._before(j, hr, hc), hr, hc)
+        if self.dtype is not None:  # the block's input in its precision, as the whole pass has it
+            crop = crop.to(self.dtype)
         with self._autocast():
             up = nn.functional.interpolate(crop, scale_factor=2, mode="bilinear", align_corners=False)
         up = up[..., 1:TILE + 3, 1:TILE + 3].contiguous(memory_format=self.memory_format)
@@ -287,15 +309,73 @@ class FinestMaps:
         rows, cols = y0[:, None] - 1 + span, x0[:, None] - 1 + span
         skips = _gather(skip, rows.clamp(0, H - 1), cols.clamp(0, W - 1)).contiguous(memory_format=self.memory_format)
         # the conv's zero padding: context outside the map is zero (tiles at the map's edges)
-        edge = torch.nonzero((y0 == 0) | (x0 == 0) | (y0 + TILE >= H) | (x0 + TILE >= W))[:, 0]
+        edge = torch.nonzero((y0 <= 0) | (x0 <= 0) | (y0 + TILE >= H) | (x0 + TILE >= W))[:, 0]
         if len(edge):
             outside = ~(((rows[edge] >= 0) & (rows[edge] < H))[:, :, None]
                         & ((cols[edge] >= 0) & (cols[edge] < W))[:, None, :])[:, None]
             up[edge] = up[edge].masked_fill(outside, 0)
             skips[edge] = skips[edge].masked_fill(outside, 0)
         with self._autocast():
-            x = self.block.unpadded(up, skips)
-        return self._heads(x)
+            return self.blocks[j].unpadded(up, skips)
+
+    def _before(self, j: int, rows: Tensor, cols: Tensor) -> Tensor:
+        """The map (C, h, w) before deferred block j, decoded at least at rows (n, R) x cols (n, K) (ranges
+        of at most TILE + 1 cells, inside the map) where it is a deferred block's own."""
+        if j == 0:
+            return self.source[0]
+        maps, done = self._stage(j - 1)
+        across = done.shape[1]
+        wanted = torch.zeros(done.numel(), dtype=torch.bool, device=done.device)
+        for y in ((rows[:, 0] + STAGE_ORIGIN) // TILE, (rows[:, -1] + STAGE_ORIGIN) // TILE):  # one or two tiles
+            for x in ((cols[:, 0] + STAGE_ORIGIN) // TILE, (cols[:, -1] + STAGE_ORIGIN) // TILE):
+                wanted[y * across + x] = True
+        ids = (wanted & ~done.view(-1)).nonzero()[:, 0]
+        if len(ids):
+            out = self._block_tiles(j - 1, ids // across, ids % across, STAGE_ORIGIN)
+            H, W = maps.shape[-2:]
+            pixels, inside = tile_cells(ids // across, ids % across, H, W, STAGE_ORIGIN)
+            values = out.permute(0, 2, 3, 1).reshape(-1, out.shape[1])
+            values = values if inside is None else values[inside]
+            cells = maps.permute(1, 2, 0)
+            if cells.is_contiguous():  # channels-last: a row per cell
+                cells.view(H * W, -1).index_copy_(0, pixels, values.to(maps.dtype))
+            else:
+                maps[:, pixels // W, pixels % W] = values.T.to(maps.dtype)
+            done.view(-1)[ids] = True
+        return maps
+
+    def _stage(self, j: int) -> Tuple[Tensor, Tensor]:
+        """Deferred block j's map (C, H, W), in the block's output precision and the network's layout, and
+        which of its tiles are decoded (the grid): made empty on first use."""
+        if self.stages[j] is None:
+            H, W = self.skips[j].shape[-2:]
+            shape = (H, W, self.blocks[j].out_channels)
+            dtype = self.source.dtype if self.dtype is None else self.dtype
+            maps = torch.full(shape, float("nan"), dtype=dtype, device=self.source.device) if self.poison \
+                else torch.empty(shape, dtype=dtype, device=self.source.device)
+            maps = maps.permute(2, 0, 1) if self.memory_format == torch.channels_last \
+                else maps.permute(2, 0, 1).contiguous()
+            grid = _grid((H + STAGE_ORIGIN, W + STAGE_ORIGIN))
+            self.stages[j] = (maps, torch.zeros(grid, dtype=torch.bool, device=self.source.device))
+        return self.stages[j]
+
+
+def _grid(size: Tuple[int, int]) -> Tuple[int, int]:
+    """The TILE x TILE tiles down and across a map of ``size`` (H, W), the last ones overhanging its edges."""
+    return -(-size[0] // TILE), -(-size[1] // TILE)
+
+
+def tile_cells(ty: Tensor, tx: Tensor, H: int, W: int, origin: int = 0) -> Tuple[Tensor, Optional[Tensor]]:
+    """The flat cell indices (y W + x) of tiles (ty, tx) (n,) of an (H, W) map, on a grid that starts
+    ``origin`` cells above and left of it, tile by tile in row order, and which of the tiles' TILE x TILE
+    cells lie inside the map (None: all of them)."""
+    span = torch.arange(TILE, device=ty.device) - origin
+    ys = (ty[:, None] * TILE + span)[:, :, None].expand(-1, TILE, TILE).reshape(-1)
+    xs = (tx[:, None] * TILE + span)[:, None, :].expand(-1, TILE, TILE).reshape(-1)
+    if origin or H % TILE or W % TILE:  # tiles overhanging the map's edges
+        inside = (ys >= 0) & (ys < H) & (xs >= 0) & (xs < W)
+        return (ys * W + xs)[inside], inside
+    return ys * W + xs, None
 
 
 def _gather(x: Tensor, rows: Tensor, cols: Tensor) -> Tensor:

@@ -35,7 +35,7 @@ def _problem(passes, deferred: bool, n=40):
     """Two queries' finest level as one batch, with n points each in front of an identity camera."""
     g = torch.Generator().manual_seed(1)
     full = torch.stack([exact["features"][0][0] for exact, _ in passes])
-    maps = new_query_maps(full.shape, passes[0][1]["finest"].previous)
+    maps = new_query_maps(full.shape, passes[0][1]["finest"].source)
     finest = {}
     for b, (exact, lazy) in enumerate(passes):
         if deferred:

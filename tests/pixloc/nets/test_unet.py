@@ -164,7 +164,7 @@ def test_the_prepared_network_runs_in_every_precision_on_any_cpu():
 @pytest.mark.parametrize("network", ["lite0", "lite0 prepared", "vgg16"])
 @pytest.mark.parametrize("fine_dtype", [None, torch.bfloat16])
 def test_the_deferred_finest_level_decodes_whole_or_in_tiles_to_the_same_maps(network, fine_dtype):
-    # UNet.forward(defer_finest=True) stops before the last decoder block; FinestMaps decodes the finest
+    # UNet.forward(defer_finest=True) stops before the fine blocks; FinestMaps decodes the finest
     # level whole (bit for bit the pass's) or in TILE x TILE tiles with their context (the same to float
     # rounding), at the map's edges too (zero padding); coarser levels unchanged
     from pixloc.nets.registry import load_refiner
@@ -194,6 +194,33 @@ def test_the_deferred_finest_level_decodes_whole_or_in_tiles_to_the_same_maps(ne
             tiled[order] = maps
             tiled = tiled.reshape(gy, gx, -1, TILE, TILE).permute(2, 0, 3, 1, 4).reshape(-1, gy * TILE, gx * TILE)
             torch.testing.assert_close(tiled[:, :H, :W], whole[0], atol=1e-5, rtol=0)
+
+
+def test_a_few_finest_tiles_decode_only_the_tiles_of_the_maps_before_them_that_they_read():
+    # the deferred block at stride 2 is decoded in tiles too, where a finest tile reads it: a few finest
+    # tiles decode a few of them, and read no cell left undecoded (NaN in the tests: FinestMaps.poison)
+    from pixloc.nets.registry import load_refiner
+    from pixloc.nets.unet import TILE, FinestMaps, prepare_for_inference
+    assert FinestMaps.poison
+    net = prepare_for_inference(load_refiner("pixloc-lite0").extractor.eval())
+    image = torch.rand(1, 3, 130, 203, generator=torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        deferred = net(image, defer_finest=True)
+        finest = deferred["finest"]
+        features, confidences = finest.full()
+        gy, gx = finest.grid
+        assert len(finest.stages) == 1 and finest.stages[0] is None
+        for ty, tx in (([0, 0], [0, 1]), ([gy - 1], [gx - 1]), ([gy // 2, gy // 2 + 1], [gx // 2, gx // 2])):
+            ty, tx = torch.tensor(ty), torch.tensor(tx)
+            f, c = finest.tiles(ty, tx)
+            for t, (y, x) in enumerate(zip(ty.tolist(), tx.tolist())):
+                h, w = min(TILE, features.shape[-2] - y * TILE), min(TILE, features.shape[-1] - x * TILE)
+                at = (slice(None), slice(y * TILE, y * TILE + h), slice(x * TILE, x * TILE + w))
+                torch.testing.assert_close(f[t, :, :h, :w], features[0][at], atol=1e-5, rtol=0)
+                torch.testing.assert_close(c[t, :, :h, :w], confidences[0][at], atol=1e-5, rtol=0)
+        maps, done = finest.stages[0]
+        assert 0 < int(done.sum()) <= 4 * 5 < done.numel() // 4  # at most 2 x 2 for each of the 5 finest tiles
+        assert bool(torch.isnan(maps).any())  # the rest is left undecoded
 
 
 def test_the_finest_level_is_computed_where_it_cannot_be_deferred():
