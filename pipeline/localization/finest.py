@@ -17,7 +17,7 @@ from typing import Dict, Optional, Tuple
 import torch
 from torch import Tensor
 
-from pixloc.nets.unet import POISON_ENV, TILE, FinestMaps, tile_cells
+from pixloc.nets.unet import POISON_ENV, TILE, FinestMaps, tile_cells, write_cells
 
 # a first request for more than this fraction of a map's tiles decodes the whole map in one pass,
 # cheaper per pixel than tiles with their context (docs/benchmarks.md, "The CPU query")
@@ -101,14 +101,8 @@ class Decoded:
         self.tiles = need
 
     def values(self, ids: Tensor) -> Tensor:
-        """The pixels of decoded tiles ``ids``, a row each, tile by tile in row order (``tile_pixels``)."""
+        """The pixels of decoded tiles ``ids``, a row each, tile by tile in row order (``tile_cells``)."""
         return self.data.index_select(0, self.slot.view(-1)[ids].to(self.data.device)).reshape(-1, self.data.shape[-1])
-
-
-def tile_pixels(ids: Tensor, across: int, H: int, W: int) -> Tuple[Tensor, Optional[Tensor]]:
-    """The flat pixel indices (y W + x) of tiles ``ids`` (flat, ``across`` tiles a row), tile by tile
-    in row order, and which of the tiles' TILE x TILE pixels lie inside the map (None: all of them)."""
-    return tile_cells(ids // across, ids % across, H, W)
 
 
 class FinestFill:
@@ -156,12 +150,8 @@ class FinestFill:
             return
         decoded = self.decoded[b]
         decoded.decode(ids)
-        pixels, inside = tile_pixels(ids, done.shape[1], H, W)
-        values = decoded.values(ids).to(self.maps.device)
-        values = values if inside is None else values[inside]
-        cells = self.maps[b].permute(1, 2, 0)
-        if cells.is_contiguous():  # channels-last: a row per cell
-            cells.view(H * W, -1).index_copy_(0, pixels.to(self.maps.device), values)
-        else:
-            self.maps[b][:, pixels // W, pixels % W] = values.T
+        across = done.shape[1]
+        pixels, inside = tile_cells(ids // across, ids % across, H, W)
+        values = decoded.values(ids)
+        write_cells(self.maps[b], pixels, values if inside is None else values[inside])
         done.view(-1)[ids] = True

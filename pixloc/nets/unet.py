@@ -335,12 +335,7 @@ class FinestMaps:
             H, W = maps.shape[-2:]
             pixels, inside = tile_cells(ids // across, ids % across, H, W, STAGE_ORIGIN)
             values = out.permute(0, 2, 3, 1).reshape(-1, out.shape[1])
-            values = values if inside is None else values[inside]
-            cells = maps.permute(1, 2, 0)
-            if cells.is_contiguous():  # channels-last: a row per cell
-                cells.view(H * W, -1).index_copy_(0, pixels, values.to(maps.dtype))
-            else:
-                maps[:, pixels // W, pixels % W] = values.T.to(maps.dtype)
+            write_cells(maps, pixels, values if inside is None else values[inside])
             done.view(-1)[ids] = True
         return maps
 
@@ -376,6 +371,17 @@ def tile_cells(ty: Tensor, tx: Tensor, H: int, W: int, origin: int = 0) -> Tuple
         inside = (ys >= 0) & (ys < H) & (xs >= 0) & (xs < W)
         return (ys * W + xs)[inside], inside
     return ys * W + xs, None
+
+
+def write_cells(maps: Tensor, cells: Tensor, values: Tensor) -> None:
+    """Write ``values`` (n, C) into the flat cells ``cells`` (n,) (y W + x) of ``maps`` (C, H, W), in place: a row
+    per cell where the map is channels-last."""
+    H, W = maps.shape[-2:]
+    rows = maps.permute(1, 2, 0)
+    if rows.is_contiguous():
+        rows.view(H * W, -1).index_copy_(0, cells.to(maps.device), values.to(maps.device, maps.dtype))
+    else:
+        maps[:, cells // W, cells % W] = values.T.to(maps.device, maps.dtype)
 
 
 def _gather(x: Tensor, rows: Tensor, cols: Tensor) -> Tensor:
