@@ -3,7 +3,7 @@
 Pixel coordinates have their origin at the centre of the top-left pixel.
 """
 
-from typing import Optional, Tuple
+from typing import Callable, Optional, Tuple
 
 import torch
 from torch import Tensor
@@ -176,15 +176,21 @@ class Interpolator:
     them on (docs/benchmarks.md, "RGB-D maps"). cell_products (with gradient maps): at inference, the
     LM reads maps of few cells through the inner products of their cells
     (``pixloc.optim.cost.CellProducts``, the same figures) instead of sampling them.
+    tap_reducer: a compiled implementation of ``reduce_taps`` (the same arguments and results, e.g.
+    ``pipeline.kernels.reduce_taps``), or None. Where it is set, the LM at inference on CPU reduces the
+    5 taps with it at every level of channels-last maps, in place of gradient maps and cell products
+    (``pixloc.optim.cost.use_compiled_taps``).
     """
 
-    def __init__(self, mode: str = "linear", pad: int = 2, gradient_maps: bool = False, cell_products: bool = True):
+    def __init__(self, mode: str = "linear", pad: int = 2, gradient_maps: bool = False, cell_products: bool = True,
+                 tap_reducer: Optional[Callable[[Tensor, Tensor, Tensor], Tuple[Tensor, ...]]] = None):
         if mode not in _MODES:
             raise ValueError(f"Unknown interpolation mode {mode!r}; known: {sorted(_MODES)}.")
         self.mode = mode
         self.pad = pad
         self.gradient_maps = gradient_maps and mode == "linear"
         self.cell_products = cell_products and self.gradient_maps
+        self.tap_reducer = tap_reducer if mode == "linear" else None
 
     def __call__(self, maps: Tensor, p2d: Tensor, gradients: bool = False
                  ) -> Tuple[Tensor, Tensor, Optional[Tensor]]:

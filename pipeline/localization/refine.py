@@ -25,6 +25,7 @@ from pixloc.optim.cost import new_query_maps
 from pixloc.nets.unet import NETWORK_PRECISIONS, UNet, predict_in_precision
 
 from pipeline.images import ImageReadError, read_image_for, resize_max, to_tensor
+from pipeline import kernels
 from pipeline.localization.finest import FinestFill, level_like, level_shape, write_level
 from pipeline.store.reader import MapReader, Observations, StoreReadError
 from pipeline.queries import QueryRecord
@@ -153,14 +154,17 @@ class Localizer:
     def __init__(self, net: UNet, solvers: Sequence[LevenbergMarquardt], reader: MapReader,
                  conf: LocalizerConfig, device: str = "cpu", levels: Optional[Sequence[int]] = None,
                  scales: Optional[Sequence[int]] = None, max_points: Optional[int] = None,
-                 finest_on_demand: bool = True):
+                 finest_on_demand: bool = True, compiled_kernels: bool = True):
         """levels: the levels to optimise, e.g. (0, 1) for the paper's refinement mode; default all.
         scales: the image scales of the store to run (e.g. (1,)); default all, coarse to fine.
         max_points: a seeded subset of at most this many points per query (the search's coarse
         screening: at stride 16 many points share a feature-map cell). finest_on_demand: on CPU, a
         query's finest level is decoded where it is sampled (``pipeline.localization.finest``; the same
         maps there to float rounding), except under whole-network bfloat16; False, or on a GPU (where the
-        pass is cheap and a tile request would wait for the device at every LM iteration): in the pass."""
+        pass is cheap and a tile request would wait for the device at every LM iteration): in the pass.
+        compiled_kernels: on CPU, the solvers reduce the LM's taps with the compiled kernel
+        (``pipeline.kernels``; the same figures to float rounding) where numba is there; False: their torch code.
+        (It is set on the solvers, which Localizers built on them share.)"""
         self.net, self.solvers, self.reader, self.conf, self.device = net, list(solvers), reader, conf, device
         self.max_points, self.finest_on_demand = max_points, finest_on_demand
         if levels is not None and not set(levels) <= set(range(len(net.strides))):
@@ -171,8 +175,11 @@ class Localizer:
         if missing:
             raise ValueError(f"Image scales {missing} are not in the store (it has {stored}).")
         self.scales = [k for k, s in enumerate(stored) if scales is None or s in scales]
+        reducer = kernels.reduce_taps if compiled_kernels and kernels.available() \
+            and torch.device(device).type == "cpu" else None
         for s in self.solvers:
             s.eval()
+            s.interpolator.tap_reducer = reducer
 
     def reference_features(self, obs: Observations, scale: int, stats: Optional[Dict] = None,
                            levels: Optional[Sequence[int]] = None):

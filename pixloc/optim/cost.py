@@ -221,10 +221,20 @@ CELL_PRODUCTS_MAX_CELLS = 256
 CELL_PRODUCTS_MAX_BYTES = 32 * 2**20
 
 
+def use_compiled_taps(problem: FeaturemetricProblem, interpolator: Interpolator) -> bool:
+    """Where the interpolator has a compiled ``reduce_taps`` (``Interpolator.tap_reducer``), at inference
+    on channels-last CPU maps: it serves every level, and neither gradient maps nor cell products are
+    built (one pass per point over the 12 cells that the taps read, against a dozen tensor ops per
+    iteration: docs/benchmarks.md, "The LM's taps in one compiled pass")."""
+    return interpolator.tap_reducer is not None and not torch.is_grad_enabled() \
+        and can_reduce_taps(problem.query_maps)
+
+
 def use_gradient_maps(problem: FeaturemetricProblem, interpolator: Interpolator) -> bool:
     H, W = problem.F_query.shape[-2:]  # (maps decoded on demand are sampled where they are decoded)
     return interpolator.gradient_maps and problem.fill is None \
-        and H * W <= GRADIENT_MAPS_MAX_CELLS_PER_POINT * problem.p3d_world.shape[1]
+        and H * W <= GRADIENT_MAPS_MAX_CELLS_PER_POINT * problem.p3d_world.shape[1] \
+        and not use_compiled_taps(problem, interpolator)
 
 
 def use_cell_products(problem: FeaturemetricProblem, interpolator: Interpolator) -> bool:
@@ -345,7 +355,7 @@ def linearize(cam_from_world: Pose, problem: FeaturemetricProblem,
         maps = problem.maps_at(p2d)
         H, W = maps.shape[-2:]
         valid = mask_in_image(p2d, p2d.new_tensor([W, H]), interpolator.pad)
-        sq, Jf_r, Jf_Jf, rest = reduce_taps(maps, p2d, problem.F_ref)
+        sq, Jf_r, Jf_Jf, rest = (interpolator.tap_reducer or reduce_taps)(maps, p2d, problem.F_ref)
         w_query = rest[..., 0] if problem.W_ref is not None else None
     else:
         if use_gradient_maps(problem, interpolator):  # one sampling of maps and gradient maps: the same gradients

@@ -10,7 +10,8 @@ from workflows.cli import main
 
 VARIANTS = ["today", "BatchNorm folded", "channels-last", "split convs, 1x1 by oneDNN", "freed memory reused",
             "cell products", "rival starts, every level", "rival starts, stopped where they join",
-            "finest level decoded where sampled, without rival starts", "finest level decoded where sampled (default)",
+            "finest level decoded where sampled, without rival starts", "finest level decoded where sampled",
+            "LM taps compiled, without rival starts", "LM taps compiled (default)",
             "bfloat16 network", "bfloat16 finest blocks", "bfloat16 finest blocks, without rival starts"]
 
 
@@ -77,11 +78,11 @@ def test_the_earlier_code_runs_the_same_query_in_its_own_process(shared, tmp_pat
         pytest.skip(f"commit {EARLIER} is not in this clone (a shallow one)")
     work = tmp_path / "query-cpu"
     assert main(["benchmark", "query-cpu", "--shared", str(shared), "--work", str(work), "--scenes", "kermit",
-                 "--limit", "1", "--variants", "finest level decoded where sampled (default)",
+                 "--limit", "1", "--variants", "LM taps compiled (default)",
                  "--earlier-code", EARLIER]) == 0
     earlier = json.loads((work / "rows.json").read_text())["earlier"]
     assert earlier["rev"] == EARLIER and earlier["cpu_s"] > 0
-    assert earlier["speedups"]["finest level decoded where sampled (default)"] > 0
+    assert earlier["speedups"]["LM taps compiled (default)"] > 0
     assert earlier["unmatched"] == 0 and earlier["max_dR"] < 0.05 and earlier["max_dt_pct"] < 0.05
     assert (work / f"code-{EARLIER}" / "pipeline").is_dir()  # its checkout, beside the maps it copied
 
@@ -94,7 +95,7 @@ def test_query_rate_batches_copies_of_the_queries_and_keeps_their_poses(rows, sh
     out = capsys.readouterr().out
     rate = json.loads((work / "rate.json").read_text())
     assert rate["queries"] == 3 and [r["batch"] for r in rate["rows"]] == [1, 3]
-    default = next(r for r in rows["rows"] if r["variant"] == "finest level decoded where sampled (default)")
+    default = next(r for r in rows["rows"] if r["variant"] == "LM taps compiled (default)")
     for r in rate["rows"]:
         assert r["queries_per_s"] > 0 and r["cpu_s"] > 0
         assert r["unmatched"] == 0 and r["max_dt_pct"] < 0.01 and r["max_dR"] < 0.01, r

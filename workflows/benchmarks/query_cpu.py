@@ -21,10 +21,13 @@ maps of few cells, the coarsest level at 256 px, through the inner products of t
 (verification's rival starts, ``--rivals 1``: the default since 2026-12-04; the rows above run without
 them, as the code did), ``rival starts, stopped where they join`` (the default from 2026-12-05: a rival
 stops at a coarser level where it has reached the query's start, ``--rival-join``), ``finest level decoded
-where sampled`` (the default since 2026-12-06, with and without the rival starts: the last decoder block runs
+where sampled`` (with and without the rival starts: the decoder blocks that only the finest level reads run
 only on the 8 x 8 px tiles that the LM and verification sample, ``pipeline.localization.finest``; the rows
-above decode the whole level in the network pass), ``bfloat16 network`` (``--network-precision bfloat16``:
-reduced precision, held to the same recall at every threshold, the whole level decoded), ``bfloat16 finest
+above decode the whole level in the network pass), ``LM taps compiled`` (the default since 2026-12-06, with and
+without the rival starts: the LM reduces the 5 bilinear taps of every level in one compiled pass per point,
+``pipeline.kernels``; the rows above run its torch code, gradient maps and cell products), ``bfloat16 network``
+(``--network-precision bfloat16``: reduced precision, held to the same recall at every threshold, the whole
+level decoded), ``bfloat16 finest
 blocks`` (``--network-precision bfloat16-fine``: only the decoder blocks that the finest level alone reads,
 the coarser levels exact, its tiles decoded where sampled), with and without the rival starts;
 with ``--compile``, ``torch.compile`` of the default network (inductor, dynamic shapes), in float32
@@ -81,6 +84,7 @@ class Variant:
     join: float = 0.5  # a rival stops where it joins the query's start (verification.join; 0: never)
     cells: bool = True  # the LM reads the coarsest maps through their cells' inner products (2026-12-05)
     tiles: bool = True  # the finest level decoded where it is sampled (pipeline.localization.finest, 2026-12-06)
+    kernels: bool = True  # the LM's taps reduced by the compiled kernel (pipeline.kernels, 2026-12-06)
 
 
 def _channels_last(net: nn.Module) -> nn.Module:
@@ -95,20 +99,24 @@ def _compiled(net: nn.Module) -> nn.Module:
     return torch.compile(_channels_last(net), dynamic=True)
 
 
-VARIANTS = [Variant("today", lambda net: net, keep_freed=False, cells=False, tiles=False),
-            Variant("BatchNorm folded", fold_batchnorm, keep_freed=False, cells=False, tiles=False),
-            Variant("channels-last", _channels_last, keep_freed=False, cells=False, tiles=False),
-            Variant("split convs, 1x1 by oneDNN", prepare_for_inference, keep_freed=False, cells=False, tiles=False),
-            Variant("freed memory reused", prepare_for_inference, cells=False, tiles=False),
-            Variant("cell products", prepare_for_inference, tiles=False),
-            Variant("rival starts, every level", prepare_for_inference, rivals=1, join=0.0, tiles=False),
-            Variant("rival starts, stopped where they join", prepare_for_inference, rivals=1, tiles=False),
-            Variant("finest level decoded where sampled, without rival starts", prepare_for_inference),
-            Variant("finest level decoded where sampled (default)", prepare_for_inference, rivals=1),
+VARIANTS = [Variant("today", lambda net: net, keep_freed=False, cells=False, tiles=False, kernels=False),
+            Variant("BatchNorm folded", fold_batchnorm, keep_freed=False, cells=False, tiles=False, kernels=False),
+            Variant("channels-last", _channels_last, keep_freed=False, cells=False, tiles=False, kernels=False),
+            Variant("split convs, 1x1 by oneDNN", prepare_for_inference, keep_freed=False, cells=False, tiles=False,
+                    kernels=False),
+            Variant("freed memory reused", prepare_for_inference, cells=False, tiles=False, kernels=False),
+            Variant("cell products", prepare_for_inference, tiles=False, kernels=False),
+            Variant("rival starts, every level", prepare_for_inference, rivals=1, join=0.0, tiles=False, kernels=False),
+            Variant("rival starts, stopped where they join", prepare_for_inference, rivals=1, tiles=False,
+                    kernels=False),
+            Variant("finest level decoded where sampled, without rival starts", prepare_for_inference, kernels=False),
+            Variant("finest level decoded where sampled", prepare_for_inference, rivals=1, kernels=False),
+            Variant("LM taps compiled, without rival starts", prepare_for_inference),
+            Variant("LM taps compiled (default)", prepare_for_inference, rivals=1),
             Variant("bfloat16 network", prepare_for_inference, precision="bfloat16", rivals=1),
             Variant("bfloat16 finest blocks", prepare_for_inference, precision="bfloat16-fine", rivals=1),
             Variant("bfloat16 finest blocks, without rival starts", prepare_for_inference, precision="bfloat16-fine")]
-DEFAULT_VARIANT = "finest level decoded where sampled (default)"
+DEFAULT_VARIANT = "LM taps compiled (default)"
 COMPILED = [Variant("torch.compile", _compiled, rivals=1),
             Variant("torch.compile, bfloat16", _compiled, precision="bfloat16", rivals=1)]
 
@@ -148,7 +156,8 @@ def _run(variant: Variant, refiner, parts, compile_s: Dict[str, float]) -> Dict:
     for name, store, queries, gt in parts:
         reader = MapReader(store, store_feature_config(store), refiner.feature_digest())
         job = LocalizationJob(str(store), reader.conf, DEFAULT_MODEL, conf, RetrievalConfig(k=5), prior="top1")
-        localizer = Localizer(net, solvers, reader, conf, finest_on_demand=variant.tiles)
+        localizer = Localizer(net, solvers, reader, conf, finest_on_demand=variant.tiles,
+                              compiled_kernels=variant.kernels)
         with torch_threads(1):
             if variant.name not in compile_s and variant in COMPILED:
                 t0 = time.perf_counter()
