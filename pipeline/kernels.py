@@ -1,4 +1,4 @@
-"""Compiled CPU kernels for the LM's inner loop at inference (numba).
+"""Compiled CPU kernels for the LM's inner loop at inference (numba): the taps and the normal equations.
 
 ``reduce_taps`` computes what ``pixloc.interpolation.reduce_taps`` does, the official 5-tap bilinear
 samples of channels-last query maps reduced against the reference features, in one pass per point:
@@ -9,8 +9,10 @@ each ran a dozen tensor ops per iteration: the LM's linearization was most of a 
 (docs/benchmarks.md, "The LM's taps in one compiled pass"). The same figures to float rounding
 (sums reassociated); the torch version stays the reference and the fallback.
 
-``pixloc`` stays pure torch: the kernel is handed to its solvers' interpolators
-(``Interpolator.tap_reducer``) by the localizer (``pipeline.localization.refine.Localizer``).
+``build_system`` forms the LM's normal equations from the per-point factors in one pass per point too.
+
+``pixloc`` stays pure torch: the kernels are handed to its solvers (``LevenbergMarquardt.system_builder``)
+and their interpolators (``Interpolator.tap_reducer``) by the localizer (``pipeline.localization.refine``).
 """
 
 import functools
@@ -22,6 +24,7 @@ import torch
 from torch import Tensor
 
 from pixloc.interpolation import can_reduce_taps, reduce_taps as torch_reduce_taps
+from pixloc.optim.cost import Linearization, build_system as torch_build_system
 
 logger = logging.getLogger(__name__)
 
@@ -29,9 +32,9 @@ DISABLE_ENV = "PIXLOC_NO_KERNELS"  # set to 1: the torch code everywhere (a comp
 
 
 @functools.lru_cache(maxsize=1)
-def _kernel() -> Optional[Callable]:
-    """The compiled kernel (its machine code is cached on disk by numba after the first process), or
-    None where numba is missing or turned off."""
+def _kernels() -> Optional[Tuple[Callable, Callable]]:
+    """The compiled kernels, ``reduce_taps``' and ``build_system``'s (their machine code is cached on disk
+    by numba after the first process), or None where numba is missing or turned off."""
     if os.environ.get(DISABLE_ENV, "") not in ("", "0"):
         return None
     try:
@@ -100,26 +103,64 @@ def _kernel() -> Optional[Callable]:
                 for k in range(C, K):
                     rest[b, n, k - C] = q0 * c1[k] + q1 * c2[k] + q2 * c5[k] + q3 * c6[k]
 
-    return reduce
+    @numba.njit(cache=True, nogil=True, fastmath={"reassoc", "contract", "nsz", "arcp"})
+    def system(J, weights, Jf_r, Jf_Jf, g, H):  # pragma: no cover (compiled)
+        B, N = weights.shape
+        for b in range(B):
+            acc_g = np.zeros(6)
+            acc_H = np.zeros((6, 6))
+            for n in range(N):
+                w = np.float64(weights[b, n])
+                r0, r1 = w * Jf_r[b, n, 0], w * Jf_r[b, n, 1]
+                A = Jf_Jf[b, n]
+                a00, a01, a10, a11 = w * A[0, 0], w * A[0, 1], w * A[1, 0], w * A[1, 1]
+                for i in range(6):
+                    j0, j1 = J[b, n, 0, i], J[b, n, 1, i]
+                    acc_g[i] += j0 * r0 + j1 * r1
+                    u0, u1 = j0 * a00 + j1 * a10, j0 * a01 + j1 * a11  # row i of J^T (w J_f^T J_f)
+                    for k in range(i, 6):
+                        acc_H[i, k] += u0 * J[b, n, 0, k] + u1 * J[b, n, 1, k]
+            for i in range(6):
+                g[b, i] = acc_g[i]
+                for k in range(i, 6):
+                    H[b, i, k] = H[b, k, i] = acc_H[i, k]
+
+    return reduce, system
 
 
 def available() -> bool:
     """Whether the compiled kernels are on (numba importable and not turned off by ``PIXLOC_NO_KERNELS``)."""
-    return _kernel() is not None
+    return _kernels() is not None
 
 
 def reduce_taps(maps: Tensor, p2d: Tensor, F_ref: Tensor) -> Tuple[Tensor, Tensor, Tensor, Tensor]:
     """``pixloc.interpolation.reduce_taps``, compiled: the same arguments and results. Float32 maps,
     points and features on CPU, maps channels-last (``can_reduce_taps``), no autograd; anything else
     goes to the torch version."""
-    kernel = _kernel()
-    if kernel is None or torch.is_grad_enabled() or not can_reduce_taps(maps) \
+    kernels = _kernels()
+    if kernels is None or torch.is_grad_enabled() or not can_reduce_taps(maps) \
             or not all(t.dtype == torch.float32 and t.device.type == "cpu" for t in (maps, p2d, F_ref)):
         return torch_reduce_taps(maps, p2d, F_ref)
     B, K, H, W = maps.shape
     N, C = p2d.shape[1], F_ref.shape[-1]
     sq, Jf_r = maps.new_empty((B, N)), maps.new_empty((B, N, 2))
     Jf_Jf, rest = maps.new_empty((B, N, 2, 2)), maps.new_empty((B, N, K - C))
-    kernel(maps.permute(0, 2, 3, 1).numpy(), p2d.contiguous().numpy(), F_ref.contiguous().numpy(),
+    kernels[0](maps.permute(0, 2, 3, 1).numpy(), p2d.contiguous().numpy(), F_ref.contiguous().numpy(),
            sq.numpy(), Jf_r.numpy(), Jf_Jf.numpy(), rest.numpy())
     return sq, Jf_r, Jf_Jf, rest
+
+
+def build_system(lin: Linearization, weights: Tensor) -> Tuple[Tensor, Tensor]:
+    """``pixloc.optim.cost.build_system``, compiled: g (B, 6) and H (B, 6, 6) from the Jacobian factors
+    of ``lin`` and the points' ``weights`` (B, N), in one pass per point, summed in float64 (the torch
+    version's products of tiny matrices and passes over (B, 2 N, 6) tensors cost an LM iteration at the
+    coarse levels as much as the taps did). Float32 on CPU without autograd; else the torch version."""
+    kernels = _kernels()
+    parts = (lin.J_p2d_pose, weights, lin.Jf_r, lin.Jf_Jf)
+    if kernels is None or torch.is_grad_enabled() \
+            or not all(t.dtype == torch.float32 and t.device.type == "cpu" for t in parts):
+        return torch_build_system(lin, weights)
+    B = weights.shape[0]
+    g, H = weights.new_empty((B, 6)), weights.new_empty((B, 6, 6))
+    kernels[1](*(t.contiguous().numpy() for t in parts), g.numpy(), H.numpy())
+    return g, H

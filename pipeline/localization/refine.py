@@ -162,8 +162,9 @@ class Localizer:
         query's finest level is decoded where it is sampled (``pipeline.localization.finest``; the same
         maps there to float rounding), except under whole-network bfloat16; False, or on a GPU (where the
         pass is cheap and a tile request would wait for the device at every LM iteration): in the pass.
-        compiled_kernels: on CPU, the solvers reduce the LM's taps with the compiled kernel
-        (``pipeline.kernels``; the same figures to float rounding) where numba is there; False: their torch code.
+        compiled_kernels: on CPU, the solvers reduce the LM's taps and form its normal equations with the
+        compiled kernels (``pipeline.kernels``; the same figures to float rounding) where numba is there;
+        False: their torch code.
         (It is set on the solvers, which Localizers built on them share.)"""
         self.net, self.solvers, self.reader, self.conf, self.device = net, list(solvers), reader, conf, device
         self.max_points, self.finest_on_demand = max_points, finest_on_demand
@@ -175,11 +176,11 @@ class Localizer:
         if missing:
             raise ValueError(f"Image scales {missing} are not in the store (it has {stored}).")
         self.scales = [k for k, s in enumerate(stored) if scales is None or s in scales]
-        reducer = kernels.reduce_taps if compiled_kernels and kernels.available() \
-            and torch.device(device).type == "cpu" else None
+        compiled = compiled_kernels and kernels.available() and torch.device(device).type == "cpu"
         for s in self.solvers:
             s.eval()
-            s.interpolator.tap_reducer = reducer
+            s.interpolator.tap_reducer = kernels.reduce_taps if compiled else None
+            s.system_builder = kernels.build_system if compiled else None
 
     def reference_features(self, obs: Observations, scale: int, stats: Optional[Dict] = None,
                            levels: Optional[Sequence[int]] = None):

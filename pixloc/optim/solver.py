@@ -6,7 +6,7 @@ are parts. It is differentiable end to end when unrolled in training mode.
 
 import logging
 from dataclasses import dataclass
-from typing import Optional
+from typing import Callable, Optional, Tuple
 
 import torch
 from torch import Tensor, nn
@@ -14,7 +14,7 @@ from torch import Tensor, nn
 from ..geometry import Pose
 from ..interpolation import Interpolator
 from ..losses import get_loss
-from .cost import FeaturemetricProblem, build_system, linearize, robust_weights, use_cell_products
+from .cost import FeaturemetricProblem, Linearization, build_system, linearize, robust_weights, use_cell_products
 from .damping import ConstantDamping
 
 logger = logging.getLogger(__name__)
@@ -105,6 +105,9 @@ class LevenbergMarquardt(nn.Module):
     ``gpu_chunk_points``, which only bounds memory: there, chunks run one after
     the other and would undo the batching.
 
+    system_builder: a compiled implementation of ``build_system`` (the same arguments and results, e.g.
+    ``pipeline.kernels.build_system``) for the normal equations at every iteration, or None.
+
     Unlike official PixLoc, which stops a batch only when all of it has
     converged, each problem is frozen at the check where it converges, so a
     batched solve gives the same poses as solving the problems one by one; from
@@ -115,7 +118,8 @@ class LevenbergMarquardt(nn.Module):
     def __init__(self, damping: Optional[nn.Module] = None, loss: str = "scaled_barron(0, 0.1)",
                  num_iters: int = 100, pad: int = 2, interpolation: str = "linear",
                  min_points: int = 10, stopping: StoppingRule = StoppingRule(),
-                 chunk_points: int = 16384, gpu_chunk_points: int = 1 << 21, gradient_maps: bool = True):
+                 chunk_points: int = 16384, gpu_chunk_points: int = 1 << 21, gradient_maps: bool = True,
+                 system_builder: Optional[Callable[[Linearization, Tensor], Tuple[Tensor, Tensor]]] = None):
         super().__init__()
         self.damping = damping if damping is not None else ConstantDamping(0.0)
         self.loss_spec = loss
@@ -126,6 +130,7 @@ class LevenbergMarquardt(nn.Module):
         self.stopping = stopping
         self.chunk_points = chunk_points
         self.gpu_chunk_points = gpu_chunk_points
+        self.system_builder = system_builder
 
     def _chunks(self, problem: FeaturemetricProblem, active: Optional[Tensor] = None):
         """(slice of the batch, sub-problem) pairs covering the ``active`` problems (default all):
@@ -157,7 +162,7 @@ class LevenbergMarquardt(nn.Module):
             lin = linearize(T[sl], part, self.interpolator)
             num_valid = lin.valid.sum(-1)
             rho, weights = robust_weights(lin, self.loss_fn)
-            g, H = build_system(lin, weights)
+            g, H = (self.system_builder or build_system)(lin, weights)
             conf = lin.confidence if lin.confidence is not None else lin.valid.to(rho.dtype)
             out.append((g, H, num_valid, (rho * conf).sum(-1) / num_valid.clamp(min=1)))
         return [torch.cat(x) for x in zip(*out)] if len(out) > 1 else out[0]

@@ -6,7 +6,8 @@ import torch
 from pipeline import kernels
 from pixloc.interpolation import reduce_taps
 from pixloc.optim import LevenbergMarquardt
-from pixloc.optim.cost import linearize, use_cell_products, use_compiled_taps, use_gradient_maps
+from pixloc.optim.cost import (Linearization, build_system, linearize, use_cell_products, use_compiled_taps,
+                               use_gradient_maps)
 
 from tests.pixloc.optim.test_cells import coarse_problem
 
@@ -45,8 +46,27 @@ def test_the_compiled_taps_give_the_torch_figures_at_any_point(seed):
         torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-5 * scale, msg=name)
 
 
+@needs_numba
+@pytest.mark.parametrize("seed", range(3))
+def test_the_compiled_normal_equations_give_the_torch_figures(seed):
+    """g and H from random Jacobian factors and weights (zeros among them, as invalid points have):
+    the torch figures to float rounding (the kernel sums in float64), H symmetric."""
+    g = torch.Generator().manual_seed(seed)
+    B, N = int(torch.randint(1, 4, (1,), generator=g)), int(torch.randint(1, 3000, (1,), generator=g))
+    A = torch.randn(B, N, 2, 2, generator=g)
+    lin = Linearization(None, None, None, torch.randn(B, N, 2, generator=g), A @ A.transpose(-1, -2),
+                        torch.randn(B, N, 2, 6, generator=g) * 10)
+    weights = torch.rand(B, N, generator=g) * (torch.rand(B, N, generator=g) > 0.3)
+    with torch.no_grad():
+        (g1, H1), (g0, H0) = kernels.build_system(lin, weights), build_system(lin, weights)
+    torch.testing.assert_close(g1, g0, rtol=1e-4, atol=1e-4 * float(g0.abs().max()))
+    torch.testing.assert_close(H1, H0, rtol=1e-4, atol=1e-4 * float(H0.abs().max()))
+    assert torch.equal(H1, H1.transpose(-1, -2))
+
+
 def test_anything_the_kernel_does_not_take_goes_to_the_torch_code():
-    """Float64, maps not channels-last, autograd: the torch figures, with their gradients."""
+    """Float64, maps not channels-last, autograd: the torch figures, with their gradients; the same for
+    the normal equations."""
     maps = torch.randn(1, 5, 6, 7, dtype=torch.float64).contiguous(memory_format=torch.channels_last)
     p, F = torch.rand(1, 20, 2, dtype=torch.float64) * 5, torch.randn(1, 20, 4, dtype=torch.float64)
     with torch.no_grad():
@@ -58,17 +78,23 @@ def test_anything_the_kernel_does_not_take_goes_to_the_torch_code():
     F32 = F.float().requires_grad_()
     kernels.reduce_taps(maps.float(), p.float(), F32)[0].sum().backward()
     assert F32.grad is not None and torch.isfinite(F32.grad).all()
+    lin = Linearization(None, None, None, torch.randn(1, 9, 2), torch.eye(2).expand(1, 9, 2, 2),
+                        torch.randn(1, 9, 2, 6, requires_grad=True))
+    g, H = kernels.build_system(lin, torch.rand(1, 9))
+    H.sum().backward()
+    assert lin.J_p2d_pose.grad is not None
 
 
 @needs_numba
 @pytest.mark.parametrize("H, W", [(10, 16), (40, 64)])
 def test_with_the_kernel_the_lm_reduces_taps_at_every_level_and_ends_at_the_same_poses(H, W):
     """With ``tap_reducer`` set, coarse levels (cell products before) and crowded ones (gradient maps)
-    reduce the taps in the kernel; the LM ends at the poses the torch code gives, to rounding."""
+    reduce the taps in the kernel; with ``system_builder`` too, the LM ends at the poses the torch code
+    gives, to rounding."""
     problem, T0 = coarse_problem(N=1500, C=128, H=H, W=W, dtype=torch.float32, basin=True)
     torch_lm = LevenbergMarquardt(interpolation="linear", gradient_maps=True).eval()
     compiled = LevenbergMarquardt(interpolation="linear", gradient_maps=True).eval()
-    compiled.interpolator.tap_reducer = kernels.reduce_taps
+    compiled.interpolator.tap_reducer, compiled.system_builder = kernels.reduce_taps, kernels.build_system
     with torch.no_grad():
         assert use_gradient_maps(problem, torch_lm.interpolator)
         assert not use_compiled_taps(problem, torch_lm.interpolator)
