@@ -6,8 +6,8 @@ the 12 cells it reads are walked once, channel by channel, and nothing is writte
 The torch version gathers those cells into a (B, N, 12, K) tensor and multiplies small matrices per
 point, and the samplers of gradient maps and cell products it replaced at crowded and coarse levels
 each ran a dozen tensor ops per iteration: the LM's linearization was most of a query's CPU time
-(docs/benchmarks.md, "The LM's taps in one compiled pass"). The same figures to float rounding
-(sums reassociated); the torch version stays the reference and the fallback.
+(docs/benchmarks.md, "The LM's taps and normal equations in one compiled pass per point"). The same
+figures to float rounding (sums reassociated); the torch version stays the reference and the fallback.
 
 ``build_system`` forms the LM's normal equations from the per-point factors in one pass per point too.
 

@@ -225,7 +225,7 @@ def use_compiled_taps(problem: FeaturemetricProblem, interpolator: Interpolator)
     """Where the interpolator has a compiled ``reduce_taps`` (``Interpolator.tap_reducer``), at inference
     on channels-last CPU maps: it serves every level, and neither gradient maps nor cell products are
     built (one pass per point over the 12 cells that the taps read, against a dozen tensor ops per
-    iteration: docs/benchmarks.md, "The LM's taps in one compiled pass")."""
+    iteration: docs/benchmarks.md, "The LM's taps and normal equations in one compiled pass per point")."""
     return interpolator.tap_reducer is not None and not torch.is_grad_enabled() \
         and can_reduce_taps(problem.query_maps)
 
