@@ -41,7 +41,7 @@ def _kernels() -> Optional[Tuple[Callable, Callable]]:
         import numba
         import numpy as np
     except ImportError as e:  # a dependency, but the torch code is complete without it
-        logger.warning("numba is not importable (%s): the LM runs its torch code, several times slower on CPU", e)
+        logger.warning("numba is not importable (%s): the LM runs its torch code (slower on CPU)", e)
         return None
 
     # reassociation (vector sums) and contraction (FMA), but NaN and infinities kept: a NaN point is sampled

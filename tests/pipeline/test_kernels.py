@@ -114,3 +114,16 @@ def test_with_the_kernel_the_lm_reduces_taps_at_every_level_and_ends_at_the_same
     assert float((got.pose @ T0.inv()).magnitude()[1].max()) > 1e-3  # it moved: the comparison is not vacuous
     with torch.enable_grad():  # a training unroll keeps the differentiable samplers
         assert not use_compiled_taps(problem, compiled.interpolator)
+
+
+def test_pixloc_no_kernels_turns_them_off():
+    """``PIXLOC_NO_KERNELS=1``: the torch code everywhere (a fresh process: the choice is made once)."""
+    import os
+    import subprocess
+    import sys
+    code = ("from pipeline import kernels; import torch; m = torch.rand(1, 3, 4, 4).contiguous(memory_format="
+            "torch.channels_last); torch.set_grad_enabled(False); "
+            "print(kernels.available(), kernels.reduce_taps(m, torch.rand(1, 5, 2) * 3, torch.rand(1, 5, 2))[0].shape)")
+    out = subprocess.run([sys.executable, "-c", code], env={**os.environ, kernels.DISABLE_ENV: "1"},
+                         capture_output=True, text=True, check=True).stdout.split()
+    assert out[0] == "False" and out[1] == "torch.Size([1,"
