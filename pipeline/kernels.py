@@ -133,13 +133,21 @@ def available() -> bool:
     return _kernels() is not None
 
 
+def _compiled(*tensors: Tensor) -> Optional[Tuple[Callable, Callable]]:
+    """The kernels, where they are on and take ``tensors``: float32 on CPU, without autograd; else None."""
+    kernels = _kernels()
+    if kernels is None or torch.is_grad_enabled() \
+            or not all(t.dtype == torch.float32 and t.device.type == "cpu" for t in tensors):
+        return None
+    return kernels
+
+
 def reduce_taps(maps: Tensor, p2d: Tensor, F_ref: Tensor) -> Tuple[Tensor, Tensor, Tensor, Tensor]:
     """``pixloc.interpolation.reduce_taps``, compiled: the same arguments and results. Float32 maps,
     points and features on CPU, maps channels-last (``can_reduce_taps``), no autograd; anything else
     goes to the torch version."""
-    kernels = _kernels()
-    if kernels is None or torch.is_grad_enabled() or not can_reduce_taps(maps) \
-            or not all(t.dtype == torch.float32 and t.device.type == "cpu" for t in (maps, p2d, F_ref)):
+    kernels = _compiled(maps, p2d, F_ref)
+    if kernels is None or not can_reduce_taps(maps):
         return torch_reduce_taps(maps, p2d, F_ref)
     B, K, H, W = maps.shape
     N, C = p2d.shape[1], F_ref.shape[-1]
@@ -155,10 +163,9 @@ def build_system(lin: Linearization, weights: Tensor) -> Tuple[Tensor, Tensor]:
     of ``lin`` and the points' ``weights`` (B, N), in one pass per point, summed in float64 (the torch
     version's products of tiny matrices and passes over (B, 2 N, 6) tensors cost an LM iteration at the
     coarse levels as much as the taps did). Float32 on CPU without autograd; else the torch version."""
-    kernels = _kernels()
     parts = (lin.J_p2d_pose, weights, lin.Jf_r, lin.Jf_Jf)
-    if kernels is None or torch.is_grad_enabled() \
-            or not all(t.dtype == torch.float32 and t.device.type == "cpu" for t in parts):
+    kernels = _compiled(*parts)
+    if kernels is None:
         return torch_build_system(lin, weights)
     B = weights.shape[0]
     g, H = weights.new_empty((B, 6)), weights.new_empty((B, 6, 6))
