@@ -14,7 +14,7 @@ from pipeline.store.layout import AnotherMap
 
 from . import executor, presets
 from .build_map import plan_build, prepare_structure, run_dask, run_sync
-from .locks import store_lock
+from .locks import store_lock, work_dir_lock
 from .options import Flag, add_flags, build, given
 from .sources import KINDS, POSED_FORMATS, MapSource, describe_source, load_scene
 
@@ -119,7 +119,7 @@ def main(args: argparse.Namespace) -> int:
               "  1 structure, 2 features: counted once the reconstruction exists\n(dry run: nothing computed or "
               "written)")
         return 0
-    with store_lock(store, work_dir):
+    with store_lock(store, work_dir), work_dir_lock(work_dir):
         from .logs import colmap_to_file, to_file
         log = to_file(work_dir / "build-map.log")
         colmap_to_file(work_dir)

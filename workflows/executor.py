@@ -7,6 +7,7 @@ tuples; nothing here knows about maps or queries.
 """
 
 import contextlib
+import json
 import logging
 import uuid
 from pathlib import Path
@@ -31,10 +32,17 @@ def dask_client(scheduler: Optional[str] = None, workers: int = 2, device: str =
     from distributed import Client, LocalCluster
     resources = task_resources(device)
     if scheduler:
-        is_file = scheduler.endswith(".json") and Path(scheduler).is_file()
-        with (Client(scheduler_file=scheduler, timeout=60) if is_file else Client(scheduler)) as client:
+        address = scheduler_address(scheduler)
+        with _connected(Client, address, scheduler) as client:
             check_resources(client, resources)
-            yield client
+            try:
+                yield client
+            except _lost_scheduler_errors() as e:
+                for noisy in ("distributed", "tornado", "asyncio"):  # its comm errors, said once below
+                    logging.getLogger(noisy).setLevel(logging.CRITICAL)
+                raise SchedulerError(f"--scheduler {scheduler}: the Dask scheduler at {address} went away during "
+                                     f"the run ({type(e).__name__}); finished work is kept: run the same command "
+                                     "again (with a scheduler) to resume") from None
         return
     if workers < 1:  # a cluster without workers would wait for ever
         raise ValueError(f"--workers must be at least 1, not {workers} (--sync runs in this process).")
@@ -58,6 +66,67 @@ def dask_client(scheduler: Optional[str] = None, workers: int = 2, device: str =
                 nanny.setLevel(logging.ERROR)
     finally:
         nanny.setLevel(level)
+
+
+SCHEDULER_TIMEOUT_S = 30.0  # to connect to a --scheduler (distributed's connect timeout): docs/cluster.md
+
+
+class SchedulerError(ValueError):
+    """A --scheduler that cannot be used, or that went away during a run: said in one line."""
+
+
+def _lost_scheduler_errors() -> tuple:
+    import asyncio
+    from concurrent.futures import CancelledError as FutureCancelled
+
+    from distributed.comm.core import CommClosedError
+    from distributed.client import FutureCancelledError
+    return (CommClosedError, asyncio.CancelledError, FutureCancelled, FutureCancelledError)
+
+
+@contextlib.contextmanager
+def _connected(Client, address: str, scheduler: str):
+    """A client of the scheduler at ``address``, connected within ``SCHEDULER_TIMEOUT_S``: distributed's
+    own timeout bounds the TCP connect, not an endpoint that accepts and never answers its handshake,
+    so the connection is made in a thread that is waited for that long (and left behind after)."""
+    import threading
+
+    box: Dict = {}
+
+    def connect():
+        try:
+            box["client"] = Client(address, timeout=SCHEDULER_TIMEOUT_S)
+        except BaseException as e:  # noqa: BLE001 - handed to the caller's thread
+            box["error"] = e
+    thread = threading.Thread(target=connect, name="pixloc-scheduler-connect", daemon=True)
+    thread.start()
+    thread.join(SCHEDULER_TIMEOUT_S + 5)
+    if "client" not in box:
+        e = box.get("error")
+        why = f"{type(e).__name__}: {str(e).splitlines()[0][:160]}" if e else "no answer to distributed's handshake"
+        raise SchedulerError(f"--scheduler {scheduler}: no Dask scheduler answered at {address} within "
+                             f"{SCHEDULER_TIMEOUT_S:g} s ({why})")
+    with box["client"] as client:
+        yield client
+
+
+def scheduler_address(scheduler: str) -> str:
+    """The address of ``--scheduler``: as given, or read from the scheduler file that ``dask scheduler
+    --scheduler-file`` wrote (a JSON object with an ``address``), checked here: distributed fails
+    on a damaged one with a bare AssertionError."""
+    path = Path(scheduler)
+    if "://" in scheduler and not path.is_file():
+        return scheduler
+    if not path.exists() and not scheduler.endswith(".json"):
+        return scheduler  # host:port
+    from pipeline.textfiles import read_json
+    info = read_json(path, "Dask scheduler file (--scheduler)")
+    address = info.get("address")
+    if not isinstance(address, str) or "://" not in address:
+        raise SchedulerError(f"{path}: Dask scheduler file (--scheduler) has no scheduler address (a string "
+                             f"like tcp://host:8786 under 'address'), got {json.dumps(address)[:60]}: is the "
+                             "scheduler running, and is this the file it wrote?")
+    return address
 
 
 def _interrupt_plugin():
@@ -90,8 +159,9 @@ def run_plan(plan, run_sync: Callable, run_dask: Callable, *, sync: bool, schedu
              workers: int = 2, device: str = "cpu"):
     """``run_sync(plan, progress=True)``, or ``run_dask(plan, client, progress=True)`` on a client of
     ``scheduler`` (or of a local cluster of ``workers``): what the commands do with a plan."""
-    if not scheduler:  # the work runs on this machine (a cluster of yours may have devices that this one has not)
-        check_device(device, "; use --device cpu, or run on a cluster whose workers have the GPU (--scheduler)")
+    # on this machine the device must be here; a cluster of yours may have devices that this one has not
+    check_device(device, "; use --device cpu, or run on a cluster whose workers have the GPU (--scheduler)",
+                 here=not scheduler)
     if sync:
         return run_sync(plan, progress=True)
     with dask_client(scheduler, workers, device) as client:
@@ -99,12 +169,18 @@ def run_plan(plan, run_sync: Callable, run_dask: Callable, *, sync: bool, schedu
         return run_dask(plan, client, progress=True)
 
 
-def check_device(device: str, fix: str = "") -> None:
-    """Refuse a torch device that this machine does not have (a CUDA device on a CPU build, or past
-    the last GPU), with ``fix`` appended: the work would fail one task at a time on torch's assertion."""
+def check_device(device: str, fix: str = "", here: bool = True) -> None:
+    """Refuse a device name that is none of cpu, cuda, cuda:N, and (``here``) a torch device that this
+    machine does not have (a CUDA device on a CPU build, or past the last GPU), with ``fix`` appended:
+    the work would fail one task at a time on torch's assertion."""
     import torch
-    dev = torch.device(device)
-    if dev.type == "cuda":
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, TypeError, ValueError):
+        dev = None
+    if dev is None or dev.type not in ("cpu", "cuda"):
+        raise ValueError(f"--device {device}: not a device this program runs on (cpu, cuda, or cuda:N).")
+    if dev.type == "cuda" and here:
         count = torch.cuda.device_count() if torch.cuda.is_available() else 0
         if (dev.index or 0) >= count:
             none = "" if count else " (no CUDA device is available to torch here: a CPU build, or no GPU)"

@@ -42,6 +42,7 @@ from pipeline.progress import count
 from pipeline.queries import QueryRecord
 from pipeline.regions import camera_centres, region_order
 from pipeline.store.feature_groups import feature_key
+from pipeline.store import location
 from pipeline.store.check import store_fingerprint
 from pipeline.store.layout import StoreError
 from pipeline.textfiles import InputError, read_json, write_atomic
@@ -208,6 +209,25 @@ def resolve_order(order: str, job: LocalizationJob, num_queries: int) -> str:
     return order
 
 
+def check_same_tag(job: LocalizationJob, queries: List[QueryRecord]) -> None:
+    """``--same-tag`` names a tag family that the map's images and the queries carry: one that no
+    map image or no query has would restrict nothing, or everything, while job.json and the report
+    claim the restriction."""
+    family = job.retrieval.same_tag
+    if not family:
+        return
+    from pipeline.store.layout import open_store, tag_families
+    in_map = tag_families(open_store(job.store))
+    without = [q.name for q in queries if family not in q.tags]
+    if family not in in_map or without:
+        known = ", ".join(sorted(in_map)) or "none"
+        where = (f"no map image has it (their tags: {known})" if family not in in_map else
+                 f"{len(without)} of the {len(queries)} queries have none ({', '.join(without[:3])}"
+                 f"{' ...' if len(without) > 3 else ''})")
+        raise ValueError(f"--same-tag {family}: {where}; leave it out, or name a tag that the queries and the map "
+                         "images carry.")
+
+
 def plan_localization(job: LocalizationJob, queries: List[QueryRecord], output, shard_size: Optional[int] = None, *,
                       workers: int = 2, keep_failures: bool = False, overwrite: bool = False,
                       order: str = "auto", allow_partial_map: bool = False) -> LocalizationPlan:
@@ -219,10 +239,18 @@ def plan_localization(job: LocalizationJob, queries: List[QueryRecord], output, 
     ``list``, ``region`` or ``auto`` (``resolve_order``)."""
     if not queries:
         raise ValueError("The query list is empty: nothing to localize.")
+    inside = location.enclosing_store(output)
+    if inside is not None:  # a rebuild (--overwrite) would erase the results; check-store would flag them
+        raise ValueError(f"--output {output} is inside the map store {inside}: choose a folder outside any store.")
     names = [q.name for q in queries]
     order = resolve_order(order, job, len(queries))
     stored = stored_job(Path(output), overwrite)
     store = store_fingerprint(job.store, feature_key(job.features))
+    check_same_tag(job, queries)
+    if job.retrieval.descriptors:  # checked once here, not by every query
+        from pipeline.localization.retrieval import check_descriptors
+        from pipeline.store.layout import open_store, read
+        check_descriptors(job.retrieval.descriptors, [str(n) for n in read(open_store(job.store), "images/name")])
     if store["pending"] is None:
         raise StoreError(f"{job.store} has no features for this configuration ({feature_key(job.features)}): "
                          "build them with pixloc build-map and the same feature settings.")

@@ -63,6 +63,15 @@ def store_lock(store, work_dir: Optional[Path] = None):
     return file_lock(path, f"{store} is being built by another pixloc build-map")
 
 
+def work_dir_lock(work_dir: Path):
+    """The lock a build takes on its work folder (``.pixloc.lock`` there): two builds of different
+    stores with one --work-dir would write one COLMAP database and reconstruction at once."""
+    work_dir = Path(work_dir)
+    work_dir.mkdir(parents=True, exist_ok=True)
+    return file_lock(work_dir / LOCK, f"the work folder {work_dir} is in use by another pixloc build-map "
+                                      "(give each build its own --work-dir)")
+
+
 def _alive(pid: int) -> bool:
     try:
         os.kill(pid, 0)

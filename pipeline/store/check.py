@@ -24,6 +24,7 @@ from pipeline.store.layout import (
     StoreError,
     check_feature_group,
     consolidated,
+    dense,
     image_row_arrays,
     missing_objects,
     open_store,
@@ -84,7 +85,7 @@ class StoreCheck:
         return "\n".join(lines)
 
 
-def _short(error: str, limit: int = 160) -> str:
+def _short(error: str, limit: int = 320) -> str:
     """A codec's error without the raw bytes it may quote."""
     error = error.splitlines()[0] if error else error
     if "checksum do not match" in error:  # zarr quotes both CRCs as raw bytes
@@ -93,9 +94,14 @@ def _short(error: str, limit: int = 160) -> str:
 
 
 def _arrays(group: zarr.Group, prefix: str = ""):
-    for name, array in sorted(group.arrays()):
+    import warnings
+
+    with warnings.catch_warnings():  # an entry that is not zarr's: a layout problem (``foreign_files``)
+        warnings.filterwarnings("ignore", message=".*not recognized as a component of a Zarr hierarchy")
+        arrays, groups = sorted(group.arrays()), sorted(group.groups())
+    for name, array in arrays:
         yield prefix + name, array
-    for name, sub in sorted(group.groups()):
+    for name, sub in groups:
         yield from _arrays(sub, prefix + name + "/")
 
 
@@ -112,6 +118,11 @@ def check_store(path, progress: Optional[Callable[[str], None]] = None) -> Store
         raise StoreError(f"{path}: the map's image arrays cannot be read ({type(e).__name__}: "
                          f"{str(e).splitlines()[0][:120]}): the store is damaged; rebuild it with build-map "
                          "--overwrite") from None
+    foreign = location.foreign_files(path)
+    if foreign:
+        out.problems.append(f"{len(foreign)}{'+' if len(foreign) >= 20 else ''} entries that no build wrote "
+                            f"({', '.join(foreign[:3])}{' ...' if len(foreign) > 3 else ''}): a store holds only "
+                            "its own files (build-map --overwrite refuses to erase them)")
     if "features" in root:
         for key, group in root["features"].groups():
             try:
@@ -123,7 +134,7 @@ def check_store(path, progress: Optional[Callable[[str], None]] = None) -> Store
     def images_of(array_name: str, first: int, last: int) -> List[str]:
         n = int(meta["num_rows"])
         if array_name.startswith(("observations/", "features/")) and array_name.split("/")[-1] not in (
-                "status", "reason", "global") and first < n:
+                "status", "reason", "global", "status_all", "global_all") and first < n:
             hit = (row_start < last) & (row_end > first)
             return [names[i] for i in np.flatnonzero(hit)]
         if first < len(names):
@@ -136,9 +147,17 @@ def check_store(path, progress: Optional[Callable[[str], None]] = None) -> Store
             progress(name)
         unit = array.shards or array.chunks  # a shard is one file: it is read (and reported) whole
         grid = [range(math.ceil(s / c)) for s, c in zip(array.shape, unit)]
+        # arrays whose every chunk holds data: an absent file would be read as fill values
+        absent = set(missing_objects(array, slice(0, array.shape[0]))) if dense(name) and array.shape[0] else set()
         for index in itertools.product(*grid):
             out.chunks += 1
             sl = tuple(slice(i * c, min((i + 1) * c, s)) for i, c, s in zip(index, unit, array.shape))
+            key = f"{name}/{array.metadata.encode_chunk_key(index)}"
+            if key in absent:
+                first, last = (sl[0].start, sl[0].stop) if sl else (0, 0)
+                out.bad.append(BadChunk(name, index, images_of(name, first, last),
+                                        f"missing: {key} is absent or not a file"))
+                continue
             try:
                 array[sl]
             except Exception as e:  # the codec's error names the problem  # noqa: BLE001

@@ -32,15 +32,24 @@ def dequantize_int8(codes: np.ndarray, scales: np.ndarray, dims: List[int]) -> L
 def fit_pca(samples: np.ndarray, components: int, max_rows: int = 50_000, seed: int = 0
             ) -> Tuple[np.ndarray, np.ndarray]:
     """Mean (C,) and the ``components`` leading principal directions (C, D), orthonormal columns, of
-    the rows of ``samples`` (N, C) (a seeded subset of at most ``max_rows``), float32."""
+    the rows of ``samples`` (N, C) (a seeded subset of at most ``max_rows``), float32. Fewer samples
+    than components (a small map at a low resolution: every pixel of its coarsest maps) span fewer
+    directions: those come first, and a fixed orthonormal completion fills the rest, so that the
+    samples are kept exactly and the stored width is the configured one."""
     x = np.asarray(samples, np.float64)
-    if len(x) < components:
-        raise ValueError(f"A PCA of {components} components needs at least as many samples, not {len(x)}.")
+    if not len(x) or components > x.shape[1]:
+        raise ValueError(f"A PCA of {components} components of {x.shape[1]} channels cannot be fitted on "
+                         f"{len(x)} samples.")
     if len(x) > max_rows:
         x = x[np.sort(np.random.default_rng(seed).choice(len(x), max_rows, replace=False))]
     mean = x.mean(0)
-    _, _, vt = np.linalg.svd(x - mean, full_matrices=False)
-    return mean.astype(np.float32), np.ascontiguousarray(vt[:components].T).astype(np.float32)
+    _, sv, vt = np.linalg.svd(x - mean, full_matrices=False)
+    directions = vt[:components].T
+    if directions.shape[1] < components:  # complete with the axes, orthogonalised (QR keeps the first columns' span)
+        q, _ = np.linalg.qr(np.concatenate([directions, np.eye(x.shape[1])], 1))
+        directions = q[:, :components] * np.sign(np.sum(q[:, :directions.shape[1]] * directions, 0).tolist()
+                                                 + [1.0] * (components - directions.shape[1]))
+    return mean.astype(np.float32), np.ascontiguousarray(directions).astype(np.float32)
 
 
 def project(features: np.ndarray, basis: Tuple[np.ndarray, np.ndarray]) -> np.ndarray:

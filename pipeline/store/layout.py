@@ -35,6 +35,7 @@ with the attributes) before anything is read, and ``check_feature_group`` a feat
 by ``pipeline.store.feature_groups``.
 """
 
+import contextlib
 import json
 from pathlib import Path
 from typing import Dict, List, Optional
@@ -82,6 +83,11 @@ def refuse_foreign(path, found: "location.Contents") -> None:
         raise StoreError(f"{path} is not a PixLoc map store (it holds {', '.join(sorted(found.entries)[:4])}"
                          f"{' ...' if len(found.entries) > 4 else ''}): --overwrite only replaces a map store; "
                          "choose another --store.")
+    foreign = location.foreign_files(path)
+    if foreign:  # erased with the store otherwise: a localization output, a user's notes
+        raise StoreError(f"{path} holds {len(foreign)}{'+' if len(foreign) >= 20 else ''} entries that no build "
+                         f"wrote ({', '.join(foreign[:3])}{' ...' if len(foreign) > 3 else ''}): --overwrite would "
+                         "erase them with the store; move or remove them first.")
 
 
 def default_shard_rows(num_obs: np.ndarray, chunk_rows: int, max_chunks: int = 64) -> int:
@@ -201,7 +207,21 @@ def read(group: zarr.Group, name: str, meta: Optional[Dict] = None) -> np.ndarra
     """Array ``name`` of ``group`` up to its committed length (``count``); ``meta``: the map
     attributes (default: those of ``group``, the root)."""
     meta = meta if meta is not None else group.attrs["pixloc_map"]
-    return group[name][:count(meta, name)]
+    array, n = group[name], count(meta, name)
+    if n and dense(array.path):  # every chunk holds data: an absent one is never read as fill values
+        missing = missing_objects(array, slice(0, n))
+        if missing:
+            raise StoreReadError(f"array {array.path}: {len(missing)} of its files are missing or not files "
+                                 f"({missing[0]}): a damaged store; run pixloc check-store")
+    return array[:n]
+
+
+def dense(path: str) -> bool:
+    """Whether every chunk of the array at ``path`` holds data: the map's structure, written whole
+    (``images/``, ``points/``), and a feature group's one-chunk copies and PCA bases. Per-row arrays
+    (padding) and per-image arrays (pending images) have chunks that are never written."""
+    last = path.rsplit("/", 1)[-1]
+    return path.startswith(("images/", "points/")) or last in ("status_all", "global_all") or last.startswith("pca_")
 
 
 def extend_store(root: zarr.Group, scene: Scene) -> List[int]:
@@ -353,8 +373,9 @@ def consolidate(root: zarr.Group, group: zarr.Group) -> None:
     for name, values in (("status_all", status), ("global_all", descriptors)):
         if name in group:
             del group[name]
-        new_array(group, name, values.shape, values.shape if len(values) else (1,) + values.shape[1:],
-               values.dtype)[...] = values
+        array = new_array(group, name, values.shape, values.shape if len(values) else (1,) + values.shape[1:],
+                          values.dtype)
+        array.with_config({"write_empty_chunks": True})[...] = values  # dense: read back only if on disk
     group.attrs["consolidated"] = {"num_images": I}
 
 
@@ -367,12 +388,15 @@ def open_store(path, mode: str = "r") -> zarr.Group:
     """Open a map store (a folder or a URL, ``pipeline.store.location``) after checking its layout
     (``check_layout``); a bad one is refused with a StoreError that says what is wrong."""
     try:
-        return _checked_root(location.zarr_store(path, read_only=mode == "r", must_exist=True), path, mode)
+        with location.waiting_note(path, "the map's metadata") if location.is_url(path) else contextlib.nullcontext():
+            return _checked_root(location.zarr_store(path, read_only=mode == "r", must_exist=True), path, mode)
     except location.MissingStore:
         raise StoreError(f"Map store {path} does not exist.") from None
     except (OSError, ValueError) as e:  # a URL that cannot be reached, bad storage options
         if isinstance(e, StoreError):
             raise
+        if isinstance(e, location.StoreLocationError):  # names the store and what to do already
+            raise StoreError(str(e)) from None
         raise StoreError(f"Map store {path} cannot be reached: {type(e).__name__}: {e}") from None
 
 
@@ -384,6 +408,12 @@ def _checked_root(store, path, mode: str) -> zarr.Group:
         raise StoreError(f"{path} is not a readable zarr group: {type(e).__name__}: {e}") from None
     if not meta:
         raise StoreError(f"{path} is not a PixLoc map store.")
+    if not isinstance(meta, dict):
+        raise StoreError(f"{path}: its map attributes (pixloc_map in zarr.json) are a {type(meta).__name__}, not "
+                         "an object (a damaged store).")
+    if type(meta.get("version")) is not int:
+        raise StoreError(f"{path}: its map-store version is {json.dumps(meta.get('version'))}, not a whole number "
+                         "(a damaged zarr.json).")
     if meta.get("version") != VERSION:
         raise StoreError(f"{path} has map-store version {meta.get('version')}; this code reads version {VERSION} "
                          "(version 2 added chunk checksums, version 3 one file per image and array, and int8 "
@@ -403,6 +433,8 @@ def _expected_arrays(meta: Dict) -> Dict[str, tuple]:
 def get_array(group: zarr.Group, name: str, path) -> zarr.Array:
     try:
         return group[name]
+    except location.StoreObjectError as e:  # names the file and what is wrong with it
+        raise StoreError(str(e)) from None
     except Exception:  # missing, or metadata that does not parse  # noqa: BLE001
         prefix = f"{group.path}/" if group.path else ""
         raise StoreError(f"{path}: array {prefix}{name} is missing or its metadata is unreadable "
@@ -414,18 +446,35 @@ def check_layout(root: zarr.Group, path) -> None:
     shape that disagrees, absurd sizes), before any large read or allocation."""
     meta = root.attrs["pixloc_map"]
     keys = ("chunk_rows", "shard_rows", "num_images", "num_points", "num_observations", "num_rows")
-    if not all(isinstance(meta.get(k), int) and meta[k] >= 0 for k in keys):
-        raise StoreError(f"{path}: map attributes {({k: meta.get(k) for k in keys})} must be counts (integers >= 0).")
+    bad = {k: meta.get(k) for k in keys if type(meta.get(k)) is not int or meta[k] < 0}  # bool is no count
+    if bad:
+        raise StoreError(f"{path}: map attributes {json.dumps(bad)} must be counts (whole numbers >= 0): a damaged "
+                         "zarr.json.")
+    if "scene_observations" in meta and (type(meta["scene_observations"]) is not int
+                                         or meta["scene_observations"] < meta["num_observations"]):
+        raise StoreError(f"{path}: map attribute scene_observations {json.dumps(meta['scene_observations'])} must "
+                         f"be a count of at least num_observations ({meta['num_observations']}).")
+    if not isinstance(meta.get("source", {}), dict):
+        raise StoreError(f"{path}: map attribute source must be an object, not {json.dumps(meta['source'])[:40]}.")
     I, R, chunk, shard = meta["num_images"], meta["num_rows"], meta["chunk_rows"], meta["shard_rows"]  # noqa: E741
     if (chunk < 1 or shard < chunk or shard % chunk
             or not meta["num_observations"] <= R <= meta["num_observations"] + max(I, 1) * shard):
         raise StoreError(f"{path}: {R} rows for {meta['num_observations']} observations of {I} images in shards "
                          f"of {shard} rows (chunks of {chunk}): the attributes contradict each other "
                          "(a damaged store?).")
+    longer = []
     for name, shape in _expected_arrays(meta).items():
         array = get_array(root, name, path)
         if tuple(array.shape[1:]) != shape[1:] or array.shape[0] < shape[0]:  # longer: an add was interrupted
             raise StoreError(f"{path}: array {name} has shape {tuple(array.shape)}, the map attributes say {shape}.")
+        if array.shape[0] > shape[0]:
+            longer.append((name, array.shape[0], shape[0]))
+    # an interrupted add (``extend_store``) lengthens the image arrays first: points or rows beyond
+    # the committed counts with no image beyond them are a count that was changed, not an add
+    if longer and not any(name.startswith("images/") for name, _, _ in longer):
+        name, stored, said = next(x for x in longer if not x[0].startswith("images/"))
+        raise StoreError(f"{path}: array {name} holds {stored} rows but the map attributes count {said} (and no "
+                         "image is being added): the attributes contradict the arrays (a damaged zarr.json).")
         if not name.startswith("observations/"):  # the map's structure: every chunk holds data
             missing = missing_objects(array, slice(0, shape[0])) if shape[0] else []
             if missing:
@@ -488,6 +537,15 @@ def image_records(root: zarr.Group) -> List[ImageRecord]:
                         np.concatenate([t[:9].reshape(3, 3), t[9:, None]], 1), json.loads(str(g)))
             for n, p, c, g, t in zip(read(root, "images/name", meta), read(root, "images/path", meta),
                                      read(root, "images/camera", meta), read(root, "images/tags", meta), T)]
+
+
+def tag_families(root: zarr.Group) -> Dict[str, int]:
+    """{tag family: how many map images carry it} (``images/tags``)."""
+    counts: Dict[str, int] = {}
+    for text in read(root, "images/tags"):
+        for family in json.loads(str(text)):
+            counts[family] = counts.get(family, 0) + 1
+    return counts
 
 
 def image_rows(root: zarr.Group, i: int) -> slice:

@@ -14,14 +14,19 @@ environment, see docs/cluster.md).
 
 import contextlib
 import json
+import logging
 import os
+import re
+import stat
+import threading
 from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Dict, FrozenSet, Optional, Tuple, Union
+from typing import Any, Dict, FrozenSet, List, Optional, Tuple, Union
 
-from zarr.storage import WrapperStore
+from zarr.storage import LocalStore, WrapperStore
 
+logger = logging.getLogger(__name__)
 STORAGE_OPTIONS_ENV = "PIXLOC_STORAGE_OPTIONS"
 # fsspec caches directory listings per process; a store that other processes write (build
 # workers, a build while localizing) must be listed afresh
@@ -29,6 +34,32 @@ _FRESH = {"s3": {"use_listings_cache": False}, "gs": {"cache_timeout": 0}}
 # s3fs asks an object's size (a HEAD, one more round trip) before reading it whole, to split a large
 # one into concurrent parts; a store's objects are a few MiB
 _WHOLE = {"s3": {"max_concurrency": 1}}
+# An endpoint that accepts connections and never answers stops a command within these bounds, not
+# botocore's 60 s read timeout times its and s3fs's retries (7 minutes): connect within 10 s, each
+# read within 20 s, two attempts of a request, so about 45 s (docs/cluster.md). ``--storage-options``
+# overrides them, e.g. '{"config_kwargs": {"read_timeout": 120}}'.
+TIMEOUTS = {"s3": {"config_kwargs": {"connect_timeout": 10, "read_timeout": 20,
+                                     "retries": {"total_max_attempts": 2, "mode": "standard"}}}}
+WAIT_NOTE_S = 5.0  # a remote call still waiting after this long is said, with what it waits for
+
+
+def _options(protocol: str, *layers: Dict[str, Any]) -> Dict[str, Any]:
+    """fsspec storage options: ``TIMEOUTS`` of the protocol, then ``layers``, then the user's
+    (``storage_options``); ``config_kwargs`` merged key by key, so that a user's read timeout keeps
+    the default connect timeout."""
+    out: Dict[str, Any] = {}
+    for layer in (TIMEOUTS.get(protocol, {}), *layers, storage_options()):
+        for key, value in layer.items():
+            out[key] = {**out[key], **value} if isinstance(value, dict) and isinstance(out.get(key), dict) else value
+    return out
+
+
+def _bounded(fs) -> None:
+    """s3fs retries a timed-out request 5 times on top of botocore's own retries: once here."""
+    protocols = fs.protocol if isinstance(fs.protocol, (tuple, list)) else (fs.protocol,)
+    if "s3" in protocols:
+        fs.retries = 1
+
 
 StoreName = Union[str, Path]
 
@@ -39,6 +70,151 @@ class StoreLocationError(ValueError):
 
 class MissingStore(FileNotFoundError):
     """Nothing is stored under the name."""
+
+
+class StoreObjectError(ValueError):
+    """An object of a store that cannot be what it should be, named: an entry of a local store that
+    is not a regular file (a symlink to a device, a FIFO, a socket), one of implausible size, or
+    metadata (``zarr.json``) that is not JSON."""
+
+
+# The largest object read whole: a store's objects are shards of one image's rows, single chunks
+# and metadata (docs/map_store.md), a few MiB each; the largest, a consolidated copy of every
+# image's global descriptor, is 27 MB at 6,697 images. A larger one is damage, not data.
+MAX_OBJECT_BYTES = 2**31
+MAX_METADATA_BYTES = 64 * 2**20
+
+
+def _checked_metadata(where: str, key: str, data):
+    """``data`` (a zarr Buffer or bytes) of object ``key``; a ``zarr.json`` that is too large or not
+    JSON is a StoreObjectError naming it, never zarr's bare "Expecting value"."""
+    if data is None or not key.endswith("zarr.json"):
+        return data
+    raw = data.to_bytes() if hasattr(data, "to_bytes") else bytes(data)
+    if len(raw) > MAX_METADATA_BYTES:
+        raise StoreObjectError(f"{where}/{key}: {len(raw)} bytes of metadata (at most {MAX_METADATA_BYTES}): "
+                               "not a store's zarr.json (damaged?); run pixloc check-store")
+    try:
+        value = json.loads(raw)
+    except (UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise StoreObjectError(f"{where}/{key}: metadata that is not JSON ({e}): truncated or damaged; rebuild "
+                               "the store (build-map --overwrite), or restore the file") from None
+    if not isinstance(value, dict):
+        raise StoreObjectError(f"{where}/{key}: metadata is a JSON {type(value).__name__}, not an object: "
+                               "damaged; rebuild the store (build-map --overwrite)")
+    return data
+
+
+def _read_file(path: Path, byte_range=None) -> Optional[bytes]:
+    """The bytes of store file ``path`` (``byte_range``: a zarr ByteRequest), None if it is absent.
+    Anything but a regular file is refused before a byte is read, and opened so that nothing blocks:
+    a symlink to /dev/zero would be read without end, a FIFO would wait for a writer forever."""
+    from zarr.abc.store import OffsetByteRequest, RangeByteRequest, SuffixByteRequest
+
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
+    except (FileNotFoundError, NotADirectoryError):
+        return None
+    except OSError as e:  # a symlink loop, no permission, a socket (ENXIO)
+        raise StoreObjectError(f"{path}: cannot be opened ({e.strerror or e}); run pixloc check-store") from None
+    info = os.fstat(fd)
+    if not stat.S_ISREG(info.st_mode):  # checked before fdopen, which refuses a folder with its own error
+        os.close(fd)
+        kind = {stat.S_ISCHR: "a character device", stat.S_ISBLK: "a block device", stat.S_ISFIFO: "a FIFO",
+                stat.S_ISSOCK: "a socket", stat.S_ISDIR: "a folder"}
+        what = next((name for test, name in kind.items() if test(info.st_mode)), "not a regular file")
+        link = f" (a symlink to {os.readlink(path)})" if path.is_symlink() else ""
+        raise StoreObjectError(f"{path}: {what}{link}, not a regular file: a store holds only files it wrote; "
+                               "run pixloc check-store")
+    with os.fdopen(fd, "rb") as f:
+        size = info.st_size
+        if isinstance(byte_range, RangeByteRequest):
+            start, stop = byte_range.start, min(byte_range.end, size)
+        elif isinstance(byte_range, OffsetByteRequest):
+            start, stop = byte_range.offset, size
+        elif isinstance(byte_range, SuffixByteRequest):
+            start, stop = max(0, size - byte_range.suffix), size
+        elif byte_range is None:
+            start, stop = 0, size
+        else:
+            raise TypeError(f"unexpected byte range {byte_range!r}")
+        if stop - start > MAX_OBJECT_BYTES:
+            raise StoreObjectError(f"{path}: {size} bytes, more than any object of a map store "
+                                   f"({MAX_OBJECT_BYTES}): damaged; run pixloc check-store")
+        f.seek(start)
+        return f.read(max(stop - start, 0))
+
+
+def _regular_size(path: Path) -> Optional[int]:
+    """The size of ``path`` if it is a regular file (a symlink to one too), else None."""
+    try:
+        info = path.stat()
+    except OSError:  # absent, a symlink loop, no permission: no file to read
+        return None
+    return info.st_size if stat.S_ISREG(info.st_mode) else None
+
+
+class LocalObjects(LocalStore):
+    """A local store whose every read goes through ``_read_file`` (regular files of plausible size,
+    never blocking) and ``_checked_metadata``: what ``zarr_store`` opens for a folder, for the
+    build, the check, the repair and localization alike."""
+
+    async def get(self, key, prototype=None, byte_range=None):
+        import asyncio
+
+        from zarr.core.buffer import default_buffer_prototype
+
+        if not self._is_open:
+            await self._open()
+        prototype = prototype or default_buffer_prototype()
+        data = await asyncio.to_thread(_read_file, self.root / key, byte_range)
+        return None if data is None else _checked_metadata(str(self.root), key, prototype.buffer.from_bytes(data))
+
+    async def get_partial_values(self, prototype, key_ranges):
+        import asyncio
+
+        return await asyncio.gather(*(self.get(key, prototype, byte_range) for key, byte_range in key_ranges))
+
+    def get_sync(self, key, *, prototype=None, byte_range=None):
+        from zarr.core.buffer import default_buffer_prototype
+
+        self._ensure_open_sync()
+        data = _read_file(self.root / key, byte_range)
+        prototype = prototype or default_buffer_prototype()
+        return None if data is None else _checked_metadata(str(self.root), key, prototype.buffer.from_bytes(data))
+
+    async def exists(self, key: str) -> bool:
+        return _regular_size(self.root / key) is not None
+
+    async def getsize(self, key: str) -> int:
+        size = _regular_size(self.root / key)
+        if size is None:
+            raise FileNotFoundError(f"{self.root / key} is absent or not a regular file")
+        return size
+
+
+class NamedMetadata(WrapperStore):
+    """A writable remote store whose metadata reads go through ``_checked_metadata`` and whose
+    writes' errors name the store (a bucket that does not exist, a timeout: ``remote_error``)."""
+
+    async def get(self, key, prototype, byte_range=None):
+        data = await self._store.get(key, prototype, byte_range)
+        return data if byte_range is not None else _checked_metadata(url_of(self._store), key, data)
+
+    async def set(self, key, value):
+        try:
+            return await self._store.set(key, value)
+        except Exception as e:  # noqa: BLE001 - re-raised, named where it is the storage's
+            raise remote_error(url_of(self._store), e) from None
+
+
+def url_of(store) -> str:
+    """The URL of an fsspec-backed zarr store (its repr names the filesystem class, not the URL)."""
+    fs = getattr(store, "fs", None)
+    if fs is None:
+        return str(store)
+    protocol = fs.protocol[0] if isinstance(fs.protocol, (tuple, list)) else fs.protocol
+    return f"{protocol}://{store.path}"
 
 
 def is_url(store: StoreName) -> bool:
@@ -75,21 +251,66 @@ def storage_options() -> Dict[str, Any]:
 _STORAGE_PACKAGES = ("botocore", "aiobotocore", "google", "azure")
 
 
+_waiting = threading.local()
+
+
+@contextlib.contextmanager
+def waiting_note(url: StoreName, what: str = "an answer"):
+    """Log, once the block has waited ``WAIT_NOTE_S`` seconds, what it is waiting for: a command
+    that talks to a silent endpoint says so long before its timeouts stop it."""
+    import threading
+
+    if getattr(_waiting, "on", False):  # an outer block says it already
+        yield
+        return
+
+    def note():
+        endpoint = storage_options().get("endpoint_url") or os.environ.get("AWS_ENDPOINT_URL") or "its endpoint"
+        read = _options(normalize(url).split("://", 1)[0]).get("config_kwargs", {})
+        logger.warning("Still waiting for %s from %s (%s) after %.0f s; the command stops after the storage "
+                       "timeouts (connect %s s, read %s s per request; --storage-options config_kwargs)", what,
+                       normalize(url), endpoint, WAIT_NOTE_S, read.get("connect_timeout", "?"),
+                       read.get("read_timeout", "?"))
+    timer = threading.Timer(WAIT_NOTE_S, note)
+    timer.daemon = True
+    timer.start()
+    _waiting.on = True
+    try:
+        yield
+    finally:
+        _waiting.on = False
+        timer.cancel()
+
+
+def _is_timeout(e: BaseException) -> bool:
+    return isinstance(e, TimeoutError) or "Timeout" in type(e).__name__
+
+
 @contextlib.contextmanager
 def _remote(url: StoreName):
     """The calls of this module on a remote store: a storage package's error that is not an OSError
-    (botocore's NoCredentialsError ...) becomes a StoreLocationError naming the store and where its
-    access comes from, as a bad input, not a traceback."""
+    (botocore's NoCredentialsError ...), and a timeout, become a StoreLocationError naming the store
+    and where its access comes from, as a bad input, not a traceback."""
     try:
-        yield
-    except (OSError, ValueError):
-        raise
-    except Exception as e:  # noqa: BLE001 - only the storage packages' are turned, the rest re-raised
-        if type(e).__module__.split(".")[0] not in _STORAGE_PACKAGES:
-            raise
-        raise StoreLocationError(f"{normalize(url)}: {type(e).__name__}: {e}. Credentials and endpoint come from the "
-                                 "usual environment (for s3://: AWS_ACCESS_KEY_ID, AWS_SECRET_ACCESS_KEY, "
-                                 "AWS_ENDPOINT_URL ...) or --storage-options (docs/cluster.md).") from None
+        with waiting_note(url):
+            yield
+    except Exception as e:  # noqa: BLE001 - only the storage packages' and timeouts are turned, the rest re-raised
+        raise remote_error(url, e) from None
+
+
+def remote_error(url: StoreName, e: BaseException) -> BaseException:
+    """``e``, or a StoreLocationError naming the store for a storage package's error or a timeout."""
+    if _is_timeout(e):
+        return StoreLocationError(f"{normalize(url)}: no answer within the storage timeouts ({type(e).__name__}: "
+                                  f"{e}); is the endpoint up? (--storage-options config_kwargs sets the timeouts, "
+                                  "docs/cluster.md)")
+    if isinstance(e, FileNotFoundError) and "bucket" in str(e).lower():
+        return StoreLocationError(f"{normalize(url)}: {e}")
+    if isinstance(e, (OSError, ValueError)) or type(e).__module__.split(".")[0] not in _STORAGE_PACKAGES:
+        return e
+    return StoreLocationError(f"{normalize(url)}: {type(e).__name__}: {e}. Credentials and endpoint come from the "
+                              "usual environment (for s3://: AWS_ACCESS_KEY_ID, AWS_SECRET_ACCESS_KEY, "
+                              "AWS_ENDPOINT_URL ...) or --storage-options (docs/cluster.md).")
 
 
 def filesystem(store: StoreName) -> Tuple[Any, str]:
@@ -99,7 +320,8 @@ def filesystem(store: StoreName) -> Tuple[Any, str]:
     url = normalize(store)
     protocol = url.split("://", 1)[0]
     try:
-        fs, path = fsspec.core.url_to_fs(url, **{**_FRESH.get(protocol, {}), **storage_options()})
+        fs, path = fsspec.core.url_to_fs(url, **_options(protocol, _FRESH.get(protocol, {})))
+        _bounded(fs)
     except ImportError as e:
         raise StoreLocationError(f"{url}: the {protocol}:// protocol needs a package that is not installed "
                                  f"({e}); for s3:// install s3fs (pip install 'pixloc-at-scale[s3]').") from None
@@ -112,18 +334,19 @@ def zarr_store(store: StoreName, read_only: bool = False, must_exist: bool = Fal
     """The zarr store of a local folder or a URL (the latter through fsspec, asynchronously: zarr
     drives it from its own event loop, apart from the filesystem this module's calls use);
     ``must_exist``: MissingStore where nothing is stored under the name."""
-    from zarr.storage import FsspecStore, LocalStore
+    from zarr.storage import FsspecStore
 
     if must_exist and not exists(store):
         raise MissingStore(str(store))
     if not is_url(store):
-        return LocalStore(normalize(store), read_only=read_only)
+        return LocalObjects(normalize(store), read_only=read_only)
     url = normalize(store)
     protocol = url.split("://", 1)[0]
-    options = {**_FRESH.get(protocol, {}), **_WHOLE.get(protocol, {}), **storage_options()}
+    options = _options(protocol, _FRESH.get(protocol, {}), _WHOLE.get(protocol, {}))
     try:
         remote = FsspecStore.from_url(url, storage_options=options, read_only=read_only)
-        return WholeObjects(remote) if read_only else remote
+        _bounded(remote.fs)
+        return WholeObjects(remote) if read_only else NamedMetadata(remote)
     except ImportError as e:
         raise StoreLocationError(f"{url}: the protocol needs a package that is not installed ({e}); for s3:// "
                                  "install s3fs (pip install 'pixloc-at-scale[s3]').") from None
@@ -187,7 +410,7 @@ class WholeObjects(WrapperStore):
 
         data = await self._whole(key, prototype)
         if data is None or byte_range is None:
-            return data
+            return _checked_metadata(url_of(self._store), key, data)
         if isinstance(byte_range, RangeByteRequest):
             return data[byte_range.start:byte_range.end]
         if isinstance(byte_range, OffsetByteRequest):
@@ -222,10 +445,7 @@ def exists(store: StoreName) -> bool:
 def read_bytes(store: StoreName, key: str) -> Optional[bytes]:
     """The object ``key`` under ``store`` (``zarr.json``, ``features/x/zarr.json``), None if absent."""
     if not is_url(store):
-        try:
-            return (Path(normalize(store)) / key).read_bytes()
-        except (FileNotFoundError, IsADirectoryError, NotADirectoryError):
-            return None
+        return _read_file(Path(normalize(store)) / key)
     fs, path = filesystem(store)
     try:
         with _remote(store):
@@ -269,10 +489,48 @@ def contents(store: StoreName) -> Optional[Contents]:
     return Contents(False, names, read_bytes(store, "zarr.json"))
 
 
+# what zarr writes under a store: metadata, chunk (or shard) files under an array's ``c/`` folder,
+# and its atomic writes' temporaries (``NAME.<uuid hex>.partial``, left by a killed write)
+_WRITTEN = re.compile(r"(.*/)?zarr\.json|.+/c(/\d+)+|.*\.[0-9a-f]{32}\.partial")
+
+
+def foreign_files(store: StoreName, limit: int = 20) -> List[str]:
+    """Up to ``limit`` entries under ``store`` (keys relative to it) that zarr did not write: a
+    user's file, a localization output, a symlink, a FIFO. Links are not followed."""
+    found: List[str] = []
+    if not is_url(store):
+        root = Path(normalize(store))
+        for folder, dirs, files in os.walk(root):
+            here = Path(folder)
+            for name in files + [d for d in dirs if (here / d).is_symlink()]:
+                key = (here / name).relative_to(root).as_posix()
+                if not _WRITTEN.fullmatch(key) or not stat.S_ISREG((here / name).lstat().st_mode):
+                    found.append(key)
+                    if len(found) >= limit:
+                        return found
+        return found
+    fs, path = filesystem(store)
+    with _remote(store):
+        keys = fs.find(path)
+    return [k for k in (str(k)[len(path):].lstrip("/") for k in keys) if not _WRITTEN.fullmatch(k)][:limit]
+
+
+def enclosing_store(path) -> Optional[Path]:
+    """The map store that local ``path`` lies in (or is), None if it is in none."""
+    for folder in [Path(path).expanduser().resolve(), *Path(path).expanduser().resolve().parents]:
+        header = folder / "zarr.json"
+        try:
+            if header.is_file() and b"pixloc_map" in (_read_file(header) or b""):
+                return folder
+        except StoreObjectError:
+            continue
+    return None
+
+
 def total_bytes(store: StoreName) -> int:
     """The bytes stored under ``store``."""
-    if not is_url(store):
-        return sum(f.stat().st_size for f in Path(normalize(store)).rglob("*") if f.is_file())
+    if not is_url(store):  # regular files only (lstat: a symlink to a device is not its size)
+        return sum(f.lstat().st_size for f in Path(normalize(store)).rglob("*") if stat.S_ISREG(f.lstat().st_mode))
     fs, path = filesystem(store)
     with _remote(store):
         return int(fs.du(path))

@@ -145,8 +145,14 @@ class MapReader:
                                  f"image {self.names[i]}: {type(e).__name__}: {e}") from None
 
     def image_points(self, i: int) -> np.ndarray:
-        """The points observed by image i, in row order (read on demand and cached)."""
-        return self._rows["point"](int(i))
+        """The points observed by image i, in row order (read on demand and cached); a point that the
+        map does not hold (attributes and arrays that disagree) fails the query that reads it, named."""
+        points = self._rows["point"](int(i))
+        if len(points) and (points.min() < 0 or points.max() >= len(self.xyz)):
+            raise StoreReadError(f"map store {self.path}: reference image {self.names[i]} observes point "
+                                 f"{int(points.max() if points.max() >= len(self.xyz) else points.min())}, but the "
+                                 f"map holds points 0-{len(self.xyz) - 1}: a damaged store (run pixloc check-store)")
+        return points
 
     def image_xy(self, i: int) -> np.ndarray:
         """Where image i observes its points (N, 2), COLMAP pixel coordinates, in row order (NaN
