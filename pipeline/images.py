@@ -113,6 +113,9 @@ PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png")  # the files a folder of photos holds
 def image_files(folder) -> List[str]:
     """The names of the JPEG and PNG files directly in ``folder``, sorted: the images of a folder
     that SfM reconstructs and that posed formats list in name order (LLFF, Bundler)."""
+    if not Path(folder).is_dir():
+        raise ImageReadError(f"{folder}: the image folder does not exist" if not Path(folder).exists() else
+                             f"{folder}: not a folder of images")
     return sorted(p.name for p in Path(folder).iterdir() if p.suffix.lower() in PHOTO_SUFFIXES)
 
 

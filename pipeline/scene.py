@@ -147,6 +147,7 @@ class ImageRecord:
     source_id: int = -1  # the image's id in its source model (COLMAP image_id), -1 if none
     color_from_depth: Optional[np.ndarray] = None
     problem: Optional[str] = None  # why a reader found it unusable (its depth file cannot be read): it fails
+    origin: str = ""  # where its reader found it ("file:line", "file: frame 3"), for messages
 
     def check(self) -> Optional[str]:
         reason = self.problem or name_problem(self.name) or self.camera.check()
@@ -168,6 +169,19 @@ class ImageRecord:
         if self.color_from_depth is None:
             return np.asarray(self.cam_from_world, np.float64)
         return (Pose.from_matrix(self.color_from_depth).inv() @ Pose.from_matrix(self.cam_from_world)).to_matrix()
+
+
+def refuse_duplicates(images: Sequence["ImageRecord"], source) -> None:
+    """Each image name once, or SceneError naming the repeated one where its reader found it
+    (``ImageRecord.origin``, else ``source``) and where it came first: a map cannot hold one image
+    twice, and COLMAP's database aborts the process on a second one ("constraint failed")."""
+    first: Dict[str, "ImageRecord"] = {}
+    for im in images:
+        if im.name in first:
+            before = first[im.name].origin
+            raise SceneError(f"{im.origin or source}: image {im.name} is listed twice"
+                             f"{f' (first at {before})' if before else ''}: each image once.")
+        first[im.name] = im
 
 
 @dataclass
@@ -204,6 +218,7 @@ class Scene:
             raise SceneError("Observations reference points that do not exist.")
         if n and (self.obs_image.min() < 0 or self.obs_image.max() >= len(self.images)):
             raise SceneError("Observations reference images that do not exist.")
+        refuse_duplicates(self.images, "the map")
 
     @property
     def track_length(self) -> np.ndarray:

@@ -26,9 +26,12 @@ def read_text(path, what: str) -> str:
     """The text of ``path`` (UTF-8), or InputError naming it and ``what`` it should be."""
     path = Path(path)
     if not path.is_file():
-        raise InputError(f"{path}: {what} does not exist" + (" (it is a folder)" if path.is_dir() else ""))
+        kind = "does not exist" if not path.exists() else (
+            "is a folder, not a file" if path.is_dir() else "is not a regular file (a device, FIFO or socket)")
+        raise InputError(f"{path}: {what} {kind}")
     try:
-        return path.read_text()
+        # utf-8-sig: a byte-order mark (what Notepad writes first) is not part of the first line
+        return path.read_text(encoding="utf-8-sig")
     except UnicodeDecodeError as e:
         raise InputError(f"{path}: {what} is not UTF-8 text (byte {e.start})") from None
     except OSError as e:
@@ -42,13 +45,28 @@ def data_lines(path, what: str) -> Iterator[Tuple[int, List[str]]]:
             yield line_no, line.split()
 
 
+class _DuplicateKey(ValueError):
+    pass
+
+
+def _unique_keys(pairs):
+    out = {}
+    for key, value in pairs:
+        if key in out:
+            raise _DuplicateKey(key)
+        out[key] = value
+    return out
+
+
 def read_json(path, what: str, kind: type = dict):
     """The JSON value of ``path``, of type ``kind``; InputError naming the file otherwise."""
     text = read_text(path, what)
     try:
-        value = json.loads(text)
+        value = json.loads(text, object_pairs_hook=_unique_keys)
     except json.JSONDecodeError as e:
         raise InputError(f"{path}:{e.lineno}: {what} is not valid JSON ({e.msg}); it may be truncated") from None
+    except _DuplicateKey as e:  # json keeps the last silently: one of two shots, frames or cameras lost
+        raise InputError(f"{path}: {what} has the key {e.args[0]!r} twice in one object: each once") from None
     if not isinstance(value, kind):
         raise InputError(f"{path}: {what} should hold a JSON {kind.__name__}, not a {type(value).__name__}")
     return value

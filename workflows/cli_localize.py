@@ -369,7 +369,7 @@ def evaluate_main(args: argparse.Namespace) -> int:
     thresholds = thresholds_of(args, run.get("thresholds"))
     summary = evaluate(records, gt, thresholds)
     write_atomic(args.output / "evaluation.json", to_json(evaluation_document(summary, records, gt, thresholds)))
-    print(format_summary(summary, store_units(run["job"]["store"]) if "job" in run else "m"))
+    print(format_summary(summary, store_units(run["job"]["store"]) if "job" in run else "scene units"))
     return 0
 
 

@@ -188,7 +188,8 @@ def threshold_section(records: List[Dict], gt: Dict, threshold, job: Dict, units
         return ""
     head = "<h2 id='threshold'>Verification threshold</h2><p class='note'>"
     if curves[3] == 0:
-        return (head + f"None of the refined queries with ground truth is within {threshold[0]:g} {units}, "
+        return (head + "None of the refined queries with ground truth is within "
+                f"{threshold[0]:g} {html.escape(units)}, "
                 f"{threshold[1]:g} deg: there is no right refinement for a minimum confidence "
                 "(<code>--min-confidence</code>) to keep or reject, so no trade-off to show. Each refinement's "
                 "error is in the per-query table.</p>")
@@ -206,7 +207,8 @@ def accuracy_tables(summary: Dict, thresholds, units: str, group_by=None) -> str
     for family, fkeys in tag_families(summary, group_by):
         head = (f"<tr><th>{html.escape(family if family != 'all' else 'queries')}</th><th>n</th>"
                 "<th>median t prior</th><th>median t result</th><th>median R prior</th><th>median R result</th>"
-                + "".join(f"<th>within {t:g} {units}, {r:g}&deg;<br>prior &rarr; result</th>" for t, r in thresholds)
+                + "".join(f"<th>within {t:g} {html.escape(units)}, {r:g}&deg;<br>prior &rarr; result</th>"
+                          for t, r in thresholds)
                 + "</tr>")
         rows = []
         for key in fkeys:

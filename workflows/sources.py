@@ -11,7 +11,7 @@ from pipeline.mapping.depth import densify, rgbd_scene
 from pipeline.mapping.image_pairs import PairsConfig
 from pipeline.progress import Silent
 from pipeline.queries import QueryRecord, read_queries_with_intrinsics
-from pipeline.scene import SceneError, name_problem
+from pipeline.scene import SceneError, name_problem, refuse_duplicates
 from pipeline.mapping.readers.colmap import read_colmap, run_sfm, triangulate_known_poses
 from pipeline.mapping.readers.bundler import read_bundler
 from pipeline.mapping.readers.kapture import read_kapture
@@ -93,6 +93,7 @@ def posed_images(kind: str, path: Path, images: Optional[Path] = None) -> Tuple[
     Every image is checked as a map needs it (``ImageRecord.check``: a finite rotation, a camera
     that can project): a source that holds one that is not is refused, naming it."""
     found, root = _read_posed(kind, Path(path), images)
+    refuse_duplicates(found, path)  # before COLMAP's database, which aborts on one
     for im in found:
         reason = im.check()
         if reason:

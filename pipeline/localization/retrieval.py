@@ -23,7 +23,7 @@ import numpy as np
 
 from pipeline.store.reader import MapReader, by_name
 from pipeline.queries import QueryRecord
-from pipeline.textfiles import read_pairs
+from pipeline.textfiles import InputError, read_pairs
 
 logger = logging.getLogger(__name__)
 
@@ -62,13 +62,32 @@ def hloc_descriptors(path: str) -> Dict[str, np.ndarray]:
     import h5py
 
     out = {}
-    with h5py.File(path, "r") as f:
-        def visit(name, obj):
-            if isinstance(obj, h5py.Dataset) and name.endswith("/global_descriptor"):
-                d = np.asarray(obj, np.float32).reshape(-1)
-                out[name[: -len("/global_descriptor")]] = d / max(np.linalg.norm(d), 1e-12)
-        f.visititems(visit)
+    try:
+        with h5py.File(path, "r") as f:
+            def visit(name, obj):
+                if isinstance(obj, h5py.Dataset) and name.endswith("/global_descriptor"):
+                    d = np.asarray(obj, np.float32).reshape(-1)
+                    out[name[: -len("/global_descriptor")]] = d / max(np.linalg.norm(d), 1e-12)
+            f.visititems(visit)
+    except (OSError, ValueError, KeyError, TypeError) as e:  # not HDF5, truncated, a damaged dataset
+        raise InputError(f"{path}: hloc global descriptors cannot be read ({type(e).__name__}: "
+                         f"{str(e).splitlines()[0][:160]}): not an HDF5 file of hloc's, or damaged") from None
+    dims = {len(d) for d in out.values()}
+    if not out or len(dims) > 1 or not all(np.isfinite(d).all() for d in out.values()):
+        what = ("holds no NAME/global_descriptor dataset" if not out else
+                f"holds descriptors of {len(dims)} sizes ({', '.join(map(str, sorted(dims)))})" if len(dims) > 1
+                else "holds descriptors that are not finite")
+        raise InputError(f"{path}: hloc global descriptors: the file {what}.")
     return out
+
+
+def check_descriptors(path: str, map_names: List[str]) -> None:
+    """Read an hloc descriptors file once, before any query, and refuse one that holds none of the
+    map's images (InputError naming it): every query would fail, each with the same message."""
+    descriptors = hloc_descriptors(path)
+    if not any(n in descriptors for n in map_names):
+        raise InputError(f"{path}: hloc global descriptors: none of its {len(descriptors)} images is a map image "
+                         f"(e.g. {', '.join(sorted(descriptors)[:3])}; the map's: {', '.join(map_names[:3])}).")
 
 
 def global_ranking(reader: MapReader, descriptor: np.ndarray, k: int,

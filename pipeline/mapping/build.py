@@ -109,9 +109,15 @@ def fit_store_pca(scene: Scene, conf: FeatureConfig, net, problems: Dict[int, st
     for k in range(len(conf.image_scales)):
         for level in reduced:
             x = np.concatenate(samples.get((k, level), [np.zeros((0, dims[level]), np.float32)]))
-            if len(x) < conf.pca:
-                raise ValueError(f"Too few feature samples ({len(x)}) in the {len(chosen)} images sampled to fit a "
-                                 f"PCA of {conf.pca} components (image scale {k}, level {level}).")
+            if not len(x):
+                raise ValueError(f"No image of the map could be read to fit the PCA of its features (image scale "
+                                 f"{k}, level {level}; {len(chosen)} tried): fix the images, or store every channel "
+                                 "with --pca 0.")
+            if len(x) < conf.pca:  # fit_pca completes the basis: the samples are kept exactly
+                logger.warning("The PCA of level %d (image scale %d) has %d feature samples in the %d images "
+                               "sampled, fewer than its %d components: they are kept exactly, the other "
+                               "directions are fixed ones (a small map at --resize %d; --pca 0 stores every "
+                               "channel).", level, k, len(x), len(chosen), conf.pca, conf.resize)
             bases[(k, level)] = fit_pca(x, conf.pca)
     logger.info("Fitted the PCA of the features (%d components) on %d images.", conf.pca, len(chosen))
     return bases

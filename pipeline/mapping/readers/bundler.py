@@ -59,7 +59,7 @@ def read_bundler(bundle, image_root, names: Optional[Sequence[str]] = None, tags
         width, height = image_size(path)
         camera = CameraRecord("RADIAL", width, height, tuple(float(v) for v in (f, width / 2, height / 2, k1, k2)))
         images.append(ImageRecord(names[c], path, camera, np.concatenate([FLIP @ R, (FLIP @ t)[:, None]], 1),
-                                  dict(tags or {})))
+                                  dict(tags or {}), origin=f"{bundle}:{rows[0][0]} (camera {c})"))
     if not images:
         raise SceneError(f"{bundle}: no camera was reconstructed (every focal length is 0).")
     return images

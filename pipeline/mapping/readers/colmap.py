@@ -196,6 +196,10 @@ def run_sfm(image_dir, work_dir, names: Optional[Sequence[str]] = None, tags=Non
     image_dir, work_dir = Path(image_dir), Path(work_dir)
     work_dir.mkdir(parents=True, exist_ok=True)
     names = image_files(image_dir) if names is None else list(names)
+    if len(names) < 2:  # before: an IndexError while building another error's message
+        raise SceneError(f"{image_dir}: {len(names)} images (JPEG or PNG files directly in the folder"
+                         f"{', after --hold-out' if image_files(image_dir) else ''}) to reconstruct: SfM needs at "
+                         "least 2.")
     fingerprint = images_fingerprint(image_dir, names, kind="sfm", **_pairs_fingerprint(pairs, len(names), False))
     rec = cached_model(work_dir, "sfm.json", "model", fingerprint, image_dir)
     if rec is not None:
@@ -275,11 +279,37 @@ def triangulate_known_poses(images: List[ImageRecord], image_root, work_dir, *,
     if rec.num_points3D() == 0:
         raise SceneError("Triangulation from the known poses produced no 3D points.")
     stages["triangulation"] = time.perf_counter() - t0
+    _warn_if_few_triangulated(rec, database)
     logger.info("Triangulated %d points from %d images with known poses in %.0f s (SIFT %.0f s, matching %.0f s).",
                 rec.num_points3D(), len(names), stages["triangulation"], stages.get("sift", 0.0),
                 stages.get("matching", 0.0))
     rec = _finish(rec, work_dir, "triangulation.json", "model", fingerprint)
     return _known_pose_scene(rec, image_root, by_name)
+
+
+MIN_TRIANGULATED_SHARE = 0.1  # of the verified keypoints; a right map of the shared scenes triangulates far more
+
+
+def _warn_if_few_triangulated(rec: pycolmap.Reconstruction, database: Path) -> float:
+    """Warn where the known poses triangulate few of the keypoints that two-view geometry verified
+    between the images (the images agree with each other, their poses do not): how a pose
+    convention error shows (OpenCV axes read as OpenGL's, camera-to-world read as world-to-camera),
+    which otherwise builds a small map without a word. Returns that share."""
+    with pycolmap.Database.open(database) as db:
+        verified = set()
+        for pair_id, geometry in zip(*db.read_two_view_geometries()):
+            first, second = pycolmap.pair_id_to_image_pair(pair_id)
+            for a, b in geometry.inlier_matches:
+                verified.add((first, int(a)))
+                verified.add((second, int(b)))
+    triangulated = sum(1 for image in rec.images.values() for p in image.points2D if p.has_point3D())
+    share = triangulated / max(len(verified), 1)
+    if verified and share < MIN_TRIANGULATED_SHARE:
+        logger.warning("The known poses triangulated %d of the %d keypoints that SIFT matched and verified between "
+                       "the images (%.0f %%; %d points for %d images): the poses do not agree with the images. Check "
+                       "the source's pose convention (camera-to-world or world-to-camera, OpenCV or OpenGL axes).",
+                       triangulated, len(verified), 100 * share, rec.num_points3D(), rec.num_reg_images())
+    return share
 
 
 def _known_pose_scene(rec: pycolmap.Reconstruction, image_root: Path, by_name: Dict[str, ImageRecord]) -> Scene:

@@ -20,7 +20,7 @@ def _rows(path: Path, min_fields: int, what: str) -> List[Tuple[str, List[str]]]
     if not path.is_file():
         return []
     try:
-        with open(path, newline="") as f:
+        with open(path, newline="", encoding="utf-8-sig") as f:  # -sig: a byte-order mark is not data
             rows = [(f"{path}:{k}", [c.strip() for c in row]) for k, row in enumerate(csv.reader(f), 1)
                     if row and row[0].strip() and not row[0].lstrip().startswith("#")]
     except (UnicodeDecodeError, csv.Error) as e:
@@ -29,6 +29,14 @@ def _rows(path: Path, min_fields: int, what: str) -> List[Tuple[str, List[str]]]
         if len(row) < min_fields:
             raise SceneError(f"{where}: expected {what}, got {len(row)} fields")
     return rows
+
+
+def _once(seen: Dict, key, where: str, what: str) -> None:
+    """Record that ``key`` is defined at ``where``; a second definition is a SceneError naming both
+    (a dict would keep the last one silently)."""
+    if key in seen:
+        raise SceneError(f"{where}: {what} is defined twice (first at {seen[key]}): each once")
+    seen[key] = where
 
 
 def _parse(where: str, convert, what: str):
@@ -64,15 +72,19 @@ def read_kapture(root, tags=None) -> List[ImageRecord]:
     if not (sensors_dir / "sensors.txt").is_file():
         raise SceneError(f"{sensors_dir / 'sensors.txt'} not found: not a kapture dataset.")
     cameras: Dict[str, CameraRecord] = {}
+    seen: Dict = {}
     for where, (sensor_id, _, kind, *params) in _rows(sensors_dir / "sensors.txt", 3, "sensor_id, name, type, ..."):
+        _once(seen, ("sensor", sensor_id), where, f"sensor {sensor_id!r}")
         if kind == "camera":
             cameras[sensor_id] = _parse(where, lambda: CameraRecord(
                 params[0], int(params[1]), int(params[2]), tuple(float(v) for v in params[3:])), "camera")
     rigs: Dict[str, Dict[str, np.ndarray]] = {}
     for where, (rig_id, sensor_id, *pose) in _rows(sensors_dir / "rigs.txt", 9, "rig_id, sensor_id, qw..tz"):
+        _once(seen, ("rig", rig_id, sensor_id), where, f"sensor {sensor_id!r} of rig {rig_id!r}")
         rigs.setdefault(rig_id, {})[sensor_id] = _parse(where, lambda: _pose(pose), "pose")
     trajectories: Dict[Tuple[str, str], np.ndarray] = {}
     for where, (ts, dev, *pose) in _rows(sensors_dir / "trajectories.txt", 9, "timestamp, device_id, qw..tz"):
+        _once(seen, ("pose", ts, dev), where, f"the pose of {dev!r} at timestamp {ts}")
         trajectories[(ts, dev)] = _parse(where, lambda: _pose(pose), "pose")
     images = []
     for where, row in _rows(sensors_dir / "records_camera.txt", 3, "timestamp, device_id, image_path"):
@@ -93,7 +105,7 @@ def read_kapture(root, tags=None) -> List[ImageRecord]:
         image_tags = {"camera": sensor_id, "timestamp": ts, **({"rig": rig_id} if rig_id else {}),
                       **dict(tags or {})}
         images.append(ImageRecord(rel_path, sensors_dir / "records_data" / rel_path, cameras[sensor_id],
-                                  pose, image_tags))
+                                  pose, image_tags, origin=where))
     if not images:
         raise SceneError(f"No camera records in {sensors_dir / 'records_camera.txt'}.")
     return images

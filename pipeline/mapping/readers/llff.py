@@ -4,6 +4,7 @@ columns are the camera's down, right and backward axes; in COLMAP's terms (right
 columns 1, 0 and minus 2. The images are those of ``images/`` in name order, one per row; h, w and
 f are in pixels of the images the poses were made for (rescaled to the files' size)."""
 
+import dataclasses
 from pathlib import Path
 from tokenize import TokenError
 from typing import List
@@ -24,15 +25,22 @@ def read_llff(root, tags=None) -> List[ImageRecord]:
         data = np.load(path, allow_pickle=False)
     except (OSError, ValueError, EOFError, SyntaxError, TokenError) as e:  # a damaged header or body
         raise SceneError(f"{path}: not an LLFF poses_bounds.npy ({type(e).__name__}: {e}).") from None
-    if data.ndim != 2 or data.shape[1] != 17 or not np.isfinite(data).all():
+    if data.ndim != 2 or data.shape[1] != 17:
         raise SceneError(f"{path}: expected N x 17 finite numbers (3 x 5 pose, near, far), got {data.shape}.")
+    bad = np.flatnonzero(~np.isfinite(data).all(1)) if data.dtype.kind in "fc" else []
+    if len(bad) or data.dtype.kind not in "fiuc":
+        rows = f"row {bad[0]} (of rows 0-{len(data) - 1})" if len(bad) else f"values of type {data.dtype}"
+        raise SceneError(f"{path}: expected N x 17 finite numbers (3 x 5 pose, near, far): {rows} is not"
+                         f"{' finite' if len(bad) else ' numbers'}"
+                         f"{f' ({len(bad)} rows in all)' if len(bad) > 1 else ''}.")
     names = image_files(root / "images")
     if len(names) != len(data):
         raise SceneError(f"{path}: {len(data)} poses for {len(names)} images in {root / 'images'}.")
     images = []
-    for name, row in zip(names, data):
+    for k, (name, row) in enumerate(zip(names, data)):
         with np.errstate(over="ignore", invalid="ignore"):  # huge values: a pose that is not finite,
-            images.append(_image(root, path, name, row, tags))  # refused by posed_images' check
+            images.append(dataclasses.replace(_image(root, path, name, row, tags),  # refused by posed_images' check
+                                              origin=f"{path}: row {k}"))
     return images
 
 

@@ -26,11 +26,18 @@ def read_middlebury(root, par: Optional[Path] = None, tags=None) -> List[ImageRe
     root = Path(root)
     par = Path(par) if par is not None else par_file(root)
     lines = read_text(par, "Middlebury camera file").splitlines()
+    views = [(n, line.split()) for n, line in enumerate(lines[1:], 2) if line.split()]
+    try:
+        declared = int(lines[0]) if lines else -1
+    except ValueError:
+        declared = -1
+    if declared < 0:
+        raise SceneError(f"{par}:1: expected the number of views, got {(lines or [''])[0].strip()[:40]!r}.")
+    if declared != len(views):
+        raise SceneError(f"{par}: its header says {declared} views but it lists {len(views)}: the file is cut "
+                         "short or has extra lines.")
     images = []
-    for n, line in enumerate(lines[1:], 2):
-        fields = line.split()
-        if not fields:
-            continue
+    for n, fields in views:
         if len(fields) != 22:
             raise SceneError(f"{par}:{n}: expected an image name and 21 numbers (K, R, t), got {len(fields)} fields.")
         try:
@@ -45,7 +52,8 @@ def read_middlebury(root, par: Optional[Path] = None, tags=None) -> List[ImageRe
             raise SceneError(f"{par}:{n}: K has a skew or is not normalised, which no COLMAP camera model holds.")
         width, height = image_size(path)
         camera = CameraRecord("PINHOLE", width, height, tuple(float(v) for v in (K[0, 0], K[1, 1], K[0, 2], K[1, 2])))
-        images.append(ImageRecord(fields[0], path, camera, np.concatenate([R, t[:, None]], 1), dict(tags or {})))
+        images.append(ImageRecord(fields[0], path, camera, np.concatenate([R, t[:, None]], 1), dict(tags or {}),
+                                  origin=f"{par}:{n}"))
     if not images:
         raise SceneError(f"{par}: none of its {len(lines) - 1} views has its image in {root}.")
     return images
