@@ -281,3 +281,27 @@ def test_a_scheduler_that_accepts_and_never_answers_or_a_damaged_scheduler_file(
         with pytest.raises(ValueError, match=words):
             with executor.dask_client(str(path)):
                 pass
+
+
+def test_a_scheduler_killed_during_a_run_is_one_line_and_the_rerun_resumes(cli_run, tmp_path):
+    """Before: three tracebacks (CommClosedError, CancelledError, FutureCancelledError) where one line is right."""
+    from workflows.process_cluster import DASK, ProcessCluster, wait_for
+    if not DASK.exists():
+        pytest.skip("the dask command is not installed next to this Python")
+    args = [str(a) for a in cli_run.args if a != "--sync"]
+    args[args.index("--output") + 1] = str(tmp_path / "out")
+    procs = ProcessCluster(tmp_path, ("w0",), timeout=60)
+    try:
+        run = subprocess.Popen([sys.executable, "-m", "workflows.cli", *args, "--scheduler", str(procs.sched)],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                               env={**os.environ, "PYTHONPATH": str(ROOT)})
+        wait_for(lambda: (tmp_path / "out" / "job.json").exists() or run.poll() is not None, 120)
+        procs.kill("scheduler")
+        _, stderr = run.communicate(timeout=180)
+    finally:
+        procs.close()
+    assert run.returncode == 2, stderr[-2000:]
+    assert "Traceback" not in stderr and "went away during the run" in stderr, stderr[-2000:]
+    rerun = pixloc(*args, "--sync")
+    assert rerun.returncode == 0, rerun.stderr[-1000:]
+    assert len((tmp_path / "out" / "poses.txt").read_text().splitlines()) == 2
