@@ -9,7 +9,7 @@ import numpy as np
 from pixloc.geometry import COLMAP_MODELS
 
 from pipeline.scene import CameraRecord, name_problem
-from pipeline.textfiles import data_lines
+from pipeline.textfiles import InputError, data_lines
 
 
 @dataclass
@@ -36,7 +36,12 @@ def read_queries_with_intrinsics(path, image_dir, tags=None) -> List[QueryRecord
     and fails with it."""
     queries = []
     path = Path(path)
+    first: dict = {}
     for line_no, (name, *fields) in data_lines(path, "query list"):
+        if name in first:  # a query's name is its key in every output: the whole list is refused
+            raise InputError(f"{path}:{line_no}: query {name} is listed twice (first at line {first[name]}): "
+                             "each query once")
+        first[name] = line_no
         camera, error = None, None
         spaced = next((k for k, f in enumerate(fields) if f in COLMAP_MODELS), 0)
         if spaced > 0:

@@ -486,8 +486,12 @@ def check_layout(root: zarr.Group, path) -> None:
 def check_feature_group(group: zarr.Group, meta: Dict, path) -> None:
     """Refuse a feature group whose arrays are missing or disagree with its config and dims."""
     try:
-        dims = [int(d) for d in group.attrs["dims"]]
-        scales = len(group.attrs["config"]["image_scales"])
+        raw, config = group.attrs["dims"], group.attrs["config"]
+        if not isinstance(raw, list) or not raw or not all(type(d) is int and d > 0 for d in raw):
+            raise ValueError(f"dims {json.dumps(raw)[:60]} are not channel counts")
+        if not isinstance(config, dict) or type(config.get("pca", 0)) is not int or config.get("pca", 0) < 0:
+            raise ValueError(f"config {json.dumps(config)[:80]} is not a feature config")
+        dims, scales = list(raw), len(config["image_scales"])
     except (KeyError, TypeError, ValueError) as e:
         raise StoreError(f"{path}: feature group {group.path} has no readable config or dims ({e}).") from None
     I, R, L = meta["num_images"], meta["num_rows"], len(dims)  # noqa: E741

@@ -101,6 +101,15 @@ def test_a_duplicate_key_in_an_opensfm_reconstruction_is_named(shared, tmp_path)
         posed_images("opensfm", tmp_path / "reconstruction.json", src / "images")
 
 
+def test_a_query_listed_twice_is_named_with_its_line(tmp_path):
+    from pipeline.queries import read_queries_with_intrinsics
+    line = "a/0000.jpg PINHOLE 64 48 50 50 32 24\n"
+    (tmp_path / "q.txt").write_text(line + "b.jpg PINHOLE 64 48 50 50 32 24\n" + line)
+    where = tmp_path / "q.txt"
+    with pytest.raises(InputError, match=rf"{where}:3: query a/0000.jpg is listed twice \(first at line 1\)"):
+        read_queries_with_intrinsics(tmp_path / "q.txt", tmp_path)
+
+
 def test_a_map_with_one_image_twice_is_refused_whatever_its_source():
     """The one check of every map (``Scene``): COLMAP models and RGB-D frames included."""
     from pipeline.scene import CameraRecord, ImageRecord, Scene

@@ -118,6 +118,21 @@ def test_map_attributes_are_checked_for_type_range_and_the_arrays_at_open(stairs
         plan_localization(job, stairs.queries[:1], tmp_path / "out")
 
 
+@pytest.mark.parametrize("change", [{"dims": [True, 64, 32]}, {"dims": "128"}, {"dims": []}, {"pca": -1},
+                                    {"pca": "48"}])
+def test_feature_group_attributes_are_checked_at_open(stairs, tmp_path, change):
+    job = stairs.copy(tmp_path)
+    header = tmp_path / "copy.zarr" / "features" / feature_key(FCONF) / "zarr.json"
+    meta = json.loads(header.read_text())
+    target = meta["attributes"] if "dims" in change else meta["attributes"]["config"]
+    target.update(change)
+    header.write_text(json.dumps(meta))
+    report = check_store(job.store)
+    assert not report.ok and "no readable config or dims" in report.summary()
+    with pytest.raises(StoreError, match="no readable config or dims"):
+        MapReader(job.store, FCONF)
+
+
 def test_every_metadata_file_truncated_is_named(stairs, tmp_path):
     """Before: a truncated features/<group>/zarr.json gave 'pixloc: error: Expecting value: line 18
     column 6 (char 300)' from check-store, --repair, localize and build-map, with no file named."""
