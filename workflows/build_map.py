@@ -77,7 +77,7 @@ def plan_build(scene: Scene, store, conf: FeatureConfig, *, batch_size: int = 1,
                overwrite: bool = False) -> BuildPlan:
     """Plan a build; images already done in an existing store are not planned again (all are
     with ``overwrite``, which rebuilds the store). Images of ``scene`` that an existing store does
-    not have are added to it (a new mapping session, ``pipeline.store.layout.extend_store``): they get
+    not have are added to it (a new mapping session, ``pipeline.store.structure.extend_store``): they get
     the indices after the stored ones."""
     if batch_size < 1 or chunk_rows < 1 or (shard_rows is not None and (shard_rows < 1 or shard_rows % chunk_rows)):
         raise ValueError(f"--batch-size and --chunk-rows must be at least 1 and --shard-rows a multiple of "

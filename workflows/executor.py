@@ -33,7 +33,7 @@ def dask_client(scheduler: Optional[str] = None, workers: int = 2, device: str =
     resources = task_resources(device)
     if scheduler:
         address = scheduler_address(scheduler)
-        with _connected(Client, address, scheduler) as client:
+        with _quiet_lost_scheduler(), _connected(Client, address, scheduler) as client:  # quiet until closed
             check_resources(client, resources)
             try:
                 yield client
@@ -108,6 +108,27 @@ def _connected(Client, address: str, scheduler: str):
                              f"{SCHEDULER_TIMEOUT_S:g} s ({why})")
     with box["client"] as client:
         yield client
+
+
+@contextlib.contextmanager
+def _quiet_lost_scheduler():
+    """While a --scheduler client runs, distributed's own reports of a lost scheduler (its failed
+    reconnection, with the tracebacks of the comms it closes) are left out: the run says it once
+    (``SchedulerError``). Its other messages pass."""
+    lost = _lost_scheduler_errors()
+
+    def keep(record: logging.LogRecord) -> bool:
+        if record.exc_info and record.exc_info[0] is not None and issubclass(record.exc_info[0], lost):
+            return False
+        return not record.getMessage().startswith(("Failed to reconnect", "Lost connection to scheduler"))
+    loggers = [logging.getLogger(name) for name in ("distributed.client", "distributed.utils", "distributed.core")]
+    for logger_ in loggers:
+        logger_.addFilter(keep)
+    try:
+        yield
+    finally:
+        for logger_ in loggers:
+            logger_.removeFilter(keep)
 
 
 def scheduler_address(scheduler: str) -> str:

@@ -20,13 +20,13 @@ from pipeline.runtime import keep_freed_memory, torch_threads
 from pipeline.scene import Scene
 from pipeline.store.compression import fit_pca
 from pipeline.store.feature_groups import feature_key, init_features, mark_failed, needs_pca, write_image_features
+from pipeline.store.structure import create_store
 from pipeline.store.layout import (
     DONE,
     FAILED,
     PENDING,
     consolidate,
     consolidated,
-    create_store,
     image_records,
     open_store,
     read,

@@ -268,7 +268,7 @@ def test_adding_a_mapping_session_extracts_only_the_new_images(built, maupertuis
     """A map of 3 images, then the model extended with a 4th: the store keeps its rows, adds the new
     image, its observations and the points only it sees (the others matched by COLMAP id), and
     only the new image is extracted. An add interrupted before its commit leaves the old map."""
-    from pipeline.store import layout as store_module
+    from pipeline.store import structure as store_module
     from pipeline.store.reader import MapReader
     path = tmp_path / "map.zarr"
     first = _first_session(maupertuis, [0, 1, 2])

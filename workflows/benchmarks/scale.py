@@ -110,7 +110,8 @@ def synthetic_scene(num_images: int, num_points: int, num_obs: int, seed: int = 
 
 def build(store: Path, scene: Scene, conf: FeatureConfig, seed: int) -> Dict:
     from pipeline.store.feature_groups import init_features, write_image_features
-    from pipeline.store.layout import consolidate, create_store
+    from pipeline.store.layout import consolidate
+    from pipeline.store.structure import create_store
     rng = np.random.default_rng(seed + 1)
     t0 = time.perf_counter()
     root = create_store(store, scene, overwrite=True)

@@ -177,7 +177,7 @@ def test_outputs_inside_a_store_are_refused_and_overwrite_keeps_files_it_did_not
     assert "images/notes.txt" in report.summary()
     from pipeline.mapping.depth import rgbd_scene
     from pipeline.mapping.readers.rgbd import read_7scenes
-    from pipeline.store.layout import create_store
+    from pipeline.store.structure import create_store
     scene = rgbd_scene(read_7scenes(stairs.root, [2]), method="frames", stride=24)
     with pytest.raises(StoreError, match="notes.txt"):
         create_store(store, scene, overwrite=True)
@@ -259,7 +259,7 @@ def test_an_object_store_that_accepts_and_never_answers_stops_the_command(silent
 def test_a_bucket_that_does_not_exist_is_named(shared, tmp_path, monkeypatch):
     """Before: 'The specified bucket does not exist', without the store's URL."""
     from pipeline.mapping.readers.colmap import read_colmap
-    from pipeline.store.layout import create_store
+    from pipeline.store.structure import create_store
     from workflows.s3_server import CREDENTIALS, ServerUnavailable, moto_server
     try:
         server = moto_server()
