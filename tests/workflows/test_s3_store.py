@@ -106,6 +106,14 @@ def test_a_map_in_a_bucket_is_built_localized_checked_and_repaired(shared, s3, e
     assert "2 images extracted, 2 already done" in out.stdout, out.stdout
     assert "all chunks verified" in pixloc(env, tmp_path, "check-store", STORE).stdout
 
+    # a truncated metadata object is named by its URL, as a local file is by its path (test_round3_stores)
+    group = next(k for k in keys if k.endswith("/s0/features/zarr.json"))
+    body = s3_client.get_object(Bucket="maps", Key=group)["Body"].read()
+    s3_client.put_object(Bucket="maps", Key=group, Body=body[: len(body) // 2])
+    out = pixloc(env, tmp_path, "check-store", STORE, check=False)
+    said = out.stdout + out.stderr
+    assert out.returncode in (1, 2) and f"s3://maps/{group}" in said and "not JSON" in said, said
+
 
 def test_a_bad_url_or_storage_options_are_named(s3, env, tmp_path):
     out = pixloc(env, tmp_path, "check-store", "s3://maps/none.zarr", check=False)
