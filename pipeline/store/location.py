@@ -140,8 +140,6 @@ _waiting = threading.local()
 def waiting_note(url: StoreName, what: str = "an answer"):
     """Log, once the block has waited ``WAIT_NOTE_S`` seconds, what it is waiting for: a command
     that talks to a silent endpoint says so long before its timeouts stop it."""
-    import threading
-
     if getattr(_waiting, "on", False):  # an outer block says it already
         yield
         return
