@@ -27,7 +27,7 @@ def read_text(path, what: str) -> str:
     path = Path(path)
     if not path.is_file():
         kind = "does not exist" if not path.exists() else (
-            "is a folder, not a file" if path.is_dir() else "is not a regular file (a device, FIFO or socket)")
+            "does not exist (it is a folder)" if path.is_dir() else "is not a regular file (a device, FIFO or socket)")
         raise InputError(f"{path}: {what} {kind}")
     try:
         # utf-8-sig: a byte-order mark (what Notepad writes first) is not part of the first line
