@@ -226,18 +226,27 @@ def test_an_empty_image_folder_for_sfm_is_a_clear_error(tmp_path):
 def test_poses_that_disagree_with_the_images_are_warned_about(shared, tmp_path, caplog):
     """Before: a transforms.json written with OpenCV axes (no y/z flip) built a map of 190 points
     instead of 7,043 without a warning. Four Herz-Jesus photos, their poses read with the wrong axes."""
+    from PIL import Image
+
     from pipeline.mapping.readers.colmap import triangulate_known_poses
     from pipeline.mapping.readers.strecha import read_strecha
-    images = read_strecha(shared / "data" / "strecha" / "Herz-Jesus-P8")[:4]
+    from pipeline.scene import CameraRecord
+    images = []
+    for im in read_strecha(shared / "data" / "strecha" / "Herz-Jesus-P8")[:4]:  # at half size: a quarter of the SIFT
+        with Image.open(im.path) as photo:
+            photo.resize((im.camera.width // 2, im.camera.height // 2)).save(tmp_path / im.name, quality=95)
+        camera = CameraRecord(im.camera.model, im.camera.width // 2, im.camera.height // 2,
+                              tuple(v / 2 for v in im.camera.params))
+        images.append(dataclasses_replace(im, path=tmp_path / im.name, camera=camera))
     flip = np.diag([1.0, -1.0, -1.0])
     wrong = [dataclasses_replace(im, cam_from_world=np.concatenate(
         [flip @ im.cam_from_world[:, :3], (flip @ im.cam_from_world[:, 3])[:, None]], 1)) for im in images]
     with caplog.at_level("WARNING", logger="pipeline.mapping.readers.colmap"):
-        triangulate_known_poses(wrong, images[0].path.parent, tmp_path / "wrong")
+        triangulate_known_poses(wrong, tmp_path, tmp_path / "wrong")
     assert "pose convention" in caplog.text
     caplog.clear()
     with caplog.at_level("WARNING", logger="pipeline.mapping.readers.colmap"):
-        triangulate_known_poses(images, images[0].path.parent, tmp_path / "right")
+        triangulate_known_poses(images, tmp_path, tmp_path / "right")
     assert "pose convention" not in caplog.text
 
 
