@@ -34,7 +34,8 @@ def scene_from_reconstruction(rec: pycolmap.Reconstruction, image_dir: Path,
     index = {im.image_id: i for i, im in enumerate(images)}
     records = [ImageRecord(im.name, image_dir / im.name, camera_record(rec.cameras[im.camera_id]),
                            np.asarray(im.cam_from_world().matrix(), dtype=np.float64),
-                           dict((tags or {}).get(im.name, {})), source_id=int(im.image_id))
+                           dict((tags or {}).get(im.name, {})), source_id=int(im.image_id),
+                           origin=f"COLMAP image_id {im.image_id}")
                for im in images]
     point_ids = sorted(rec.points3D)
     xyz = np.array([rec.points3D[p].xyz for p in point_ids], dtype=np.float64).reshape(-1, 3)
@@ -50,7 +51,11 @@ def scene_from_reconstruction(rec: pycolmap.Reconstruction, image_dir: Path,
 
 def read_colmap(model_dir, image_dir, tags=None) -> Scene:
     """Read a COLMAP model folder (cameras/images/points3D, .bin or .txt)."""
-    return scene_from_reconstruction(read_reconstruction(model_dir), image_dir, tags)
+    rec = read_reconstruction(model_dir)
+    try:
+        return scene_from_reconstruction(rec, image_dir, tags)
+    except SceneError as e:  # an image listed twice ...: named with the model's folder
+        raise SceneError(f"{model_dir}: {e}") from None
 
 
 def _extract_and_match(database: Path, image_dir: Path, names: Sequence[str], pairs: PairsConfig,

@@ -7,8 +7,12 @@ in 20 s, or a hang). ``check_binary_model`` walks every record's size, in the la
 ``reconstruction_io_binary`` (little endian), and names the file and the record that does not fit.
 """
 
+import codecs
+import contextlib
 import re
+import shutil
 import struct
+import tempfile
 from functools import lru_cache
 from pathlib import Path
 
@@ -148,9 +152,33 @@ def read_reconstruction(model_dir) -> pycolmap.Reconstruction:
     if not model_dir.is_dir():
         raise SceneError(f"COLMAP model folder {model_dir} does not exist.")
     check_binary_model(model_dir)
-    try:
-        rec = pycolmap.Reconstruction(str(model_dir))
-    except Exception as e:  # pycolmap raises plain RuntimeErrors/ValueErrors
-        raise SceneError(f"Cannot read the COLMAP model in {model_dir}: {e}") from None
+    with _without_byte_order_marks(model_dir) as readable:
+        try:
+            rec = pycolmap.Reconstruction(str(readable))
+        except Exception as e:  # pycolmap raises plain RuntimeErrors/ValueErrors
+            raise SceneError(f"Cannot read the COLMAP model in {model_dir}: {e}") from None
     check_text_counts(model_dir, rec)
     return rec
+
+
+@contextlib.contextmanager
+def _without_byte_order_marks(model_dir: Path):
+    """``model_dir``, or, where one of its text files starts with a byte-order mark (what Notepad
+    writes, and pycolmap fails on), a temporary copy of its text files without it."""
+    texts = [name for name in TEXT_COUNTS if (model_dir / name).is_file()
+             and not (model_dir / name.replace(".txt", ".bin")).is_file()]
+    marked = []
+    for name in texts:
+        with open(model_dir / name, "rb") as f:
+            if f.read(3) == codecs.BOM_UTF8:
+                marked.append(name)
+    if not marked:
+        yield model_dir
+        return
+    with tempfile.TemporaryDirectory(prefix="pixloc-colmap-") as tmp:
+        for name in texts:
+            with open(model_dir / name, "rb") as src, open(Path(tmp) / name, "wb") as dst:
+                if name in marked:
+                    src.read(3)
+                shutil.copyfileobj(src, dst)
+        yield Path(tmp)

@@ -150,6 +150,26 @@ def test_a_byte_order_mark_is_not_data_in_any_reader(shared, tmp_path, reader):
         assert len(posed_images("kapture", tmp_path / "k")[0]) == 12
 
 
+def test_a_colmap_text_model_with_a_byte_order_mark_or_an_image_twice(shared, tmp_path):
+    """pycolmap reads the model's files itself: a BOM failed in its parser ('Check failed: line_stream1 >>
+    image_id ...'), and a second image of one name went on to COLMAP's database."""
+    from pipeline.mapping.readers.colmap import read_colmap
+    m = shared / "data" / "maupertuis"
+    shutil.copytree(m / "reconstruction", tmp_path / "bom")
+    for f in (tmp_path / "bom").glob("*.txt"):
+        f.write_text(BOM + f.read_text(), encoding="utf-8")
+    assert len(read_colmap(tmp_path / "bom", m / "images").images) == 4
+    shutil.copytree(m / "reconstruction", tmp_path / "twice")
+    lines = (tmp_path / "twice" / "images.txt").read_text().splitlines()
+    first = next(k for k, line in enumerate(lines) if line and not line.startswith("#"))
+    fields = lines[first].split()
+    fields[0] = "99"
+    (tmp_path / "twice" / "images.txt").write_text("\n".join(lines + [" ".join(fields), lines[first + 1]]) + "\n")
+    with pytest.raises(SceneError, match=rf"{tmp_path / 'twice'}: COLMAP image_id \d+: image {fields[-1]} is listed "
+                                         "twice"):
+        read_colmap(tmp_path / "twice", m / "images")
+
+
 # -- every camera model a format declares: honoured or refused; counts checked ------------------
 
 def test_transforms_json_camera_models_are_honoured_or_refused(shared, tmp_path):
