@@ -69,6 +69,7 @@ def dask_client(scheduler: Optional[str] = None, workers: int = 2, device: str =
 
 
 SCHEDULER_TIMEOUT_S = 30.0  # to connect to a --scheduler (distributed's connect timeout): docs/cluster.md
+WAIT_NOTE_S = 5.0  # a connection still waiting after this long is said
 
 
 class SchedulerError(ValueError):
@@ -100,7 +101,11 @@ def _connected(Client, address: str, scheduler: str):
             box["error"] = e
     thread = threading.Thread(target=connect, name="pixloc-scheduler-connect", daemon=True)
     thread.start()
-    thread.join(SCHEDULER_TIMEOUT_S + 5)
+    thread.join(WAIT_NOTE_S)
+    if thread.is_alive():  # said while waiting, not only when the wait ends
+        logger.warning("Still waiting for the Dask scheduler at %s after %.0f s (up to %.0f s)", address, WAIT_NOTE_S,
+                       SCHEDULER_TIMEOUT_S)
+        thread.join(SCHEDULER_TIMEOUT_S + 5 - WAIT_NOTE_S)
     if "client" not in box:
         e = box.get("error")
         why = f"{type(e).__name__}: {str(e).splitlines()[0][:160]}" if e else "no answer to distributed's handshake"
