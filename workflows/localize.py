@@ -210,22 +210,25 @@ def resolve_order(order: str, job: LocalizationJob, num_queries: int) -> str:
 
 
 def check_same_tag(job: LocalizationJob, queries: List[QueryRecord]) -> None:
-    """``--same-tag`` names a tag family that the map's images and the queries carry: one that no
-    map image or no query has would restrict nothing, or everything, while job.json and the report
-    claim the restriction."""
+    """``--same-tag`` names a tag family that the map's images and the queries carry: one that no map
+    image or no query has would restrict nothing (or everything) while job.json and the report claim
+    the restriction, and is refused; queries without it (they retrieve among the map images without
+    it) are said."""
     family = job.retrieval.same_tag
     if not family:
         return
     from pipeline.store.layout import open_store, tag_families
     in_map = tag_families(open_store(job.store))
     without = [q.name for q in queries if family not in q.tags]
-    if family not in in_map or without:
-        known = ", ".join(sorted(in_map)) or "none"
-        where = (f"no map image has it (their tags: {known})" if family not in in_map else
-                 f"{len(without)} of the {len(queries)} queries have none ({', '.join(without[:3])}"
-                 f"{' ...' if len(without) > 3 else ''})")
+    if family not in in_map or len(without) == len(queries):
+        where = (f"no map image has it (their tags: {', '.join(sorted(in_map)) or 'none'})" if family not in in_map
+                 else f"none of the {len(queries)} queries has it")
         raise ValueError(f"--same-tag {family}: {where}; leave it out, or name a tag that the queries and the map "
                          "images carry.")
+    if without:
+        logger.warning("--same-tag %s: %d of the %d queries do not have it (%s%s): each retrieves among the map "
+                       "images without it", family, len(without), len(queries), ", ".join(without[:3]),
+                       " ..." if len(without) > 3 else "")
 
 
 def plan_localization(job: LocalizationJob, queries: List[QueryRecord], output, shard_size: Optional[int] = None, *,
