@@ -8,3 +8,5 @@ beyond loading checkpoints.
 """
 
 __version__ = "0.1.0"
+
+DEFAULT_MODEL = "pixloc-lite0"  # the one default of every command and config (``pixloc.nets.registry``)

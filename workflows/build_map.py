@@ -21,7 +21,7 @@ from pipeline.scene import Scene
 from pipeline.store import location
 
 from . import executor
-from .sources import describe_source
+from pipeline.mapping.readers.sources import describe_source
 
 logger = logging.getLogger(__name__)
 

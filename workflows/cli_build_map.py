@@ -7,8 +7,10 @@ import time
 from collections import Counter
 from pathlib import Path
 
+from pipeline.descriptors import DESCRIPTORS
 from pipeline.mapping.features import DTYPES, FeatureConfig
 from pipeline.mapping.image_pairs import METHODS as PAIR_METHODS, PairsConfig
+from pipeline.mapping.readers.sources import SOURCES, MapSource, describe_source, load_scene, map_kinds
 from pipeline.store import location
 from pipeline.store.layout import AnotherMap
 
@@ -16,7 +18,6 @@ from . import executor, presets
 from .build_map import plan_build, prepare_structure, run_dask, run_sync
 from .locks import store_lock, work_dir_lock
 from .options import Flag, add_flags, build, given
-from .sources import KINDS, POSED_FORMATS, MapSource, describe_source, load_scene
 
 logger = logging.getLogger(__name__)
 
@@ -27,8 +28,8 @@ FLAGS = {
     "--resize": Flag("resize", "longer image side at image scale 1"),
     "--image-scales": Flag("image_scales", "image scales, coarse first"),
     "--pad": Flag("pad", "interpolation margin in feature pixels"),
-    "--descriptor": Flag("descriptor", "global descriptor for retrieval (gem pooling, or a 2x3 grid of mean-centred "
-                         "features)", ("gem", "grid")),
+    "--descriptor": Flag("descriptor", "global descriptor for retrieval: " + "; ".join(
+        f"{name}: {entry.help}" for name, entry in DESCRIPTORS.items()), tuple(DESCRIPTORS)),
     "--dtype": Flag("dtype", "feature storage: int8 (codes and a scale per row and level; with --pca 48, the compact "
                     "store), float16 (every channel: --dtype float16 alone) or float32", tuple(DTYPES)),
     "--pca": Flag("pca", "store the levels with more than D channels as their D principal components (a PCA of the "
@@ -40,10 +41,8 @@ FLAGS = {
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("kind", choices=KINDS, help="what the map is built from")
-    p.add_argument("path", type=Path, help="colmap: the model folder; sfm: the image folder; " + "; ".join(
-        f"{kind}: {what}" for kind, what in POSED_FORMATS.items()) + "; 7scenes: the dataset root; posetxt: the folder "
-        "of color/, depth/, pose.txt")
+    p.add_argument("kind", choices=map_kinds(), help="what the map is built from")
+    p.add_argument("path", type=Path, help="; ".join(f"{kind}: {SOURCES[kind].help}" for kind in map_kinds()))
     p.add_argument("--store", required=True, help="output map store: a .zarr folder, or a URL (s3://bucket/map.zarr; "
                    "docs/cluster.md)")
     p.add_argument("--images", type=Path, help="image folder of a COLMAP model (default: PATH/../images), a Bundler "
@@ -85,11 +84,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.set_defaults(func=main)
 
 
-# sources whose map is reconstructed first (SfM, or triangulation from known poses)
-RECONSTRUCTED = {"sfm": "SIFT, matching and SfM",
-                 **{kind: "SIFT, matching and triangulation from the known poses" for kind in POSED_FORMATS}}
-
-
 def main(args: argparse.Namespace) -> int:
     from .cli_localize import absolute
     conf = build(FeatureConfig, presets.feature_settings(presets.load(args.preset) if args.preset else None),
@@ -111,10 +105,10 @@ def main(args: argparse.Namespace) -> int:
                         args.pairs_neighbors, path=str(absolute(args.pairs_file)) if args.pairs_file else None)
     work_dir = absolute(args.work_dir) or location.work_dir(store)
     t0 = time.time()
-    if args.dry_run and source.kind in RECONSTRUCTED:  # a dry run computes and writes nothing
+    if args.dry_run and source.format.reconstructs:  # a dry run computes and writes nothing
         print(f"map store      {store}" + (" (overwritten)" if args.overwrite else "") + f"\nsource         "
               f"{describe_source(source.to_dict())}\nfeatures       {conf.to_dict()} on {args.device}\nstages:\n"
-              f"  0 reconstruction  {RECONSTRUCTED[source.kind]} of the images in {source.path}, in {work_dir} "
+              f"  0 reconstruction  {source.format.reconstructs} of the images in {source.path}, in {work_dir} "
               "(reused there when it finished with the same images and settings)\n"
               "  1 structure, 2 features: counted once the reconstruction exists\n(dry run: nothing computed or "
               "written)")
@@ -139,9 +133,9 @@ def main(args: argparse.Namespace) -> int:
                       "nothing to do (--overwrite rebuilds it).")
                 return 0
         except AnotherMap as e:
-            if source.kind not in RECONSTRUCTED:
+            if not source.format.reconstructs:
                 raise
-            raise AnotherMap(f"{e} The {source.kind} source's map comes from {RECONSTRUCTED[source.kind]}, which "
+            raise AnotherMap(f"{e} The {source.kind} source's map comes from {source.format.reconstructs}, which "
                              f"gives another map each time it runs: a rerun reuses the one finished in its work "
                              f"folder, here {work_dir}. If that is not the folder that built this store, give "
                              "that one with --work-dir (a store copied or moved without its work folder cannot "

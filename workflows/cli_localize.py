@@ -10,49 +10,42 @@ import logging
 import time
 from collections import Counter
 from pathlib import Path
+from dataclasses import asdict
 from typing import Dict, Optional
 
 import numpy as np
 
 from pipeline.evaluate import (DEFAULT_THRESHOLDS, INDOOR_THRESHOLDS, evaluate, evaluation_document, fmt,
                                parse_thresholds, recall_label, shown_families, to_json)
-from pipeline.mapping.features import FeatureConfig
 from pipeline.progress import count
 from pipeline.runtime import BFLOAT16_FLAGS, native_bfloat16
 from pipeline.localization.results import POSE_NAMES, REJECTED, outcome, pose_names_problem, read_records, reason_groups
-from pipeline.localization.shard import POINT_SELECTIONS, PRIORS, LocalizationJob
+from pipeline.localization.priors import PRIORS, Top1
+from pipeline.localization.retrieval import RETRIEVERS
+from pipeline.localization.shard import LocalizationJob
+from pipeline.mapping.readers.sources import SOURCES, load_queries, map_units, query_kinds
 from pipeline.store import location
-from pipeline.store.layout import StoreError, open_store
+from pipeline.store.info import feature_config, level_count, map_images, map_source
+from pipeline.store.layout import StoreError
 from pipeline.textfiles import read_json, write_atomic
 from pixloc.nets.unet import NETWORK_PRECISIONS
 
 from . import executor
 from .options import Flag, add_flags, at_least, build, given
 from .localize import ORDERS, REGION_MIN_QUERIES, plan_localization, run_dask, run_sync
-from .sources import QUERY_KINDS, load_queries
 
 logger = logging.getLogger(__name__)
 
 # the job's command-line options: the field each sets and what it means; the type, choices and
 # default come from the dataclass (``workflows.options``), so a new option is its field and one line
 FLAGS = {
-    "--pairs": Flag("retrieval.pairs", "retrieval pairs file (default: global descriptors)", file=True),
+    "--retrieval": Flag("retrieval", "how the references are found: " + "; ".join(
+        f"{name}: {entry.help}" for name, entry in RETRIEVERS.items()) + " (default: the method whose option is "
+        "given, else global)", tuple(RETRIEVERS)),
     "--retrieval-k": Flag("retrieval.k", "references retrieved"),
     "--same-tag": Flag("retrieval.same_tag", "restrict references to those sharing this tag with the query"),
-    "--descriptors": Flag("retrieval.descriptors", "hloc HDF5 global descriptors for retrieval (e.g. NetVLAD)",
-                          file=True),
-    "--prior": Flag("prior", "pose prior; search: many starts around the top references, screened at the coarsest "
-                    "level; sift: SIFT matches to the references and PnP (the search where PnP fails); hloc: "
-                    "refinement mode from an hloc _logs.pkl (its PnP poses and inliers)", PRIORS),
-    "--sift-min-inliers": Flag("sift.min_inliers", "with --prior sift: PnP inliers a pose needs"),
-    "--sift-max-size": Flag("sift.max_size", "with --prior sift: longer image side of SIFT extraction"),
-    "--sift-levels": Flag("sift.levels", "with --prior sift: the levels a PnP pose is refined on (the two finest, as "
-                          "the official refinement of PnP poses; 0 1 2: every level)"),
-    "--prior-poses": Flag("prior_poses", "refinement mode: poses file of another pipeline", file=True),
-    "--hloc-logs": Flag("hloc_logs", "refinement mode: hloc localization logs (_logs.pkl); the store must be built "
-                        "from the SfM model hloc localized against", file=True),
-    "--point-selection": Flag("point_selection", "with --prior hloc: all points of the references, or hloc's PnP "
-                              "inliers (paper) or matches", POINT_SELECTIONS),
+    "--prior": Flag("prior", "pose prior: " + "; ".join(f"{name}: {entry.help}" for name, entry in PRIORS.items())
+                    + f" (default {Top1.name})", tuple(PRIORS)),
     "--min-points": Flag("localizer.min_points", "fewer 3D points fails a query (official; 100 in refinement mode)"),
     "--min-track-length": Flag("localizer.min_track_length", "leave out points seen by fewer map images (official; "
                                "2 keeps the points of two-view maps)"),
@@ -102,7 +95,8 @@ def _absolute(path) -> Optional[str]:
 
 
 def add_query_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("query_kind", choices=QUERY_KINDS, help="where the queries come from")
+    p.add_argument("query_kind", choices=query_kinds(), help="where the queries come from: " + "; ".join(
+        f"{kind}: {SOURCES[kind].help}" for kind in query_kinds()))
     p.add_argument("query_path", type=Path, help="query list file, or dataset root")
     p.add_argument("--query-images", "--images", type=Path, help="image folder of a query list, COLMAP model, Bundler "
                    "bundle or OpenSfM reconstruction (--images, as build-map names it, is the same)")
@@ -119,7 +113,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "s3://bucket/map.zarr)")
     p.add_argument("--features", help="feature group of the store (default: its only one)")
     p.add_argument("--output", type=Path, required=True, help="output folder (records, poses, shards)")
-    add_flags(p, LocalizationJob, FLAGS)
+    add_job_flags(p)
     p.add_argument("--pose-names", choices=POSE_NAMES, help="also write poses_NAMES.txt with these names for a "
                    "benchmark submission: basename (Aachen, CMU) or camera (parentdir/basename: RobotCar, 7-Scenes, "
                    "Cambridge); poses.txt always has the full names (default: the preset's, else none)")
@@ -154,15 +148,63 @@ def presets_available():
     return presets.available()
 
 
+CHOOSERS = ("--retrieval", "--prior")  # the options that choose a registry entry: their values are names
+
+
+def entry_prefix(registry, name: str) -> str:
+    """Where an entry's own options land in the parsed arguments."""
+    return f"{registry.axis}:{name}."
+
+
+def add_job_flags(p: argparse.ArgumentParser) -> None:
+    """The job's options: its own fields', the entry choices, and each retrieval method's and
+    prior's own options (from the registries)."""
+    for flag in CHOOSERS:
+        p.add_argument(flag, dest=FLAGS[flag].path, choices=list(FLAGS[flag].choices), help=FLAGS[flag].help)
+    add_flags(p, LocalizationJob, {k: f for k, f in FLAGS.items() if k not in CHOOSERS})
+    for registry in (RETRIEVERS, PRIORS):
+        for name, entry in registry.items():
+            add_flags(p, entry, entry.flags, prefix=entry_prefix(registry, name))
+
+
+def chosen(registry, name: Optional[str], cli: Dict, preset: Dict, where: str):
+    """The settings of the entry ``name`` of ``registry`` (None: the one whose own options the
+    command line gives, else the preset's, else the default): its fields from the preset's block
+    of that name, then the command line. Options of another entry are refused."""
+    own = {n: given(cli, e.flags, entry_prefix(registry, n)) for n, e in registry.items()}
+    used = [n for n, values in own.items() if values]
+    if name is None and len(used) == 1:
+        name = used[0]
+    name = name or preset.get(registry.axis, {}).get("name") or next(iter(registry))
+    entry = registry.entry(name)
+    other = [n for n in used if n != name]
+    if other:
+        flags = [f for f, flag in registry[other[0]].flags.items() if flag.path in own[other[0]]]
+        raise ValueError(f"{', '.join(flags)}: an option of the {registry.axis} {other[0]}, not of {name}.")
+    values = {**preset.get(registry.axis, {}).get(name, {}), **own[name]}
+    return build(entry, {k: v for k, v in values.items() if k != "name"}, where=f"{where} ({registry.axis} {name})")
+
+
+def prior_options(args: argparse.Namespace, prior) -> Dict:
+    """{option: value} of the prior's own options that the command line gives."""
+    values = given(args, prior.flags, entry_prefix(PRIORS, prior.name))
+    return {flag: values[f.path] for flag, f in prior.flags.items() if f.path in values}
+
+
 def job_settings(args: argparse.Namespace) -> Dict:
-    """The job's fields set by the preset and then the command line (by dotted path)."""
+    """The job's fields set by the preset and then the command line (by dotted path; the retrieval
+    and the prior as their entries' settings)."""
     from . import presets
-    cli = given(args, FLAGS)
+    cli = given(args, {k: f for k, f in FLAGS.items() if k not in CHOOSERS})
     preset = presets.load(args.preset) if args.preset else None
-    settings = {**presets.job_settings(preset, cli.get("prior")), **cli}
-    if "retrieval.pairs" in settings or "retrieval.descriptors" in settings:
-        settings["retrieval.method"] = "pairs" if "retrieval.pairs" in settings else "hloc"
-    return settings
+    prior_name = args.prior
+    settings, blocks = presets.job_settings(preset, prior_name)
+    settings.update(cli)
+    prior = chosen(PRIORS, prior_name, args, blocks, "localize options")
+    retrieval = chosen(RETRIEVERS, args.retrieval, args, blocks, "localize options")
+    shared = {k.split(".", 1)[1]: settings.pop(k) for k in list(settings) if k.startswith("retrieval.")}
+    retrieval = build(type(retrieval), {**asdict(retrieval), **shared}, where="localize options")
+    return {**settings, "retrieval": retrieval, "prior": prior}
 
 
 def pose_names_of(args: argparse.Namespace) -> str:
@@ -173,37 +215,22 @@ def pose_names_of(args: argparse.Namespace) -> str:
     return (presets.load(args.preset).get("pose_names") if args.preset else None) or POSE_NAMES[0]
 
 
-def store_feature_config(store, key=None) -> FeatureConfig:
-    root = open_store(store)
-    groups = sorted(root["features"].group_keys()) if "features" in root else []
-    if not groups:
-        raise StoreError(f"{store} has no features: run pixloc build-map first.")
-    if key is None and len(groups) > 1:
-        raise StoreError(f"{store} has several feature groups {groups}: choose one with --features.")
-    key = key or groups[0]
-    if key not in groups:
-        raise StoreError(f"{store} has no feature group {key!r} (it has {groups}).")
-    conf = dict(root[f"features/{key}"].attrs["config"])
-    conf["image_scales"] = tuple(conf["image_scales"])
-    return FeatureConfig.from_dict(conf)
-
-
 def build_job(args: argparse.Namespace) -> LocalizationJob:
     """The job: the store and its features, the dataclass defaults, the preset, the command line."""
     store = location.normalize(args.store)
-    fconf = store_feature_config(store, args.features)
+    fconf = feature_config(store, args.features)
     settings = job_settings(args)
     if settings.get("scales") and not set(settings["scales"]) <= set(fconf.image_scales):
         raise ValueError(f"--scales {settings['scales']}: the store's features have image scales "
                          f"{list(fconf.image_scales)}.")
-    levels = [(flag, settings[key]) for flag, key in (("--levels", "levels"), ("--sift-levels", "sift.levels"))
-              if settings.get(key)]
+    prior = settings["prior"]
+    levels = [("--levels", settings["levels"])] if settings.get("levels") else []
+    levels += [(flag, value) for flag, value in prior_options(args, prior).items() if flag.endswith("-levels")]
     if levels:  # before: every query failed with levels the store does not have
-        from pipeline.store.feature_groups import feature_key
-        n = len(open_store(store)[f"features/{feature_key(fconf)}"].attrs["dims"])
-        for flag, given in levels:
-            if not set(given) <= set(range(n)):
-                raise ValueError(f"{flag} {list(given)}: the store's features have levels 0 (finest) to {n - 1}.")
+        n = level_count(store, fconf)
+        for flag, wanted in levels:
+            if not set(wanted) <= set(range(n)):
+                raise ValueError(f"{flag} {list(wanted)}: the store's features have levels 0 (finest) to {n - 1}.")
     job = build(LocalizationJob, {"store": str(store), "features": fconf, "model": fconf.model}, settings,
                 where="localize options")
     job.validate()
@@ -376,16 +403,14 @@ def evaluate_main(args: argparse.Namespace) -> int:
 def queries_in_map(store, queries) -> list:
     """The queries that are also images of the store's map (``pipeline.queries.also_in_map``)."""
     from pipeline.queries import also_in_map
-    from pipeline.store.layout import image_records
-    images = image_records(open_store(store))
+    images = map_images(store)
     return also_in_map(queries, [im.name for im in images], [im.path for im in images])
 
 
 def store_units(store) -> str:
-    """The distance unit of a store's map (``workflows.report.map_units`` of its source)."""
-    from .report import map_units
+    """The distance unit of a store's map (``pipeline.mapping.readers.sources.map_units`` of its source)."""
     try:
-        return map_units(dict(open_store(store).attrs["pixloc_map"]).get("source", {}))
+        return map_units(map_source(store))
     except StoreError:  # the store was moved since the run: its unit is unknown
         return "scene units"
 

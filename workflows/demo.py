@@ -21,8 +21,9 @@ from pipeline.evaluate import evaluate, evaluation_document, fmt, to_json
 from pipeline.mapping.features import FeatureConfig
 from pipeline.localization.refine import LocalizerConfig
 from pipeline.scene import CameraRecord
-from pipeline.localization.retrieval import RetrievalConfig
-from pipeline.localization.shard import PRIORS, LocalizationJob
+from pipeline.localization.retrieval import GlobalDescriptors
+from pipeline.localization.priors import PRIORS, Top1
+from pipeline.localization.shard import LocalizationJob
 from pipeline.data.synthetic import SyntheticConfig, ensure_generated, read_synthetic
 from pipeline.textfiles import write_atomic
 
@@ -46,7 +47,7 @@ def _stage(k: int, text: str) -> float:
 
 def run_demo(output: Path, model: str = "pixloc-lite0", num_references: int = 30, queries_per_condition: int = 5,
              workers: int = 2, sync: bool = False, num_iters: int = 50, seed: int = DEMO_SEED,
-             query_spread: float = 0.5, prior: str = "top1", client=None) -> Dict[str, Dict]:
+             query_spread: float = 0.5, prior: str = Top1.name, client=None) -> Dict[str, Dict]:
     """Run the demo into ``output``; returns the evaluation summary (per condition)."""
     if num_references < MIN_REFERENCES:
         raise ValueError(f"--references {num_references}: the demo needs at least {MIN_REFERENCES} (its references "
@@ -77,7 +78,7 @@ def run_demo(output: Path, model: str = "pixloc-lite0", num_references: int = 30
           + ("" if todo else f" (reused {store}: every image already had its features)"))
 
     job = LocalizationJob(str(store), fconf, model, LocalizerConfig(num_dbs=3, num_iters=num_iters),
-                          RetrievalConfig("global", k=5, same_tag="area"), prior=prior)
+                          GlobalDescriptors(k=5, same_tag="area"), prior=PRIORS.entry(prior)())
     t = _stage(3, f"retrieval and localization of {len(queries)} queries "
                   f"({'in-process' if sync else f'{workers} Dask workers'})")
     try:
@@ -132,7 +133,7 @@ def format_table(summary: Dict[str, Dict]) -> str:
     return "\n".join(lines)
 
 
-FROM_A_FILE = ("poses", "hloc")  # priors read from the user's files, which the demo's scene has none of
+OWN_INPUTS = [name for name, entry in PRIORS.items() if not entry.inputs]  # the demo's scene has no files for others
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -144,7 +145,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="queries of each condition (day, dusk, night, occluded)")
     p.add_argument("--workers", type=at_least(1), default=2, help="Dask workers (processes)")
     p.add_argument("--sync", action="store_true", help="localize in this process, without Dask")
-    p.add_argument("--prior", choices=[p for p in PRIORS if p not in FROM_A_FILE], default="top1",
+    p.add_argument("--prior", choices=OWN_INPUTS, default=Top1.name,
                    help="pose prior of the localization (see pixloc localize --help; sift: SIFT + PnP, refined)")
     p.set_defaults(func=main)
 

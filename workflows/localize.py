@@ -25,7 +25,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, List, Optional
 
-import numpy as np
 
 from pipeline.localization.refine import QueryResult
 from pipeline.localization.results import (
@@ -44,6 +43,7 @@ from pipeline.regions import camera_centres, region_order
 from pipeline.store.feature_groups import feature_key
 from pipeline.store import location
 from pipeline.store.check import store_fingerprint
+from pipeline.store.info import camera_poses, image_names, tags_in_map
 from pipeline.store.layout import StoreError
 from pipeline.textfiles import InputError, read_json, write_atomic
 
@@ -98,11 +98,7 @@ class LocalizationPlan:
         retrieved = {}
         for k in range(len(self.retrieval_parts())):
             retrieved.update(json.loads(self.retrieval_path(k).read_text()))
-        from pipeline.store.layout import open_store, read
-        root = open_store(self.job.store)
-        names = [str(n) for n in read(root, "images/name")]
-        T = read(root, "images/cam_from_world")
-        centres = camera_centres(np.concatenate([T[:, :9].reshape(-1, 3, 3), T[:, 9:, None]], 2))
+        names, centres = image_names(self.job.store), camera_centres(camera_poses(self.job.store))
         top1 = {n: (r["dbs"][0] if r["dbs"] else None) for n, r in retrieved.items()}
         order = region_order([q.name for q in self.queries], top1, names, centres)
         queries = [dataclasses.replace(self.queries[k], retrieved=retrieved.get(self.queries[k].name))
@@ -199,12 +195,12 @@ def resolve_order(order: str, job: LocalizationJob, num_queries: int) -> str:
     network once more per query (``--order region`` pays that to read a bounded part of the store)."""
     if order not in ORDERS:
         raise ValueError(f"Unknown query order {order!r}; known: {', '.join(ORDERS)}.")
-    retrieves = job.prior not in ("poses", "hloc")
+    retrieves = job.prior.retrieves
     if order == "region" and not retrieves:
-        raise ValueError(f"--order region groups queries by their retrieved references; prior {job.prior!r} "
+        raise ValueError(f"--order region groups queries by their retrieved references; prior {job.prior.name!r} "
                          "retrieves none.")
-    if order == "auto":  # a retrieval stage with the global descriptor costs one network pass per query
-        cheap = job.retrieval.method in ("pairs", "hloc")
+    if order == "auto":  # a retrieval stage that runs the network costs one more network pass per query
+        cheap = not job.retrieval.needs_image
         return "region" if retrieves and cheap and num_queries >= REGION_MIN_QUERIES else "list"
     return order
 
@@ -217,8 +213,7 @@ def check_same_tag(job: LocalizationJob, queries: List[QueryRecord]) -> None:
     family = job.retrieval.same_tag
     if not family:
         return
-    from pipeline.store.layout import open_store, tag_families
-    in_map = tag_families(open_store(job.store))
+    in_map = tags_in_map(job.store)
     without = [q.name for q in queries if family not in q.tags]
     if family not in in_map or len(without) == len(queries):
         where = (f"no map image has it (their tags: {', '.join(sorted(in_map)) or 'none'})" if family not in in_map
@@ -250,10 +245,8 @@ def plan_localization(job: LocalizationJob, queries: List[QueryRecord], output, 
     stored = stored_job(Path(output), overwrite)
     store = store_fingerprint(job.store, feature_key(job.features))
     check_same_tag(job, queries)
-    if job.retrieval.descriptors:  # checked once here, not by every query
-        from pipeline.localization.retrieval import check_descriptors
-        from pipeline.store.layout import open_store, read
-        check_descriptors(job.retrieval.descriptors, [str(n) for n in read(open_store(job.store), "images/name")])
+    if job.prior.retrieves:  # the retrieval's inputs checked against the map once here, not by every query
+        job.retrieval.check(image_names(job.store))
     if store["pending"] is None:
         raise StoreError(f"{job.store} has no features for this configuration ({feature_key(job.features)}): "
                          "build them with pixloc build-map and the same feature settings.")
@@ -264,6 +257,8 @@ def plan_localization(job: LocalizationJob, queries: List[QueryRecord], output, 
     if stored is not None and not overwrite and "store" in stored and stored["store"]["digest"] != store["digest"]:
         raise AnotherRun(f"{output} holds results against another map (the store {job.store} was rebuilt or "
                          "changed since): use another --output, or --overwrite to redo the run against this map.")
+    if stored is not None:
+        stored = _current(stored)
     if shard_size is None:
         same = stored is not None and not overwrite and stored.get("queries") == names \
             and stored.get("job") == _job_json(job, names, 1, order)["job"] and stored.get("order", "list") == order
@@ -293,6 +288,16 @@ def plan_localization(job: LocalizationJob, queries: List[QueryRecord], output, 
 
 
 RECORDED = ("store", "thresholds")  # recorded in job.json, not part of the job a rerun must match
+
+
+def _current(stored: Dict) -> Dict:
+    """A recorded run with its job as this version records it (``LocalizationJob.from_dict``: an
+    earlier schema, settings added since at their defaults), so that a rerun of the same job is
+    the same run; a job no version wrote stays as it is (and differs)."""
+    try:
+        return {**stored, "job": json.loads(json.dumps(LocalizationJob.from_dict(stored["job"]).to_dict()))}
+    except (ValueError, TypeError, KeyError):
+        return stored
 
 
 def _changes(stored: Dict, now: Dict, most: int = 4) -> str:

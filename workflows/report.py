@@ -20,8 +20,9 @@ from typing import Dict, List, Optional, Tuple
 import numpy as np
 
 from pipeline.evaluate import DEFAULT_THRESHOLDS, evaluate, fmt, shown_families
-from pipeline.mapping.features import FeatureConfig
-from pipeline.store.layout import open_store
+from pipeline.localization.shard import LocalizationJob
+from pipeline.mapping.readers.sources import map_units
+from pipeline.store.info import map_source
 from pipeline.store.reader import MapReader
 from pipeline.queries import QueryRecord
 from pipeline.localization.results import outcome, read_records, reason_groups, stages_text
@@ -30,18 +31,8 @@ from pipeline.textfiles import write_atomic
 from .report_figures import (error_curves, example_figure, natural_key, query_errors, refinement_confidence,
                              threshold_tradeoff, top_view, tradeoff_figure)
 
-METRIC_SOURCES = ("synthetic", "strecha", "7scenes", "posetxt", "kapture")  # map sources in metres
-SFM_SOURCES = ("colmap", "sfm", "llff", "bundler", "opensfm", "transforms")  # poses of an SfM model: scale unknown
 OUTCOME_ORDER = {"failed": 0, "rejected": 1, "refined": 2}
 MAX_CONDITIONS = 8  # conditions of a family given examples
-
-
-def map_units(source: Dict) -> str:
-    """'m' for map sources with a metric scale, 'SfM units' for SfM models (scale unknown),
-    'scene units' for stores that do not record their source (built through the library)."""
-    kind = source.get("kind")
-    return "m" if kind in METRIC_SOURCES else "SfM units" if kind in SFM_SOURCES else "scene units"
-
 
 def tag_families(summary: Dict, group_by=None) -> List[Tuple[str, List[str]]]:
     """[('all', ['all']), (family, its keys sorted)...] of the families worth a table
@@ -280,7 +271,7 @@ def _job_text(job: Dict, reader: MapReader, units: str, records: List[Dict]) -> 
     rows = [("map store", job["store"]),
             ("map", f"{len(reader.names)} reference images, {len(reader.xyz)} points, units: {units}"),
             ("model", job["model"]),
-            ("prior", f"{job['prior']} from {job['retrieval']['method']} retrieval (k={job['retrieval']['k']})"
+            ("prior", f"{job['prior']['name']} from {job['retrieval']['method']} retrieval (k={job['retrieval']['k']})"
                       + (f", references sharing the tag {job['retrieval']['same_tag']!r}"
                          if job["retrieval"].get("same_tag") else "")),
             ("verification", "on, min confidence {}".format(job["localizer"]["verification"]["min_confidence"])
@@ -311,13 +302,12 @@ def make_report(output: Path, queries: List[QueryRecord], num_examples: int = 3,
     inputs = _inputs_digest(output, num_examples, thresholds, gt, [units, group_by])
     if reuse and path.is_file() and f"<!-- pixloc-report-inputs {inputs} -->" in path.read_text(errors="replace"):
         return path  # made from the same records, settings and code: left untouched
-    job = json.loads((output / "job.json").read_text())["job"]
-    fconf = dict(job["features"])
-    fconf["image_scales"] = tuple(fconf["image_scales"])
-    refiner, digest = localization_model(job["model"], "cpu")
-    reader = MapReader(job["store"], FeatureConfig.from_dict(fconf), digest)
+    run = LocalizationJob.from_dict(json.loads((output / "job.json").read_text())["job"])  # of any schema
+    job = run.to_dict()
+    refiner, digest = localization_model(run.model, "cpu")
+    reader = MapReader(run.store, run.features, digest)
     if units is None:
-        units = map_units(dict(open_store(job["store"]).attrs["pixloc_map"]).get("source", {}))
+        units = map_units(map_source(run.store))
     errors = {r["name"]: query_errors(r, gt.get(r["name"])) for r in records}
     families = sorted({k for r in records for k in r.get("tags", {})})
     family = "condition" if "condition" in families else (families[0] if families else None)

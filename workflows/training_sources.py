@@ -13,7 +13,7 @@ from pipeline.scene import CameraRecord, Scene
 from pipeline.data.photo_pairs import PhotoPairs
 from pipeline.data.training_data import PairConfig, PairDataset, synthetic_scene
 
-from .sources import MapSource, load_scene
+from pipeline.mapping.readers.sources import MapSource, load_scene
 
 logger = logging.getLogger(__name__)
 

@@ -1,7 +1,7 @@
-"""Where a query's refinement starts: one function per prior, in ``PRIORS`` (the job's ``prior``
-and the command line's choices come from it), each ``(start: Start) -> Prepared``: the
-query's candidates (``pipeline.localization.refine.Candidate``, several for ``hypotheses`` and
-``search``), or its failure with the reason.
+"""Where a query's refinement starts: the registry ``PRIORS`` (the job's ``prior`` and the command
+line's choices come from it). An entry is its settings dataclass: ``prepare(start) -> Prepared``
+gives the query's candidates (``pipeline.localization.refine.Candidate``, several for
+``hypotheses`` and ``search``), or its failure with the reason.
 
 - ``top1``: the pose of the best reference (official PixLoc retrieval default);
 - ``average``: the references' covisibility cluster averaged (``pipeline.localization.pose_averaging``);
@@ -15,13 +15,18 @@ query's candidates (``pipeline.localization.refine.Candidate``, several for ``hy
 - ``sift``: SIFT matches to the references, PnP (``pipeline.localization.sift``), refined on the
   two finest levels; where PnP finds too few inliers, the ``search`` prior.
 
-A new prior is a function here and its line in ``PRIORS``.
+An entry's class attributes: ``help`` (the command line's), ``flags`` (its own options, relative
+to its fields), ``retrieves`` (it asks for the query's references: a retrieval method runs),
+``rivals`` (its start is a map image's pose: other references' poses check it,
+``search.rival_starts``), ``given_poses`` (it refines another pipeline's poses: a preset's
+``from_poses`` settings apply), ``inputs`` (its fields that name input files). A new prior is one
+class here.
 """
 
 import functools
 import logging
 from dataclasses import dataclass, replace
-from typing import Any, Callable, Dict, List, Optional, Tuple, Union
+from typing import Callable, ClassVar, Dict, List, Optional, Tuple, Union
 
 import numpy as np
 
@@ -31,8 +36,10 @@ from pipeline.localization.pose_averaging import covisibility_clusters, pose_app
 from pipeline.queries import QueryRecord
 from pipeline.mapping.readers.hloc import PnPLog, read_hloc_logs
 from pipeline.localization.retrieval import Retrieved
-from pipeline.localization.sift import FALLBACK, sift_pnp
-from pipeline.localization.search import Hypotheses, hypotheses, median_depth
+from pipeline.localization.sift import FALLBACK, SiftConfig, sift_pnp
+from pipeline.localization.search import Hypotheses, SearchConfig, hypotheses, median_depth
+from pipeline.registry import Registry, check_inputs
+from pipeline.settings import Flag
 from pipeline.textfiles import NameIndex, PoseTable, find_by_name, read_poses
 
 logger = logging.getLogger(__name__)
@@ -42,16 +49,16 @@ Prepared = Union[QueryResult, List[Candidate]]  # a Hypotheses is a list of cand
 
 @dataclass
 class Start:
-    """What a prior works from: the job (``pipeline.localization.shard.LocalizationJob``: the prior's
-    settings), the map, the query with its decoded image and its cache, and its references
+    """What a prior works from: the map, the query with its decoded image and its cache, the
+    references a query is refined against (``num_dbs``), and its retrieved references
     (``references()``: retrieved when first asked, so that ``hloc`` runs no retrieval)."""
 
-    job: Any
     reader: MapReader
     query: QueryRecord
     rgb: np.ndarray
     cache: Dict
     references: Callable[[], Retrieved]
+    num_dbs: int
 
     def candidate(self, dbs: List[int], prior: np.ndarray, origin: str,
                   selected: Optional[np.ndarray] = None, levels: Optional[Tuple[int, ...]] = None) -> Candidate:
@@ -67,50 +74,117 @@ def failure(query: QueryRecord, reason: str, prior=None, refs=None) -> QueryResu
 NO_MATCH = "no retrieval match among the map's usable reference images"
 
 
-def top1(s: Start) -> Prepared:
-    r = s.references()
-    if not r.dbs:
-        return failure(s.query, NO_MATCH)
-    return [s.candidate(r.dbs[:s.job.localizer.num_dbs], s.reader.cam_from_world[r.dbs[0]], "top-1 reference")]
+@dataclass(frozen=True)
+class PriorSettings:
+    """The settings of one prior (an entry of ``PRIORS``); see the module docstring."""
+
+    name: ClassVar[str]
+    help: ClassVar[str] = ""
+    flags: ClassVar[Dict[str, Flag]] = {}
+    retrieves: ClassVar[bool] = True
+    rivals: ClassVar[bool] = False
+    given_poses: ClassVar[bool] = False
+    inputs: ClassVar[Tuple[str, ...]] = ()
+
+    def prepare(self, s: Start) -> Prepared:
+        raise NotImplementedError
+
+    def validate(self) -> None:
+        """Refuse settings that cannot run, before any query does (ValueError); input files are
+        read in full now: a bad line is one clear error (file:line), not the same failure in every
+        query."""
+        check_inputs(self, f"--prior {self.name}")
+
+    def files(self) -> List[str]:
+        """The input files the prior reads."""
+        return [getattr(self, name) for name in self.inputs if getattr(self, name)]
+
+
+PRIORS = Registry("prior")
+
+
+@PRIORS.register("top1")
+@dataclass(frozen=True)
+class Top1(PriorSettings):
+    help: ClassVar[str] = "the pose of the best reference"
+    rivals: ClassVar[bool] = True
+
+    def prepare(self, s: Start) -> Prepared:
+        r = s.references()
+        if not r.dbs:
+            return failure(s.query, NO_MATCH)
+        return [s.candidate(r.dbs[:s.num_dbs], s.reader.cam_from_world[r.dbs[0]], "top-1 reference")]
 
 
 def average_pose(s: Start, r: Retrieved) -> Tuple[List[int], np.ndarray]:
     """The covisibility cluster of the top references and its similarity-weighted average pose."""
     similarity = r.similarity if r.similarity is not None else np.ones(len(r.dbs))
     sim = dict(zip(r.dbs, similarity))
-    cluster = covisibility_clusters(r.dbs[:s.job.localizer.num_dbs], s.reader.image_points)[0]
+    cluster = covisibility_clusters(r.dbs[:s.num_dbs], s.reader.image_points)[0]
     return cluster, pose_approximation([s.reader.cam_from_world[i] for i in cluster], [sim[i] for i in cluster])
 
 
-def average(s: Start) -> Prepared:
+@PRIORS.register("average")
+@dataclass(frozen=True)
+class Average(PriorSettings):
+    help: ClassVar[str] = "the references' covisibility cluster, its poses averaged"
+    rivals: ClassVar[bool] = True
+
+    def prepare(self, s: Start) -> Prepared:
+        r = s.references()
+        if not r.dbs:
+            return failure(s.query, NO_MATCH)
+        cluster, prior = average_pose(s, r)
+        return [s.candidate(cluster, prior, "average pose")]
+
+
+@PRIORS.register("hypotheses")
+@dataclass(frozen=True)
+class ReferenceHypotheses(PriorSettings):
+    """num_hypotheses: the top references whose poses are each refined (the most confident wins)."""
+
+    num_hypotheses: int = 3
+    help: ClassVar[str] = "each top reference's pose refined, the most confident wins"
+    rivals: ClassVar[bool] = True
+
+    def validate(self) -> None:
+        if self.num_hypotheses < 1:
+            raise ValueError("num_hypotheses must be at least 1.")
+
+    def prepare(self, s: Start) -> Prepared:
+        r = s.references()
+        if not r.dbs:
+            return failure(s.query, NO_MATCH)
+        dbs = r.dbs[:s.num_dbs]
+        return [s.candidate(dbs, s.reader.cam_from_world[i], f"reference {n + 1}")
+                for n, i in enumerate(r.dbs[:self.num_hypotheses])]
+
+
+def search_starts(s: Start, conf: SearchConfig) -> Prepared:
+    """The search's starts (``pipeline.localization.search``) around the query's references."""
     r = s.references()
     if not r.dbs:
         return failure(s.query, NO_MATCH)
-    cluster, prior = average_pose(s, r)
-    return [s.candidate(cluster, prior, "average pose")]
-
-
-def reference_hypotheses(s: Start) -> Prepared:
-    r = s.references()
-    if not r.dbs:
-        return failure(s.query, NO_MATCH)
-    dbs = r.dbs[:s.job.localizer.num_dbs]
-    return [s.candidate(dbs, s.reader.cam_from_world[i], f"reference {n + 1}")
-            for n, i in enumerate(r.dbs[:s.job.num_hypotheses])]
-
-
-def search(s: Start) -> Prepared:
-    r = s.references()
-    if not r.dbs:
-        return failure(s.query, NO_MATCH)
-    conf = s.job.search
     prior = average_pose(s, r)[1] if conf.average else None
     starts = hypotheses(s.reader, r.dbs, conf, prior)
     # always refined: the top-1 pose (first) and the average pose (first of the last block)
     always = [0] + ([len(starts) - conf.size()] if conf.average else [])
-    dbs = r.dbs[:s.job.localizer.num_dbs]
+    dbs = r.dbs[:s.num_dbs]
     return Hypotheses([s.candidate(dbs, T, label) for T, label in starts], always=always,
                       depth=median_depth(s.reader, r.dbs[0]))
+
+
+@PRIORS.register("search")
+@dataclass(frozen=True)
+class Search(PriorSettings):
+    search: SearchConfig = SearchConfig()
+    help: ClassVar[str] = "many starts around the top references, screened at the coarsest level"
+
+    def validate(self) -> None:
+        self.search.validate()
+
+    def prepare(self, s: Start) -> Prepared:
+        return search_starts(s, self.search)
 
 
 @functools.lru_cache(maxsize=2)
@@ -119,15 +193,31 @@ def poses_file(path: str) -> PoseTable:
     return read_poses(path)
 
 
-def other_pipeline(s: Start) -> Prepared:
-    r = s.references()
-    if not r.dbs:
-        return failure(s.query, NO_MATCH)
-    dbs = r.dbs[:s.job.localizer.num_dbs]
-    prior = poses_file(s.job.prior_poses).find(s.query.name)
-    if prior is None:
-        return failure(s.query, f"no prior pose for this query in {s.job.prior_poses}", refs=dbs)
-    return [s.candidate(dbs, prior, f"pose in {s.job.prior_poses}")]
+@PRIORS.register("poses")
+@dataclass(frozen=True)
+class OtherPipeline(PriorSettings):
+    """prior_poses: the poses file of another pipeline (visuallocalization.net format)."""
+
+    prior_poses: Optional[str] = None
+    help: ClassVar[str] = "refinement mode: another pipeline's poses (--prior-poses)"
+    flags: ClassVar[Dict[str, Flag]] = {
+        "--prior-poses": Flag("prior_poses", "refinement mode: poses file of another pipeline", file=True)}
+    given_poses: ClassVar[bool] = True
+    inputs: ClassVar[Tuple[str, ...]] = ("prior_poses",)
+
+    def validate(self) -> None:
+        super().validate()
+        poses_file(self.prior_poses)
+
+    def prepare(self, s: Start) -> Prepared:
+        r = s.references()
+        if not r.dbs:
+            return failure(s.query, NO_MATCH)
+        dbs = r.dbs[:s.num_dbs]
+        prior = poses_file(self.prior_poses).find(s.query.name)
+        if prior is None:
+            return failure(s.query, f"no prior pose for this query in {self.prior_poses}", refs=dbs)
+        return [s.candidate(dbs, prior, f"pose in {self.prior_poses}")]
 
 
 @functools.lru_cache(maxsize=2)
@@ -137,54 +227,98 @@ def hloc_logs(path: str) -> Tuple[Dict[str, PnPLog], NameIndex]:
     return logs, NameIndex(logs, path)
 
 
-def hloc(s: Start) -> Prepared:
+POINT_SELECTIONS = ("all", "inliers", "matched")
+
+
+@PRIORS.register("hloc")
+@dataclass(frozen=True)
+class Hloc(PriorSettings):
     """Refinement mode from hloc's logs (official PoseRefiner): start from the PnP pose, use the
-    references that gave the most inliers, optionally only the inlier points."""
-    job, reader, query = s.job, s.reader, s.query
-    logs, index = hloc_logs(job.hloc_logs)
-    log = find_by_name(logs, query.name, index)
-    if log is None:
-        return failure(query, f"no hloc log for this query in {job.hloc_logs}")
-    if not log.success:
-        return failure(query, "hloc PnP failed: no initial pose")
-    prior = log.cam_from_world
-    if log.num_inliers < job.min_inliers:
-        return failure(query, f"hloc PnP has {log.num_inliers} inliers (< {job.min_inliers})", prior)
-    images, points = reader.source_ids
-    inliers = log.inliers_per_db()
-    ranked = [log.db_ids[i] for i in np.argsort(-inliers, kind="stable") if inliers[i] > job.min_matches_db]
-    ranked = [i for i in ranked if i in images and reader.usable(images[i])][:job.localizer.num_dbs]
-    if not ranked:
-        unknown = [i for i in log.db_ids if i not in images]
-        reason = (f"none of the log's references (COLMAP image ids {unknown[:5]}) is in the map: build the "
-                  "store from the SfM model hloc localized against" if len(unknown) == len(log.db_ids) else
-                  f"no usable reference with more than {job.min_matches_db} PnP inliers")
-        return failure(query, reason, prior)
-    selected = None
-    if job.point_selection != "all":
-        pairs = log.inlier_observations(ranked, inliers_only=job.point_selection == "inliers")
-        known = [(points[p], images[i]) for p, i in pairs if p in points]
-        if len(known) < len(pairs):
-            logger.warning("%s: %d of %d hloc matches name points that are not in the map.", query.name,
-                           len(pairs) - len(known), len(pairs))
-        selected = np.array(known, dtype=np.int64).reshape(-1, 2)
-    return [s.candidate([images[i] for i in ranked], prior, "hloc PnP pose", selected)]
+    references that gave the most inliers (more than ``min_matches_db``), optionally only the
+    inlier points. point_selection: ``all`` points of the kept references, ``inliers`` (the PnP
+    inliers only, observed by the references that matched them) or ``matched`` (all 2D-3D
+    matches); queries with fewer than ``min_inliers`` inliers fail. The store must be built from
+    the SfM model hloc used."""
+
+    hloc_logs: Optional[str] = None
+    point_selection: str = "all"
+    min_matches_db: int = 10
+    min_inliers: int = 10
+    help: ClassVar[str] = "refinement mode from an hloc _logs.pkl (its PnP poses and inliers)"
+    flags: ClassVar[Dict[str, Flag]] = {
+        "--hloc-logs": Flag("hloc_logs", "refinement mode: hloc localization logs (_logs.pkl); the store must be "
+                            "built from the SfM model hloc localized against", file=True),
+        "--point-selection": Flag("point_selection", "with --prior hloc: all points of the references, or hloc's "
+                                  "PnP inliers (paper) or matches", POINT_SELECTIONS)}
+    retrieves: ClassVar[bool] = False
+    given_poses: ClassVar[bool] = True
+    inputs: ClassVar[Tuple[str, ...]] = ("hloc_logs",)
+
+    def validate(self) -> None:
+        if self.point_selection not in POINT_SELECTIONS:
+            raise ValueError(f"Unknown point selection {self.point_selection!r}: use one of "
+                             f"{', '.join(POINT_SELECTIONS)}.")
+        super().validate()
+
+    def prepare(self, s: Start) -> Prepared:
+        reader, query = s.reader, s.query
+        logs, index = hloc_logs(self.hloc_logs)
+        log = find_by_name(logs, query.name, index)
+        if log is None:
+            return failure(query, f"no hloc log for this query in {self.hloc_logs}")
+        if not log.success:
+            return failure(query, "hloc PnP failed: no initial pose")
+        prior = log.cam_from_world
+        if log.num_inliers < self.min_inliers:
+            return failure(query, f"hloc PnP has {log.num_inliers} inliers (< {self.min_inliers})", prior)
+        images, points = reader.source_ids
+        inliers = log.inliers_per_db()
+        ranked = [log.db_ids[i] for i in np.argsort(-inliers, kind="stable") if inliers[i] > self.min_matches_db]
+        ranked = [i for i in ranked if i in images and reader.usable(images[i])][:s.num_dbs]
+        if not ranked:
+            unknown = [i for i in log.db_ids if i not in images]
+            reason = (f"none of the log's references (COLMAP image ids {unknown[:5]}) is in the map: build the "
+                      "store from the SfM model hloc localized against" if len(unknown) == len(log.db_ids) else
+                      f"no usable reference with more than {self.min_matches_db} PnP inliers")
+            return failure(query, reason, prior)
+        selected = None
+        if self.point_selection != "all":
+            pairs = log.inlier_observations(ranked, inliers_only=self.point_selection == "inliers")
+            known = [(points[p], images[i]) for p, i in pairs if p in points]
+            if len(known) < len(pairs):
+                logger.warning("%s: %d of %d hloc matches name points that are not in the map.", query.name,
+                               len(pairs) - len(known), len(pairs))
+            selected = np.array(known, dtype=np.int64).reshape(-1, 2)
+        return [s.candidate([images[i] for i in ranked], prior, "hloc PnP pose", selected)]
 
 
-def sift(s: Start) -> Prepared:
-    """The SIFT + PnP pose, refined; the search prior where PnP fails. Each query's notes say which."""
-    r = s.references()
-    if not r.dbs:
-        return failure(s.query, NO_MATCH)
-    dbs = r.dbs[:s.job.localizer.num_dbs]
-    found = sift_pnp(s.reader, dbs, s.rgb, s.query.camera, s.job.sift)
-    if found.pose is None:
-        note = f"{found.describe()}: fewer than {s.job.sift.min_inliers} inliers, {FALLBACK}"
-        return search(replace(s, query=replace(s.query, notes=s.query.notes + (note,))))
-    noted = replace(s, query=replace(s.query, notes=s.query.notes + (found.describe(),)))
-    return [noted.candidate(dbs, found.pose, "SIFT PnP pose", levels=s.job.sift.levels)]
+@PRIORS.register("sift")
+@dataclass(frozen=True)
+class Sift(PriorSettings):
+    """The SIFT + PnP pose, refined; the search prior (``search``) where PnP fails. Each query's
+    notes say which."""
 
+    sift: SiftConfig = SiftConfig()
+    search: SearchConfig = SearchConfig()
+    help: ClassVar[str] = "SIFT matches to the references and PnP (the search where PnP fails)"
+    flags: ClassVar[Dict[str, Flag]] = {
+        "--sift-min-inliers": Flag("sift.min_inliers", "with --prior sift: PnP inliers a pose needs"),
+        "--sift-max-size": Flag("sift.max_size", "with --prior sift: longer image side of SIFT extraction"),
+        "--sift-levels": Flag("sift.levels", "with --prior sift: the levels a PnP pose is refined on (the two "
+                              "finest, as the official refinement of PnP poses; 0 1 2: every level)")}
 
-PRIORS: Dict[str, Callable[[Start], Prepared]] = {
-    "top1": top1, "average": average, "hypotheses": reference_hypotheses, "search": search,
-    "poses": other_pipeline, "hloc": hloc, "sift": sift}
+    def validate(self) -> None:
+        self.search.validate()
+        self.sift.validate()
+
+    def prepare(self, s: Start) -> Prepared:
+        r = s.references()
+        if not r.dbs:
+            return failure(s.query, NO_MATCH)
+        dbs = r.dbs[:s.num_dbs]
+        found = sift_pnp(s.reader, dbs, s.rgb, s.query.camera, self.sift)
+        if found.pose is None:
+            note = f"{found.describe()}: fewer than {self.sift.min_inliers} inliers, {FALLBACK}"
+            return search_starts(replace(s, query=replace(s.query, notes=s.query.notes + (note,))), self.search)
+        noted = replace(s, query=replace(s.query, notes=s.query.notes + (found.describe(),)))
+        return [noted.candidate(dbs, found.pose, "SIFT PnP pose", levels=self.sift.levels)]

@@ -1,7 +1,8 @@
 """Which map images a query is localized against: its references, ranked.
 
-One function per method, in ``RETRIEVERS`` (the job's ``retrieval.method`` and the command
-line's choices come from it), each ``(conf, reader, query, describe, candidates) -> Retrieved``:
+The registry ``RETRIEVERS`` (the job's ``retrieval`` and the command line's choices come from
+it): an entry is its settings dataclass (``k`` and ``same_tag`` shared by all, in
+``RetrievalSettings``), ``rank(reader, query, describe, candidates) -> Retrieved``:
 
 - ``global``: the top ``k`` by cosine similarity of the store's global descriptors with the
   query's (``describe()`` runs the network on the query only when this method asks for it);
@@ -12,33 +13,64 @@ line's choices come from it), each ``(conf, reader, query, describe, candidates)
 ``retrieve`` applies what every method shares: references found by a run's retrieval stage
 (``query.retrieved``) are used as they are, and ``same_tag`` restricts the candidates to the
 map images that share that tag with the query (RobotCar practice: ``camera``).
+
+An entry's class attributes: ``help``, ``flags`` (its own options; giving one chooses the method),
+``needs_image`` (it runs the network on the query: a separate retrieval stage costs one more
+network pass per query), ``inputs`` (its fields that name input files). A new method is one class
+here.
 """
 
 import functools
 import logging
 from dataclasses import dataclass
-from typing import Callable, Dict, List, Optional
+from typing import Callable, ClassVar, Dict, List, Optional, Tuple
 
 import numpy as np
 
 from pipeline.store.reader import MapReader, by_name
 from pipeline.queries import QueryRecord
+from pipeline.registry import Registry, check_inputs
+from pipeline.settings import Flag
 from pipeline.textfiles import InputError, read_pairs
 
 logger = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
-class RetrievalConfig:
-    """method: a name of ``RETRIEVERS``; pairs: the pairs file of ``pairs``; k: references
-    retrieved; same_tag: restrict references to those sharing this tag with the query;
-    descriptors: the HDF5 file of ``hloc``."""
+class RetrievalSettings:
+    """What every retrieval method shares: k: references retrieved; same_tag: restrict references
+    to those sharing this tag with the query. Each method (``RETRIEVERS``) adds its own."""
 
-    method: str = "global"
-    pairs: Optional[str] = None
     k: int = 10
     same_tag: Optional[str] = None
-    descriptors: Optional[str] = None
+    name: ClassVar[str]
+    help: ClassVar[str] = ""
+    flags: ClassVar[Dict[str, Flag]] = {}
+    needs_image: ClassVar[bool] = False
+    inputs: ClassVar[Tuple[str, ...]] = ()
+
+    @property
+    def method(self) -> str:
+        return self.name
+
+    def validate(self) -> None:
+        if self.k < 1:
+            raise ValueError("retrieval k must be at least 1.")
+        check_inputs(self, f"Retrieval {self.name}")
+
+    def files(self) -> List[str]:
+        """The input files the method reads."""
+        return [getattr(self, name) for name in self.inputs if getattr(self, name)]
+
+    def check(self, map_names: List[str]) -> None:
+        """Checks against the map, once before any query (an input that matches none of its images)."""
+
+    def rank(self, reader: MapReader, query: QueryRecord, describe: Callable[[], np.ndarray],
+             candidates: Optional[List[int]]) -> "Retrieved":
+        raise NotImplementedError
+
+
+RETRIEVERS = Registry("retrieval method", tag="method")
 
 
 @dataclass
@@ -101,38 +133,68 @@ def global_ranking(reader: MapReader, descriptor: np.ndarray, k: int,
     return [int(i) for i in ids[np.argsort(-sim, kind="stable")[:k]]]
 
 
-def by_global_descriptors(conf: RetrievalConfig, reader: MapReader, query: QueryRecord,
-                          describe: Callable[[], np.ndarray], candidates: Optional[List[int]]) -> Retrieved:
-    descriptor = describe()
-    dbs = global_ranking(reader, descriptor, conf.k, candidates)
-    return Retrieved(dbs, reader.global_descriptors[dbs] @ descriptor)
+@RETRIEVERS.register("global")
+@dataclass(frozen=True)
+class GlobalDescriptors(RetrievalSettings):
+    help: ClassVar[str] = "the store's global descriptors (cosine similarity with the query's)"
+    needs_image: ClassVar[bool] = True
+
+    def rank(self, reader, query, describe, candidates) -> Retrieved:
+        descriptor = describe()
+        dbs = global_ranking(reader, descriptor, self.k, candidates)
+        return Retrieved(dbs, reader.global_descriptors[dbs] @ descriptor)
 
 
-def by_pairs_file(conf: RetrievalConfig, reader: MapReader, query: QueryRecord,
-                  describe: Callable[[], np.ndarray], candidates: Optional[List[int]]) -> Retrieved:
-    dbs, missing = by_name(reader, pairs_file(conf.pairs).get(query.name, []))
-    if missing:
-        logger.warning("%s: %d retrieved references are not in the map: %s", query.name, len(missing), missing[:3])
-    return Retrieved([i for i in dbs if reader.usable(i) and (candidates is None or i in candidates)][:conf.k])
+@RETRIEVERS.register("pairs")
+@dataclass(frozen=True)
+class PairsFile(RetrievalSettings):
+    """pairs: a ranked pairs file (hloc's ``pairs-query-*.txt``)."""
+
+    pairs: Optional[str] = None
+    help: ClassVar[str] = "a ranked pairs file (--pairs)"
+    flags: ClassVar[Dict[str, Flag]] = {
+        "--pairs": Flag("pairs", "retrieval pairs file (default: global descriptors)", file=True)}
+    inputs: ClassVar[Tuple[str, ...]] = ("pairs",)
+
+    def validate(self) -> None:
+        super().validate()
+        pairs_file(self.pairs)  # read in full now: a bad line is one clear error (file:line)
+
+    def rank(self, reader, query, describe, candidates) -> Retrieved:
+        dbs, missing = by_name(reader, pairs_file(self.pairs).get(query.name, []))
+        if missing:
+            logger.warning("%s: %d retrieved references are not in the map: %s", query.name, len(missing),
+                           missing[:3])
+        return Retrieved([i for i in dbs if reader.usable(i) and (candidates is None or i in candidates)][:self.k])
 
 
-def by_hloc_descriptors(conf: RetrievalConfig, reader: MapReader, query: QueryRecord,
-                        describe: Callable[[], np.ndarray], candidates: Optional[List[int]]) -> Retrieved:
-    descriptors = hloc_descriptors(conf.descriptors)
-    if query.name not in descriptors:
-        return Retrieved([])
-    ids = [i for i in range(len(reader.names)) if reader.usable(i) and reader.names[i] in descriptors
-           and (candidates is None or i in candidates)]
-    sim = np.array([descriptors[reader.names[i]] @ descriptors[query.name] for i in ids])
-    order = np.argsort(-sim, kind="stable")[:conf.k]
-    return Retrieved([ids[j] for j in order], sim[order])
+@RETRIEVERS.register("hloc")
+@dataclass(frozen=True)
+class HlocDescriptors(RetrievalSettings):
+    """descriptors: an hloc global-features HDF5 file (NetVLAD ...), as official PixLoc reads them."""
+
+    descriptors: Optional[str] = None
+    help: ClassVar[str] = "global descriptors of an hloc HDF5 file (--descriptors)"
+    flags: ClassVar[Dict[str, Flag]] = {
+        "--descriptors": Flag("descriptors", "hloc HDF5 global descriptors for retrieval (e.g. NetVLAD)", file=True)}
+    inputs: ClassVar[Tuple[str, ...]] = ("descriptors",)
+
+    def check(self, map_names: List[str]) -> None:
+        """Read the file once, before any query (``check_descriptors``)."""
+        check_descriptors(self.descriptors, map_names)
+
+    def rank(self, reader, query, describe, candidates) -> Retrieved:
+        descriptors = hloc_descriptors(self.descriptors)
+        if query.name not in descriptors:
+            return Retrieved([])
+        ids = [i for i in range(len(reader.names)) if reader.usable(i) and reader.names[i] in descriptors
+               and (candidates is None or i in candidates)]
+        sim = np.array([descriptors[reader.names[i]] @ descriptors[query.name] for i in ids])
+        order = np.argsort(-sim, kind="stable")[:self.k]
+        return Retrieved([ids[j] for j in order], sim[order])
 
 
-RETRIEVERS: Dict[str, Callable[..., Retrieved]] = {
-    "global": by_global_descriptors, "pairs": by_pairs_file, "hloc": by_hloc_descriptors}
-
-
-def retrieve(conf: RetrievalConfig, reader: MapReader, query: QueryRecord,
+def retrieve(conf: RetrievalSettings, reader: MapReader, query: QueryRecord,
              describe: Callable[[], np.ndarray]) -> Retrieved:
     """The query's usable references, best first (see the module docstring)."""
     if query.retrieved is not None:  # found by a run's retrieval stage (``shard.retrieve_queries``)
@@ -144,4 +206,4 @@ def retrieve(conf: RetrievalConfig, reader: MapReader, query: QueryRecord,
     if conf.same_tag:
         value = query.tags.get(conf.same_tag)
         candidates = [i for i, t in enumerate(reader.tags) if t.get(conf.same_tag) == value]
-    return RETRIEVERS[conf.method](conf, reader, query, describe, candidates)
+    return conf.rank(reader, query, describe, candidates)

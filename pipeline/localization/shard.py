@@ -11,7 +11,7 @@ import logging
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Dict, List, Optional, Tuple
+from typing import ClassVar, Dict, List, Optional, Tuple
 
 import numpy as np
 
@@ -20,13 +20,13 @@ from pipeline.images import ImageReadError, read_image_for
 from pipeline.localization.refine import Localizer, LocalizerConfig, QueryResult
 from pipeline.store.reader import MapReader, open_reader
 from pipeline.models import localization_model
-from pipeline.localization.priors import PRIORS as PRIOR_FUNCTIONS, Prepared, Start, failure, poses_file
+from pipeline.localization.priors import PRIORS, PriorSettings, Prepared, Start, Top1, failure
 from pipeline.queries import QueryRecord
 from pipeline.localization.results import read_records, result_to_record, write_records
-from pipeline.localization.retrieval import RETRIEVERS, RetrievalConfig, pairs_file, retrieve
-from pipeline.localization.sift import SiftConfig
-from pipeline.localization.search import Hypotheses, SearchConfig, refine_and_pick, rival_starts, screen, top1_first
+from pipeline.localization.retrieval import RETRIEVERS, GlobalDescriptors, RetrievalSettings, retrieve
+from pipeline.localization.search import Hypotheses, refine_and_pick, rival_starts, screen, top1_first
 from pipeline.runtime import keep_freed_memory, torch_threads
+from pipeline.settings import build, dotted
 from pipeline.store.layout import StoreError
 from pipeline.textfiles import InputError, write_atomic
 
@@ -35,105 +35,71 @@ logger = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class LocalizationJob:
-    """All a worker needs to localize a shard (picklable, recorded with the outputs).
+    """All a worker needs to localize a shard (picklable, recorded with the outputs as ``to_dict``).
 
-    prior: ``top1``, ``average`` (covisibility cluster, similarity-weighted), or
-    ``hypotheses`` (each of the top ``num_hypotheses`` reference poses refined; the
-    highest verification confidence wins), or ``search`` (the top references' poses, the
-    ``average`` pose, and perturbations of each, screened at the coarsest level; the top-1 and
-    average poses and the ``search.keep`` best others refined, the most confident wins:
-    ``pipeline.localization.search``), or ``poses`` (refinement mode: the poses of
-    another pipeline, file ``prior_poses`` in the visuallocalization.net format), or
-    ``hloc`` (refinement mode as the paper's: the PnP poses of an hloc ``_logs.pkl``,
-    file ``hloc_logs``; its references reranked by PnP inliers, those with more than
-    ``min_matches_db`` kept; queries with fewer than ``min_inliers`` inliers fail).
-    point_selection (``hloc`` prior): ``all`` points of the kept references, ``inliers``
-    (the PnP inliers only, observed by the references that matched them) or ``matched``
-    (all 2D-3D matches). The store must be built from the SfM model hloc used.
-    levels: optimise only these levels (the paper's refinement mode uses the two
-    finest, (0, 1)); default all. scales: run only these of the store's image scales
-    (e.g. (1,) of a [4, 1] store: refinement mode runs the full resolution only).
+    retrieval: a retrieval method's settings (an entry of ``RETRIEVERS``: how the references are
+    found, ``pipeline.localization.retrieval``); prior: a prior's settings (an entry of ``PRIORS``:
+    where each refinement starts, ``pipeline.localization.priors``). levels: optimise only these
+    levels (the paper's refinement mode uses the two finest, (0, 1)); default all. scales: run only
+    these of the store's image scales (e.g. (1,) of a [4, 1] store: refinement mode runs the full
+    resolution only).
+
+    ``to_dict`` records the schema version; ``from_dict`` reads every earlier version, absent
+    fields at their defaults: a run recorded before a setting existed is the same run.
     """
 
     store: str
     features: FeatureConfig
     model: str
     localizer: LocalizerConfig
-    retrieval: RetrievalConfig
-    prior: str = "top1"
-    num_hypotheses: int = 3
+    retrieval: RetrievalSettings = GlobalDescriptors()
+    prior: PriorSettings = Top1()
     device: str = "cpu"
-    prior_poses: Optional[str] = None
     levels: Optional[Tuple[int, ...]] = None
-    hloc_logs: Optional[str] = None
-    point_selection: str = "all"
-    min_matches_db: int = 10
-    min_inliers: int = 10
     scales: Optional[Tuple[int, ...]] = None
-    search: SearchConfig = SearchConfig()
-    sift: SiftConfig = SiftConfig()
+
+    SCHEMA: ClassVar[int] = 2
 
     def to_dict(self) -> Dict:
-        """The job as recorded in job.json (and compared by reruns); the search and SIFT settings
-        only with the priors that read them (``sift`` falls back to the search), the network's
-        precision only where it is not the default."""
+        """The job as recorded in job.json (and compared by reruns, after ``from_dict``)."""
         d = asdict(self)
-        if self.localizer.network_precision == "float32":  # as runs before the option recorded it
-            del d["localizer"]["network_precision"]
-        if self.prior not in ("search", "sift"):
-            del d["search"]
-        if self.prior != "sift":
-            del d["sift"]
+        d.update(schema=self.SCHEMA, retrieval=RETRIEVERS.record(self.retrieval), prior=PRIORS.record(self.prior))
         return d
 
+    @classmethod
+    def from_dict(cls, d: Dict, where: str = "job") -> "LocalizationJob":
+        """The job that ``to_dict`` recorded, of this or an earlier schema (ValueError naming the
+        key where it holds something no job has)."""
+        d = dict(d)
+        if d.pop("schema", 1) == 1:
+            d = _from_schema_1(d)
+        retrieval = RETRIEVERS.parse(d.pop("retrieval", {"method": GlobalDescriptors.name}), where)
+        prior = PRIORS.parse(d.pop("prior", {"name": Top1.name}), where)
+        features = FeatureConfig.from_dict(d.pop("features", {}))
+        return build(cls, dotted(d), {"features": features, "retrieval": retrieval, "prior": prior}, where=where)
+
     def validate(self) -> None:
-        """Refuse a job that cannot run, before any query does: unknown prior, retrieval method
-        or point selection, options that do not go together, missing input files."""
-        if self.prior not in PRIORS:
-            raise ValueError(f"Unknown prior {self.prior!r}: use one of {', '.join(PRIORS)}.")
-        method = self.retrieval.method
-        if method not in RETRIEVAL_METHODS:
-            raise ValueError(f"Unknown retrieval method {method!r}: use one of {', '.join(RETRIEVAL_METHODS)}.")
-        if self.point_selection not in POINT_SELECTIONS:
-            raise ValueError(f"Unknown point selection {self.point_selection!r}: use one of "
-                             f"{', '.join(POINT_SELECTIONS)}.")
-        if self.point_selection != "all" and self.prior != "hloc":
-            raise ValueError(f"Point selection {self.point_selection!r} needs the hloc prior (the inliers come "
-                             "from its logs); use --point-selection all with other priors.")
-        if self.num_hypotheses < 1 or self.localizer.num_dbs < 1 or self.retrieval.k < 1:
-            raise ValueError("num_hypotheses, num_dbs and retrieval k must be at least 1.")
-        self.search.validate()
-        self.sift.validate()
-        needed = {"poses": ("prior_poses", "--prior poses needs --prior-poses FILE"),
-                  "hloc": ("hloc_logs", "--prior hloc needs --hloc-logs FILE (hloc's <results>_logs.pkl)")}
-        files = []
-        if self.prior in needed:
-            attr, text = needed[self.prior]
-            if not getattr(self, attr):
-                raise ValueError(text + ".")
-            files.append(getattr(self, attr))
-        if method == "pairs":
-            if not self.retrieval.pairs:
-                raise ValueError("Retrieval from pairs needs a pairs file (--pairs FILE).")
-            files.append(self.retrieval.pairs)
-        if method == "hloc":
-            if not self.retrieval.descriptors:
-                raise ValueError("Retrieval from hloc descriptors needs --descriptors FILE.h5.")
-            files.append(self.retrieval.descriptors)
-        for f in files:
-            if not Path(f).is_file():
-                raise ValueError(f"Input file {f} does not exist.")
-        # text inputs are read in full now: a bad line is one clear error (file:line) before
-        # the run, not the same failure in every query
-        if method == "pairs":
-            pairs_file(self.retrieval.pairs)
-        if self.prior == "poses":
-            poses_file(self.prior_poses)
+        """Refuse a job that cannot run, before any query does: settings out of range, missing or
+        unreadable input files."""
+        if self.localizer.num_dbs < 1:
+            raise ValueError("num_dbs must be at least 1.")
+        self.retrieval.validate()
+        self.prior.validate()
 
 
-PRIORS = tuple(PRIOR_FUNCTIONS)  # the names of the registries: the job's and the command line's choices
-RETRIEVAL_METHODS = tuple(RETRIEVERS)
-POINT_SELECTIONS = ("all", "inliers", "matched")
+def _from_schema_1(d: Dict) -> Dict:
+    """A job recorded flat (before schema 2): the prior's name in ``prior``, every prior's settings
+    beside it, and the retrieval's under ``retrieval`` with every method's; each entry takes the
+    keys that are its fields."""
+    def own(cls, tree: Dict) -> Dict:
+        return {f.name: tree[f.name] for f in dataclasses.fields(cls) if f.name in tree}
+    prior = PRIORS.entry(d.pop("prior", Top1.name))
+    fields = {f.name for cls in PRIORS.values() for f in dataclasses.fields(cls)}
+    flat = {k: d.pop(k) for k in list(d) if k in fields}
+    retrieval = dict(d.get("retrieval") or {})
+    method = RETRIEVERS.entry(retrieval.pop("method", GlobalDescriptors.name))
+    return {**d, "prior": {"name": prior.name, **own(prior, flat)},
+            "retrieval": {"method": method.name, **own(method, retrieval)}}
 
 
 def fit_query(query: QueryRecord) -> Tuple[QueryRecord, np.ndarray]:
@@ -172,11 +138,8 @@ def prepare_query(job: LocalizationJob, reader: MapReader, localizer: Localizer,
         return failure(query, str(e))
     cache: Dict = {}
     describe = describer(reader, localizer, rgb, cache)
-    return PRIOR_FUNCTIONS[job.prior](Start(job, reader, query, rgb, cache,
-                                            lambda: retrieve(job.retrieval, reader, query, describe)))
-
-
-FROM_MAP_POSES = ("top1", "average", "hypotheses")  # priors whose starts are the map's own poses (and the search's)
+    return job.prior.prepare(Start(reader, query, rgb, cache, lambda: retrieve(job.retrieval, reader, query, describe),
+                                   job.localizer.num_dbs))
 
 
 def localize_queries(job: LocalizationJob, reader: MapReader, localizer: Localizer,
@@ -199,13 +162,13 @@ def localize_queries(job: LocalizationJob, reader: MapReader, localizer: Localiz
             prepared.append(failure(q, f"{type(e).__name__}: {e}"))
         own[q.name] = time.perf_counter() - t0
     for k, p in enumerate(prepared):  # rival starts after the query's own (search.check_rivals)
-        if job.prior in FROM_MAP_POSES and isinstance(p, list) and not isinstance(p, Hypotheses):
+        if job.prior.rivals and isinstance(p, list) and not isinstance(p, Hypotheses):
             prepared[k] = p + rival_starts(reader, p, job.localizer.verification)
     searches = [k for k, p in enumerate(prepared) if isinstance(p, Hypotheses)]
     if searches:  # the search prior, or the sift prior's fallback where PnP failed
         t0 = time.perf_counter()
-        screened = screen(localizer, reader, top1_first(localizer, [prepared[k] for k in searches], job.search),
-                          job.search)
+        conf = job.prior.search
+        screened = screen(localizer, reader, top1_first(localizer, [prepared[k] for k in searches], conf), conf)
         for k, p in zip(searches, screened):
             prepared[k] = p
         share = (time.perf_counter() - t0) / max(len(queries), 1)  # the screening runs as batches
@@ -256,7 +219,7 @@ def retrieve_queries(job: LocalizationJob, queries: List[QueryRecord], out_path)
             try:
                 if q.error or q.camera is None or q.camera.check():
                     continue
-                rgb = fit_query(q)[1] if job.retrieval.method == "global" else None
+                rgb = fit_query(q)[1] if job.retrieval.needs_image else None
                 found = retrieve(job.retrieval, reader, q, describer(reader, localizer, rgb, {}))
                 dbs, sim = found.dbs, found.similarity
             except (OSError, ValueError, RuntimeError, ImageReadError) as e:

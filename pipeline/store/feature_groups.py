@@ -11,7 +11,8 @@ import numpy as np
 import zarr
 
 from pipeline.store.compression import project, quantize_int8
-from pipeline.mapping.features import FeatureConfig, ImageFeatures
+from pipeline.descriptors import DEFAULT_DESCRIPTOR, DESCRIPTORS
+from pipeline.store.schema import FeatureConfig, ImageFeatures
 from pipeline.images import file_sha256
 from pipeline.keypoints import DESCRIPTOR_DIM
 from pipeline.store.layout import (DONE, FAILED, PENDING, StoreError, image_rows, new_array, new_rows_array,
@@ -36,7 +37,7 @@ def feature_key(conf: FeatureConfig) -> str:
             name = f"{name}-{_file_digest(str(path.resolve()), st.st_size, st.st_mtime_ns)}"
     scales = "-".join(str(s) for s in conf.image_scales)
     dtype = "" if conf.dtype == "float16" else f"_{conf.dtype}"
-    descriptor = "" if conf.descriptor == "gem" else f"_{conf.descriptor}"
+    descriptor = "" if conf.descriptor == DEFAULT_DESCRIPTOR else f"_{conf.descriptor}"
     pca = f"_pca{conf.pca}" if conf.pca else ""
     sift = f"_sift{conf.sift}" if conf.sift else ""
     return f"{name}_r{conf.resize}_s{scales}_p{conf.pad}{dtype}{descriptor}{pca}{sift}"
@@ -44,7 +45,7 @@ def feature_key(conf: FeatureConfig) -> str:
 
 def descriptor_dim(kind: str, channels: int) -> int:
     """Length of the global descriptor ``kind`` of a ``channels``-channel feature map."""
-    return channels * 6 if kind == "grid" else channels
+    return DESCRIPTORS.entry(kind)().dim(channels)
 
 
 PCABases = Dict[Tuple[int, int], Tuple[np.ndarray, np.ndarray]]
@@ -61,7 +62,7 @@ def init_features(root: zarr.Group, conf: FeatureConfig, digest: str, dims: List
     if f"features/{key}" in root:
         group = root[f"features/{key}"]
         stored = {k: group.attrs.get(k) for k in expected}
-        if stored != expected:
+        if not conf.made(stored["config"]) or {**stored, "config": expected["config"]} != expected:
             raise StoreError(
                 f"The store's features {key!r} were made with {stored}, not {expected}: refusing to mix "
                 "them. Use another store or feature config, or rebuild with overwrite.")

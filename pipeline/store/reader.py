@@ -13,7 +13,7 @@ import numpy as np
 
 from pipeline.store import location
 from pipeline.store.compression import dequantize_int8, reconstruct
-from pipeline.mapping.features import FeatureConfig
+from pipeline.store.schema import FeatureConfig
 from pipeline.scene import CameraRecord
 from pipeline.store.feature_groups import feature_key, pca_bases
 from pipeline.store.layout import (DONE, FAILED, StoreError, StoreReadError, check_feature_group, consolidated,
@@ -57,7 +57,7 @@ class MapReader:
             raise StoreError(f"{path} has no features for {conf.to_dict()} (it has: {available or 'none'}).")
         self.group = root[key]
         check_feature_group(self.group, meta, path)
-        if self.group.attrs.get("config") != conf.to_dict():
+        if not conf.made(self.group.attrs.get("config")):
             raise StoreError(f"{path}: features {key} were made with {self.group.attrs.get('config')}.")
         if digest is not None and self.group.attrs.get("model_digest") != digest:
             raise StoreError(f"{path}: features were made with model {self.group.attrs.get('model_digest')}, "

@@ -27,11 +27,11 @@ from torch import nn
 from .efficientnet import lite0_unet
 from .photometric import PhotometricExtractor
 from .unet import VGG_LAYERS, vgg_unet
+from .. import DEFAULT_MODEL  # noqa: F401 (imported from here)
 from ..optim import LearnedDamping, LevenbergMarquardt
 from ..refiner import TwoViewRefiner
 
 MODEL_FORMAT = "pixloc-at-scale-model"
-DEFAULT_MODEL = "pixloc-lite0"  # the one default of every command and config
 
 
 def _seeded(build: Callable[[], nn.Module], seed: int = 0) -> Callable[[], nn.Module]:

@@ -18,7 +18,8 @@ from pipeline.mapping.readers.colmap import read_colmap
 from pipeline.mapping.readers.hloc import read_hloc_logs
 from pipeline.localization.results import read_records, record_pose
 from pipeline.scene import SceneError
-from pipeline.localization.retrieval import RetrievalConfig
+from pipeline.localization.priors import Hloc
+from pipeline.localization.retrieval import PairsFile
 from pipeline.localization.shard import LocalizationJob, localize_shard
 
 QUERY = "32809961_8274055477.jpg"
@@ -86,8 +87,8 @@ def sacre(oracle, shared, tmp_path_factory):
 def run(work, query, selection, tag):
     job = LocalizationJob(str(work / "map.zarr"), FCONF, FCONF.model,
                           LocalizerConfig(num_dbs=5, average_observations=True, num_iters=100, min_points=20),
-                          RetrievalConfig("pairs"), prior="hloc", hloc_logs=str(work / "logs.pkl"),
-                          point_selection=selection, levels=(0, 1))
+                          PairsFile(), prior=Hloc(hloc_logs=str(work / "logs.pkl"), point_selection=selection),
+                          levels=(0, 1))
     return localize_shard(job, [query], work / f"{tag}.jsonl")[0]
 
 

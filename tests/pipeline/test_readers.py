@@ -97,7 +97,7 @@ def test_kapture_rig_poses(shared, tmp_path):
     scene = triangulate_known_poses(images, root / "sensors" / "records_data", tmp_path)
     assert len(scene.points) > 3000 and np.median(reprojection_errors(scene)) < 1.0
     # the query session: four photos of four focal lengths, each with its ground-truth pose
-    from workflows.sources import load_queries
+    from pipeline.mapping.readers.sources import load_queries
     queries = load_queries("kapture", root.parent / "query")
     assert len(queries) == 4 and len({q.camera.params[0] for q in queries}) == 4
     assert all(np.isfinite(q.cam_from_world_gt).all() for q in queries)

@@ -42,30 +42,30 @@ def test_presets_set_the_paper_settings():
     from workflows import presets
     assert {"7scenes", "cambridge", "aachen", "robotcar", "cmu", "colmap", "kapture"} <= set(presets.available())
     job = _localize_job("--preset", "aachen", "--iters", "7")
-    assert (job.localizer.num_dbs, job.prior, job.retrieval.k) == (3, "average", 50)
+    assert (job.localizer.num_dbs, job.prior.name, job.retrieval.k) == (3, "average", 50)
     assert job.localizer.num_iters == 7  # an explicit option wins over the preset
     assert presets.load("robotcar")["retrieval"]["same_tag"] == "camera"
     assert presets.load("cambridge")["localizer"]["average_observations"] is True
     # refinement mode from hloc logs takes the preset's from_poses settings (official run_Aachen.py)
     job = _localize_job("--prior", "hloc")
     L = job.localizer
-    assert (L.num_dbs, L.num_iters, L.min_points, job.point_selection, job.levels, job.scales,
-            L.average_observations, job.prior) == (5, 100, 10, "all", None, None, False, "hloc")
+    assert (L.num_dbs, L.num_iters, L.min_points, job.prior.point_selection, job.levels, job.scales,
+            L.average_observations, job.prior.name) == (5, 100, 10, "all", None, None, False, "hloc")
     job = _localize_job("--prior", "hloc", "--preset", "aachen")
     L = job.localizer
-    assert (L.num_dbs, L.num_iters, L.min_points, job.point_selection, job.levels, job.scales,
-            L.average_observations, job.prior) == (5, 50, 100, "inliers", (0, 1), (1,), True, "hloc")
+    assert (L.num_dbs, L.num_iters, L.min_points, job.prior.point_selection, job.levels, job.scales,
+            L.average_observations, job.prior.name) == (5, 50, 100, "inliers", (0, 1), (1,), True, "hloc")
 
 
 def test_explicit_flags_win_even_at_the_builtin_default():
     """Before: a flag equal to the parser default lost to the preset (--prior top1 ran average)."""
     job = _localize_job("--preset", "aachen", "--prior", "top1", "--iters", "100")
-    assert (job.prior, job.localizer.num_iters) == ("top1", 100)
+    assert (job.prior.name, job.localizer.num_iters) == ("top1", 100)
     job = _localize_job("--preset", "aachen")
-    assert (job.prior, job.localizer.num_iters) == ("average", 150)
+    assert (job.prior.name, job.localizer.num_iters) == ("average", 150)
     job = _localize_job()  # no preset: the dataclasses' defaults
-    assert (job.prior, job.localizer.num_iters, job.localizer.num_dbs, job.localizer.min_track_length,
-            job.point_selection, job.localizer.verification.enabled) == ("top1", 100, 5, 3, "all", True)
+    assert (job.prior.name, job.localizer.num_iters, job.localizer.num_dbs, job.localizer.min_track_length,
+            job.retrieval.method, job.localizer.verification.enabled) == ("top1", 100, 5, 3, "global", True)
     assert _localize_job("--max-turn", "20").localizer.verification.max_move_R == 20.0  # one Flag line
     job = _localize_job("--no-verify", "--min-confidence", "0.3", "--pairs", "p.txt")
     assert (job.localizer.verification.enabled, job.localizer.verification.min_confidence) == (False, 0.3)
@@ -74,20 +74,31 @@ def test_explicit_flags_win_even_at_the_builtin_default():
 
 def test_every_preset_works_with_every_prior(tmp_path):
     """Before: --preset aachen --prior poses always failed (point selection 'inliers' needs hloc)."""
-    import dataclasses
-
     from workflows import presets
-    from pipeline.localization.shard import PRIORS
+    from pipeline.localization.priors import PRIORS
     (tmp_path / "poses.txt").write_text("")
     (tmp_path / "logs.pkl").write_bytes(b"")
     for name in presets.available():
-        for prior in PRIORS:
-            job = _localize_job("--preset", name, "--prior", prior)
-            job = dataclasses.replace(job, prior_poses=str(tmp_path / "poses.txt"),
-                                      hloc_logs=str(tmp_path / "logs.pkl"))
+        for prior, entry in PRIORS.items():
+            files = [x for flag, f in entry.flags.items() if f.file
+                     for x in (flag, str(tmp_path / ("logs.pkl" if "hloc" in flag else "poses.txt")))]
+            job = _localize_job("--preset", name, "--prior", prior, *files)
             job.validate()  # raises for a combination that cannot run
-    job = _localize_job("--preset", "aachen", "--prior", "poses")
-    assert job.point_selection == "all" and job.levels == (0, 1)
+    job = _localize_job("--preset", "aachen", "--prior", "poses", "--prior-poses", str(tmp_path / "poses.txt"))
+    assert job.prior.name == "poses" and job.levels == (0, 1)
+    job = _localize_job("--preset", "aachen", "--prior", "hloc", "--hloc-logs", str(tmp_path / "logs.pkl"))
+    assert job.prior.point_selection == "inliers"
+
+
+def test_an_option_of_another_entry_is_refused():
+    """A plug-in's own option given with another entry chosen named both (before: silently unused)."""
+    import pytest
+    with pytest.raises(ValueError, match="--sift-min-inliers: an option of the prior sift, not of top1"):
+        _localize_job("--prior", "top1", "--sift-min-inliers", "20")
+    with pytest.raises(ValueError, match="--pairs: an option of the retrieval method pairs, not of global"):
+        _localize_job("--retrieval", "global", "--pairs", "p.txt")
+    job = _localize_job("--sift-min-inliers", "20")  # the option chooses its prior where none is given
+    assert (job.prior.name, job.prior.sift.min_inliers) == ("sift", 20)
 
 
 def test_one_default_model_everywhere():

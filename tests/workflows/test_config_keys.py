@@ -59,21 +59,39 @@ def test_a_training_config_takes_each_default_from_its_dataclass_and_reads_back(
     assert load_config(str(tmp_path / "resolved.yaml")) == packaged
 
 
-def test_the_network_precision_is_checked_and_recorded_only_where_it_is_not_the_default():
-    # runs recorded before the option had no such key: a rerun of one with the default still matches
+def test_a_job_recorded_before_a_setting_existed_reads_as_the_same_job():
+    """Runs recorded before an option existed have no such key: they read back with its default, so a
+    rerun of one is the same run (no hand-written deletion per new field); schema 1, the flat job of
+    earlier versions, reads back too."""
+    from pipeline.localization.priors import Hloc, Sift
     from pipeline.localization.refine import LocalizerConfig
-    from pipeline.localization.retrieval import RetrievalConfig
+    from pipeline.localization.retrieval import GlobalDescriptors, PairsFile
     from pipeline.localization.shard import LocalizationJob
     from pipeline.mapping.features import FeatureConfig
-    job = LocalizationJob("map.zarr", FeatureConfig(), "pixloc-lite0", LocalizerConfig(), RetrievalConfig())
-    assert "network_precision" not in job.to_dict()["localizer"]
+    job = LocalizationJob("map.zarr", FeatureConfig(), "pixloc-lite0", LocalizerConfig(), GlobalDescriptors())
+    recorded = job.to_dict()
+    assert recorded["schema"] == 2 and recorded["prior"] == {"name": "top1"}
+    del recorded["localizer"]["network_precision"], recorded["localizer"]["verification"]["rivals"]
+    assert LocalizationJob.from_dict(recorded) == job
     half = LocalizationJob("map.zarr", FeatureConfig(), "pixloc-lite0", LocalizerConfig(network_precision="bfloat16"),
-                           RetrievalConfig())
-    assert half.to_dict()["localizer"]["network_precision"] == "bfloat16"
-    fine = dataclasses.replace(half, localizer=LocalizerConfig(network_precision="bfloat16-fine"))
-    assert fine.to_dict()["localizer"]["network_precision"] == "bfloat16-fine"
+                           GlobalDescriptors())
+    assert LocalizationJob.from_dict(half.to_dict()) == half != job
     with pytest.raises(ValueError, match="network_precision must be one of"):
         LocalizerConfig(network_precision="float16")
+    # schema 1: every prior's settings flat beside the prior's name, every method's in retrieval
+    flat = {"store": "map.zarr", "features": dataclasses.asdict(FeatureConfig()), "model": "pixloc-lite0",
+            "localizer": dataclasses.asdict(LocalizerConfig()), "prior": "hloc", "num_hypotheses": 3,
+            "device": "cpu", "prior_poses": None, "levels": [0, 1], "hloc_logs": "/x/logs.pkl",
+            "point_selection": "inliers", "min_matches_db": 10, "min_inliers": 10, "scales": None,
+            "retrieval": {"method": "pairs", "pairs": "/x/pairs.txt", "k": 10, "same_tag": None, "descriptors": None}}
+    old = LocalizationJob.from_dict(flat)
+    assert old.prior == Hloc(hloc_logs="/x/logs.pkl", point_selection="inliers") and old.levels == (0, 1)
+    assert old.retrieval == PairsFile(pairs="/x/pairs.txt")
+    sift = LocalizationJob.from_dict({**flat, "prior": "sift", "sift": {"min_inliers": 20},
+                                      "search": {"keep": 2}})
+    assert sift.prior.sift.min_inliers == 20 and sift.prior.search.keep == 2 and isinstance(sift.prior, Sift)
+    with pytest.raises(ValueError, match="unknown key 'localizer.num_iter'"):
+        LocalizationJob.from_dict({**job.to_dict(), "localizer": {"num_iter": 3}})
 
 
 def test_a_value_of_another_type_is_refused_naming_its_key(tmp_path):

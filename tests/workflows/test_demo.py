@@ -162,7 +162,7 @@ def test_the_scale_benchmarks_driver_processes_run_on_the_demo(demo, demo_dir, t
 
     from pipeline.mapping.features import FeatureConfig
     from workflows.benchmarks.drivers import command
-    from workflows.cli_localize import store_feature_config
+    from pipeline.store.info import feature_config as store_feature_config
     store = demo_dir / "map.zarr"
     conf: FeatureConfig = store_feature_config(store)
     read = subprocess.run(command("read", store, json.dumps(conf.to_dict()), 3, 0), capture_output=True, text=True)

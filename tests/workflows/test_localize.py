@@ -21,12 +21,13 @@ from pipeline.mapping.features import FeatureConfig
 from pipeline.localization.refine import LocalizerConfig
 from pipeline.mapping.readers.rgbd import read_7scenes
 from pipeline.localization.results import read_records, record_pose
-from pipeline.localization.retrieval import RetrievalConfig
+from pipeline.localization.priors import Hloc, OtherPipeline
+from pipeline.localization.retrieval import GlobalDescriptors, PairsFile, HlocDescriptors
 from pipeline.localization.shard import LocalizationJob
 from tests.workflows.test_build_map import KINECT_K, build_kinect, cluster  # noqa: F401  (fixture)
 from workflows.process_cluster import wait_for
 from workflows.localize import plan_localization, run_dask, run_sync
-from workflows.sources import load_queries
+from pipeline.mapping.readers.sources import load_queries
 
 ROOT = Path(__file__).resolve().parents[2]
 FCONF = FeatureConfig(resize=320, image_scales=(1,))
@@ -47,7 +48,7 @@ def seven_scenes(shared, tmp_path_factory):
     scene = rgbd_scene(read_7scenes(root, [2, 3]), method="frames", stride=24)
     build_map(scene, store, FCONF)
     queries = load_queries("7scenes", root, sequences=(1, 4))
-    job = LocalizationJob(str(store), FCONF, FCONF.model, LCONF, RetrievalConfig(k=5))
+    job = LocalizationJob(str(store), FCONF, FCONF.model, LCONF, GlobalDescriptors(k=5))
     return job, queries
 
 
@@ -146,7 +147,7 @@ def test_bad_input_gives_per_query_failures(seven_scenes, tmp_path):
     assert [r["success"] for r in records][:2] == [False, False] and records[2]["per_level"]
     assert "missing" in records[0]["reason"] and "cannot be decoded" in records[1]["reason"]
     # no retrieval match
-    pjob = dataclasses.replace(job, retrieval=RetrievalConfig("pairs", str(pairs)))
+    pjob = dataclasses.replace(job, retrieval=PairsFile(pairs=str(pairs)))
     rec = run_sync(plan_localization(pjob, [queries[3]], tmp_path / "b"))[0]
     assert not rec["success"] and "no retrieval match" in rec["reason"]
     # references seeing fewer than min_points points
@@ -253,12 +254,12 @@ def test_hloc_descriptors_and_refinement_mode(seven_scenes, sync_records, tmp_pa
             f.create_dataset(f"{name}/global_descriptor", data=reader.global_descriptors[i])
         for q, ref in wanted.items():
             f.create_dataset(f"{q}/global_descriptor", data=reader.global_descriptors[reader.index[ref]])
-    hjob = dataclasses.replace(job, retrieval=RetrievalConfig("hloc", descriptors=str(tmp_path / "global.h5")))
+    hjob = dataclasses.replace(job, retrieval=HlocDescriptors(descriptors=str(tmp_path / "global.h5")))
     records = run_sync(plan_localization(hjob, queries, tmp_path / "h"))
     assert [r["references"][0] for r in records] == [wanted[q.name] for q in queries]
     # Refinement mode: start from another pipeline's poses, two finest levels only.
     (tmp_path / "poses.txt").write_text((tmp_path / "h" / "poses.txt").read_text())
-    rjob = dataclasses.replace(job, prior="poses", prior_poses=str(tmp_path / "poses.txt"), levels=(0, 1))
+    rjob = dataclasses.replace(job, prior=OtherPipeline(str(tmp_path / "poses.txt")), levels=(0, 1))
     refined = run_sync(plan_localization(rjob, queries, tmp_path / "r"))
     for r, prev in zip(refined, records):
         assert [lvl["level"] for lvl in r["per_level"]] == [1, 0]
@@ -325,14 +326,14 @@ def test_region_order_shards_by_reference_region_and_resumes(seven_scenes, sync_
 
 def test_auto_order_groups_by_region_only_where_retrieval_is_free():
     from workflows.localize import REGION_MIN_QUERIES, resolve_order
-    job = LocalizationJob("map.zarr", FCONF, FCONF.model, LCONF, RetrievalConfig(k=5))
-    pairs = dataclasses.replace(job, retrieval=RetrievalConfig("pairs", "pairs.txt", k=5))
+    job = LocalizationJob("map.zarr", FCONF, FCONF.model, LCONF, GlobalDescriptors(k=5))
+    pairs = dataclasses.replace(job, retrieval=PairsFile(pairs="pairs.txt", k=5))
     assert resolve_order("auto", pairs, REGION_MIN_QUERIES) == "region"
     assert resolve_order("auto", pairs, REGION_MIN_QUERIES - 1) == "list"
     assert resolve_order("auto", job, 10 ** 5) == "list"  # global descriptors: one more network pass per query
     assert resolve_order("region", job, 2) == "region"
     with pytest.raises(ValueError, match="retrieves none"):
-        resolve_order("region", dataclasses.replace(job, prior="poses", prior_poses="p.txt"), 100)
+        resolve_order("region", dataclasses.replace(job, prior=Hloc("logs.pkl")), 100)
 
 
 def test_ctrl_c_or_sigterm_stops_the_run_with_one_line(shared, tmp_path):

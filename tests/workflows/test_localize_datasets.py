@@ -19,17 +19,17 @@ from pipeline.localization.refine import LocalizerConfig
 from pipeline.mapping.readers.colmap import triangulate_known_poses
 from pipeline.mapping.readers.kapture import read_kapture
 from pipeline.mapping.readers.strecha import read_strecha
-from pipeline.localization.retrieval import RetrievalConfig
+from pipeline.localization.retrieval import GlobalDescriptors
 from pipeline.localization.shard import LocalizationJob
 from workflows.localize import plan_localization, run_sync
-from workflows.sources import load_queries
+from pipeline.mapping.readers.sources import load_queries
 
 FCONF = FeatureConfig(resize=512, image_scales=(1,))
 LCONF = LocalizerConfig(num_dbs=3, num_iters=30)
 
 
 def run(store, queries, out, fconf=FCONF, lconf=LCONF):
-    job = LocalizationJob(str(store), fconf, fconf.model, lconf, RetrievalConfig(k=5))
+    job = LocalizationJob(str(store), fconf, fconf.model, lconf, GlobalDescriptors(k=5))
     records = run_sync(plan_localization(job, queries, out, shard_size=4))
     summary = evaluate(records, {q.name: q.cam_from_world_gt for q in queries})
     print(json.dumps({k: {w: v[w] for w in ("prior", "refined")} for k, v in summary.items()}, indent=1))

@@ -8,7 +8,8 @@ import pytest
 from pipeline.evaluate import pose_errors
 from pipeline.localization.refine import LocalizerConfig
 from pipeline.localization.results import record_pose
-from pipeline.localization.retrieval import RetrievalConfig
+from pipeline.localization.priors import PRIORS
+from pipeline.localization.retrieval import GlobalDescriptors
 from pipeline.localization.shard import LocalizationJob
 from workflows.benchmarks.sacre_coeur import MEDIAN_DISTANCE, night_reference, sacre_coeur
 from workflows.benchmarks.search import SACRE_COEUR_FEATURES
@@ -32,7 +33,7 @@ def test_the_night_photo_is_localized_from_retrieval(shared, tmp_path_factory, p
     work = tmp_path_factory.getbasetemp() / "night"
     ((_, store, (query,)),) = sacre_coeur(shared, work, SACRE_COEUR_FEATURES, day=False)
     job = LocalizationJob(str(store), SACRE_COEUR_FEATURES, SACRE_COEUR_FEATURES.model,
-                          LocalizerConfig(num_dbs=3, num_iters=50), RetrievalConfig(k=5), prior=prior)
+                          LocalizerConfig(num_dbs=3, num_iters=50), GlobalDescriptors(k=5), prior=PRIORS[prior]())
     (r,) = run_sync(plan_localization(job, [query], work / prior))
     prior_t, prior_R = pose_errors(np.asarray(r["prior"]), query.cam_from_world_gt)
     t, R = pose_errors(record_pose(r), query.cam_from_world_gt)

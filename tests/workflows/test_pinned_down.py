@@ -9,7 +9,7 @@ for image shifts; where the rival start is not verified either, only this gate r
 import math
 
 from pipeline.localization.refine import LocalizerConfig
-from pipeline.localization.retrieval import RetrievalConfig
+from pipeline.localization.retrieval import GlobalDescriptors
 from pipeline.localization.verify import VerificationConfig, verify
 from pipeline.evaluate import record_errors
 from pipeline.mapping.features import FeatureConfig
@@ -41,7 +41,7 @@ def test_on_the_dino_ring_the_pose_left_at_a_neighbouring_view_is_rejected(share
     (t_max, R_max), runs = RELATIVE[2], {}
     for max_sigma in (0.0, VerificationConfig().max_sigma):
         lconf = LocalizerConfig(num_dbs=3, num_iters=50, verification=VerificationConfig(max_sigma=max_sigma))
-        per_prior, gt = localize_priors(parts, ["top1"], tmp_path / f"runs-{max_sigma}", lconf, RetrievalConfig(k=5))
+        per_prior, gt = localize_priors(parts, ["top1"], tmp_path / f"runs-{max_sigma}", lconf, GlobalDescriptors(k=5))
         records = {r["name"]: r for r in per_prior["top1"]["records"]}
         assert len(records) == 5
         far = [n for n, r in records.items()

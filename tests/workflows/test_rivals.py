@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from pipeline.localization.refine import Candidate, LocalizerConfig, QueryResult
-from pipeline.localization.retrieval import RetrievalConfig
+from pipeline.localization.retrieval import GlobalDescriptors
 from pipeline.localization.search import check_rivals, rival_starts
 from pipeline.localization.verify import VerificationConfig
 from pipeline.evaluate import record_errors
@@ -92,7 +92,7 @@ def test_on_the_temple_ring_no_neighbouring_view_is_accepted(shared, tmp_path, m
         lconf = LocalizerConfig(num_dbs=3, num_iters=50,
                                 verification=VerificationConfig(rivals=rivals, join=join, max_sigma=0))
         per_prior, gt = localize_priors(parts, ["top1"], tmp_path / f"runs-{rivals}-{join}", lconf,
-                                        RetrievalConfig(k=5))
+                                        GlobalDescriptors(k=5))
         records = {r["name"]: r for r in per_prior["top1"]["records"]}
         assert len(records) == 5
         far = [n for n, r in records.items()

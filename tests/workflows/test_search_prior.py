@@ -10,7 +10,8 @@ from pipeline.evaluate import pose_errors
 from pipeline.mapping.features import FeatureConfig
 from pipeline.localization.refine import LocalizerConfig
 from pipeline.localization.results import record_pose
-from pipeline.localization.retrieval import RetrievalConfig
+from pipeline.localization.priors import PRIORS
+from pipeline.localization.retrieval import GlobalDescriptors
 from pipeline.localization.shard import LocalizationJob
 from pipeline.data.synthetic import SyntheticConfig, ensure_generated, read_synthetic
 from workflows.build_map import plan_build, run_sync as build_sync
@@ -30,10 +31,10 @@ def test_search_brings_in_a_night_query_that_top1_leaves_out(tmp_path):
     build_sync(plan_build(rgbd_scene(mapping, method="frames", stride=8, min_track_length=3), tmp_path / "m.zarr",
                           fconf))
     job = LocalizationJob(str(tmp_path / "m.zarr"), fconf, fconf.model, LocalizerConfig(num_dbs=3, num_iters=50),
-                          RetrievalConfig(k=5, same_tag="area"))
+                          GlobalDescriptors(k=5, same_tag="area"))
     results = {}
     for prior in ("top1", "search"):
-        (r,) = run_sync(plan_localization(dataclasses.replace(job, prior=prior), [query], tmp_path / prior))
+        (r,) = run_sync(plan_localization(dataclasses.replace(job, prior=PRIORS[prior]()), [query], tmp_path / prior))
         results[prior] = (r, pose_errors(record_pose(r), query.cam_from_world_gt))
     (top1, (t1, R1)), (search, (ts, Rs)) = results["top1"], results["search"]
     assert not top1["success"] and (t1 > 0.25 or R1 > 2.0)

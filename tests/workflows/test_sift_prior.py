@@ -11,12 +11,13 @@ import pytest
 from pipeline.evaluate import pose_errors
 from pipeline.localization.refine import LocalizerConfig
 from pipeline.localization.results import record_pose
-from pipeline.localization.retrieval import RetrievalConfig
+from pipeline.localization.priors import PRIORS, Sift
+from pipeline.localization.retrieval import GlobalDescriptors
 from pipeline.localization.shard import LocalizationJob
 from pipeline.mapping.build import build_map
 from pipeline.mapping.features import FeatureConfig
 from workflows.localize import plan_localization, run_sync
-from workflows.sources import MapSource, load_queries, load_scene
+from pipeline.mapping.readers.sources import MapSource, load_queries, load_scene
 
 HELD_OUT = ("templeR0015.png", "templeR0020.png")
 
@@ -31,7 +32,7 @@ def temple(shared, tmp_path_factory):
     fconf = FeatureConfig(resize=640, image_scales=(1,))
     build_map(scene, work / "map.zarr", fconf)
     job = LocalizationJob(str(work / "map.zarr"), fconf, fconf.model, LocalizerConfig(num_iters=50),
-                          RetrievalConfig(k=5))
+                          GlobalDescriptors(k=5))
     return job, load_queries("middlebury", root, names=list(HELD_OUT)), work
 
 
@@ -39,7 +40,7 @@ def test_sift_brings_in_queries_that_top1_and_search_miss(temple):
     job, queries, work = temple
     errors = {}
     for prior in ("top1", "search", "sift"):
-        records = run_sync(plan_localization(dataclasses.replace(job, prior=prior), queries, work / prior))
+        records = run_sync(plan_localization(dataclasses.replace(job, prior=PRIORS[prior]()), queries, work / prior))
         errors[prior] = [pose_errors(record_pose(r), q.cam_from_world_gt) for r, q in zip(records, queries)]
         if prior == "sift":
             assert all(r["success"] for r in records)
@@ -61,7 +62,7 @@ def test_failed_txt_and_the_report_say_that_pnp_failed_and_the_search_took_over(
     from workflows.report import make_report
     job, queries, work = temple
     strict = dataclasses.replace(job.localizer, verification=VerificationConfig(max_move_t=0.0))  # every pose moved
-    job = dataclasses.replace(job, prior="sift", sift=SiftConfig(min_inliers=100_000), localizer=strict)
+    job = dataclasses.replace(job, prior=Sift(SiftConfig(min_inliers=100_000)), localizer=strict)
     run_sync(plan_localization(job, queries, work / "no-pnp"))
     lines = [line.split("\t") for line in (work / "no-pnp" / "failed.txt").read_text().splitlines()]
     assert sorted(line[0] for line in lines) == sorted(HELD_OUT) and all(len(line) == 4 for line in lines)
@@ -95,7 +96,7 @@ def test_a_map_that_stores_sift_localizes_without_the_reference_images(temple, m
     def no_images(*args):
         raise AssertionError("a reference image was read")
     monkeypatch.setattr(sift_prior, "reference_sift", no_images)
-    job = dataclasses.replace(job, store=str(work / "sift.zarr"), features=fconf, prior="sift")
+    job = dataclasses.replace(job, store=str(work / "sift.zarr"), features=fconf, prior=Sift())
     records = run_sync(plan_localization(job, queries, work / "stored-sift"))
     assert all(r["success"] and r["notes"][0].startswith(sift_prior.NOTE) for r in records)
     for r, q in zip(records, queries):
@@ -110,7 +111,7 @@ def test_reference_images_that_cannot_be_read_are_named_and_the_others_still_mat
     can be read, the query takes the search prior, not a failure."""
     from pipeline.localization.sift import FALLBACK, NOTE, reference_sift
     job, queries, work = temple
-    job, query, images = dataclasses.replace(job, prior="sift"), queries[:1], work / "templeRing"
+    job, query, images = dataclasses.replace(job, prior=Sift()), queries[:1], work / "templeRing"
     top = run_sync(plan_localization(job, query, tmp_path / "all-there"))[0]["references"][0]
     aside = tmp_path / "aside"
     aside.mkdir()

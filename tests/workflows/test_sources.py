@@ -2,7 +2,7 @@
 
 import pytest
 
-from workflows.sources import MapSource, describe_source, kept, load_scene
+from pipeline.mapping.readers.sources import MapSource, describe_source, kept, load_scene
 
 
 def test_hold_out_names_must_be_images_of_the_source():
@@ -13,7 +13,7 @@ def test_hold_out_names_must_be_images_of_the_source():
 
 def test_query_names_must_be_queries_of_the_source(shared):
     """Before: localize --query-names 0004.jpg nope.jpg localized 0004.jpg and said nothing of the other."""
-    from workflows.sources import load_queries
+    from pipeline.mapping.readers.sources import load_queries
     root = shared / "data" / "strecha" / "fountain-P11"
     assert [q.name for q in load_queries("strecha", root, names=["0007.jpg", "0003.jpg"])] == ["0003.jpg", "0007.jpg"]
     with pytest.raises(ValueError, match=r"--query-names: nope\.jpg is not among the source's 11 images"):
@@ -36,14 +36,15 @@ def test_every_posed_format_is_a_map_source_and_a_query_source(shared):
     """Each format's images come with their poses as ground truth, for a held-out split."""
     import numpy as np
 
-    from workflows.sources import KINDS, POSED_FORMATS, QUERY_KINDS, load_queries
-    assert set(POSED_FORMATS) <= set(KINDS) and set(POSED_FORMATS) <= set(QUERY_KINDS)
+    from pipeline.mapping.readers.sources import SOURCES, PosedFormat, load_queries, map_kinds, query_kinds
+    posed = [name for name, entry in SOURCES.items() if issubclass(entry, PosedFormat)]
+    assert len(posed) >= 7 and set(posed) <= set(map_kinds()) and set(posed) <= set(query_kinds())
     data = shared / "data"
     cases = {"llff": (data / "beer_capture", None, 71), "middlebury": (data / "middlebury" / "dino", None, 48),
              "bundler": (data / "bundler_kermit" / "results.example" / "bundle.out", None, 9),
              "opensfm": (data / "opensfm_berlin" / "reconstruction_example.json", None, 3)}
     kinect = load_queries("posetxt", data / "rgbd_slambook" / "kinect_room", intrinsics=(518.0, 519.0, 325.5, 253.5))
-    assert "posetxt" in QUERY_KINDS and [q.name for q in kinect] == [f"color/{i}.png" for i in range(1, 6)]
+    assert "posetxt" in query_kinds() and [q.name for q in kinect] == [f"color/{i}.png" for i in range(1, 6)]
     assert all(np.isfinite(q.cam_from_world_gt).all() and q.camera.params[0] == 518.0 for q in kinect)
     for kind, (path, images, count) in cases.items():
         queries = load_queries(kind, path, images)

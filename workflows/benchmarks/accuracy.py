@@ -34,15 +34,15 @@ import numpy as np
 
 from pipeline.evaluate import fmt, record_errors, usable_ground_truth
 from pipeline.localization.refine import LocalizerConfig
-from pipeline.localization.retrieval import RetrievalConfig
+from pipeline.localization.retrieval import GlobalDescriptors
 from pipeline.mapping.features import COMPACT_PCA, DTYPES, FeatureConfig
-from pipeline.mapping.readers.colmap import read_colmap, run_sfm
+from pipeline.mapping.readers.colmap import run_sfm
 from pipeline.store.reader import MapReader
 from pixloc.nets.registry import DEFAULT_MODEL
 
 from ..build_map import plan_build, run_sync as build_sync
 from ..evaluate_model import comparison_lines, sign_test
-from ..sources import POSED_FORMATS, MapSource, as_query, load_scene, pose_txt_images, posed_images
+from pipeline.mapping.readers.sources import MapSource, as_query, load_scene
 from .sacre_coeur import sacre_coeur
 from .search import SACRE_COEUR_FEATURES, localize_priors, virtual_gallery_map
 from .verification import seven_scenes_map, store_complete
@@ -129,16 +129,10 @@ def _posed(key: str, split: Split, shared: Path, work: Path):
     """The scene's posed images (the ground truth) and, for an SfM source, its whole model."""
     source = dataclasses.replace(split.source, path=shared / split.source.path,
                                  images=shared / split.source.images if split.source.images else None)
-    if source.kind in POSED_FORMATS:
-        return source, posed_images(source.kind, source.path, source.images)[0], None
-    if source.kind == "posetxt":
-        return source, pose_txt_images(source), None
-    if source.kind == "colmap":
-        return source, read_colmap(source.path, source.images).images, None
-    if source.kind == "sfm":  # the map is this model without the queries' observations
-        model = run_sfm(source.path, work / f"{key}.sfm")
-        return source, model.images, model
-    raise ValueError(f"No split for a {source.kind!r} source.")
+    if source.format.queries:  # a source of posed images: a split of them
+        return source, source.format.images(source), None
+    model = run_sfm(source.path, work / f"{key}.sfm")  # the map is this model without the queries' observations
+    return source, model.images, model
 
 
 def split_parts(key: str, split: Split, shared: Path, work: Path, fconf: FeatureConfig, limit: int = 0
@@ -174,7 +168,7 @@ def scene_parts(key: str, args, fconf: FeatureConfig) -> List[Tuple[str, Path, L
 
 def scene_scale(store: Path) -> float:
     """The map's median camera-to-point distance over its observations."""
-    from workflows.cli_localize import store_feature_config
+    from pipeline.store.info import feature_config as store_feature_config
     reader = MapReader(store, store_feature_config(store))
     distances = []
     for i in range(len(reader.names)):
@@ -349,7 +343,7 @@ def main(args: argparse.Namespace) -> int:
             continue
         scale = scene_scale(parts[0][1])
         metric = OWN_SPLITS[key] if key in OWN_SPLITS else SPLITS[key].metric
-        per_prior, gt = localize_priors(parts, list(args.priors), runs, lconf, RetrievalConfig(k=5))
+        per_prior, gt = localize_priors(parts, list(args.priors), runs, lconf, GlobalDescriptors(k=5))
         if "top1" in per_prior:  # the prior itself: the top-1 reference's pose, unrefined
             per_prior["reference"] = {"records": [dict(r, success=False) for r in per_prior["top1"]["records"]],
                                       "time": None}

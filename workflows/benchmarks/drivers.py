@@ -37,13 +37,14 @@ def _job(store: str, points_per_cell: float = 0.0, prior: str = "top1", num_iter
     ``points_per_cell`` as the localizer's (1 for the dense maps of the photo city); another ``prior`` or
     ``num_iters`` per level for the S2 driver's experiments."""
     from pipeline.localization.refine import LocalizerConfig
-    from pipeline.localization.retrieval import RetrievalConfig
+    from pipeline.localization.retrieval import GlobalDescriptors
+    from pipeline.localization.priors import PRIORS
     from pipeline.localization.shard import LocalizationJob
-    from workflows.cli_localize import store_feature_config
+    from pipeline.store.info import feature_config as store_feature_config
     conf = store_feature_config(Path(store))
     return LocalizationJob(store, conf, conf.model, LocalizerConfig(num_dbs=3, num_iters=num_iters,
                                                                     points_per_cell=points_per_cell),
-                           RetrievalConfig(k=5, same_tag="area"), prior=prior)
+                           GlobalDescriptors(k=5, same_tag="area"), prior=PRIORS.entry(prior)())
 
 
 def warm_up(job) -> None:

@@ -24,7 +24,7 @@ from pipeline.localization.refine import LocalizerConfig
 from pipeline.queries import read_queries_with_intrinsics
 from pipeline.textfiles import read_pairs
 from pipeline.mapping.readers.colmap import read_colmap
-from pipeline.localization.retrieval import RetrievalConfig
+from pipeline.localization.retrieval import PairsFile
 from pipeline.localization.shard import LocalizationJob
 
 from .. import executor
@@ -94,7 +94,7 @@ def main(args: argparse.Namespace) -> int:
                                                 for r in pairs[q.name]))
         job = LocalizationJob(str(work / "map.zarr"), fconf, fconf.model,
                               LocalizerConfig(num_dbs=5, average_observations=True, num_iters=args.iters),
-                              RetrievalConfig("pairs", str(work / "pairs.txt")))
+                              PairsFile(pairs=str(work / "pairs.txt")))
         print(f"Localization, Cambridge settings, {len(queries)} queries ({len(base)} oracle queries x "
               f"{args.repeat}) on a {len(scene.images)}-image map "
               f"(built once in {build_s:.1f} s), {args.iters} LM iterations per level")

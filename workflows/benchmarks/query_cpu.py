@@ -55,7 +55,9 @@ from torch import nn
 
 from pipeline.localization.refine import Localizer, LocalizerConfig
 from pipeline.localization.results import result_to_record
-from pipeline.localization.retrieval import RetrievalConfig
+from pipeline.localization.priors import Search, Top1
+from pipeline.localization.search import SearchConfig
+from pipeline.localization.retrieval import GlobalDescriptors
 from pipeline.localization.shard import LocalizationJob, localize_queries
 from pipeline.mapping.features import FeatureConfig
 from pipeline.runtime import native_bfloat16, set_malloc, torch_threads
@@ -63,7 +65,7 @@ from pipeline.store.reader import MapReader
 from pixloc.nets.registry import DEFAULT_MODEL, load_refiner
 from pixloc.nets.unet import fold_batchnorm, prepare_for_inference
 
-from workflows.cli_localize import store_feature_config
+from pipeline.store.info import feature_config as store_feature_config
 
 from . import accuracy
 from .earlier_code import pose_differences, run_earlier
@@ -155,7 +157,7 @@ def _run(variant: Variant, refiner, parts, compile_s: Dict[str, float]) -> Dict:
     out = {"records": [], "results": [], "cpu": 0.0, "before": 0.0, "network": 0.0, "lm": 0.0}
     for name, store, queries, gt in parts:
         reader = MapReader(store, store_feature_config(store), refiner.feature_digest())
-        job = LocalizationJob(str(store), reader.conf, DEFAULT_MODEL, conf, RetrievalConfig(k=5), prior="top1")
+        job = LocalizationJob(str(store), reader.conf, DEFAULT_MODEL, conf, GlobalDescriptors(k=5), prior=Top1())
         localizer = Localizer(net, solvers, reader, conf, finest_on_demand=variant.tiles,
                               compiled_kernels=variant.kernels)
         with torch_threads(1):
@@ -207,8 +209,8 @@ def search_passes(refiner, part) -> Dict[str, float]:
     net.register_forward_hook(lambda *_: passes.append(1))
     name, store, queries, _ = part
     reader = MapReader(store, store_feature_config(store), refiner.feature_digest())
-    job = LocalizationJob(str(store), reader.conf, DEFAULT_MODEL, CAMBRIDGE, RetrievalConfig(k=5), prior="search")
-    job = dataclasses.replace(job, search=dataclasses.replace(job.search, first=False))
+    job = LocalizationJob(str(store), reader.conf, DEFAULT_MODEL, CAMBRIDGE, GlobalDescriptors(k=5),
+                          prior=Search(SearchConfig(first=False)))
     batch = Localizer.localize_batch  # counted for every Localizer, the search's screening one too
     Localizer.localize_batch = lambda self, candidates: starts.append(len(candidates)) or batch(self, candidates)
     try:

@@ -26,7 +26,8 @@ from typing import Dict
 import torch
 
 from pipeline.localization.results import result_to_record
-from pipeline.localization.retrieval import RetrievalConfig
+from pipeline.localization.priors import Top1
+from pipeline.localization.retrieval import GlobalDescriptors
 from pipeline.localization.shard import LocalizationJob, localize_queries
 from pipeline.localization.refine import Localizer
 from pipeline.models import localization_model
@@ -34,7 +35,7 @@ from pipeline.runtime import keep_freed_memory, torch_threads
 from pipeline.store.reader import MapReader
 from pixloc.nets.registry import DEFAULT_MODEL
 
-from workflows.cli_localize import store_feature_config
+from pipeline.store.info import feature_config as store_feature_config
 
 from . import accuracy, query_cpu
 from .earlier_code import pose_differences
@@ -70,7 +71,7 @@ def _run(parts, batch: int, copies: int, device: str, model) -> Dict:
     results, wall, cpu = {}, 0.0, 0.0
     for p, (_, store, queries, _) in enumerate(parts):
         reader = MapReader(store, store_feature_config(store), digest)
-        job = LocalizationJob(str(store), reader.conf, DEFAULT_MODEL, conf, RetrievalConfig(k=5), prior="top1",
+        job = LocalizationJob(str(store), reader.conf, DEFAULT_MODEL, conf, GlobalDescriptors(k=5), prior=Top1(),
                               device=device)
         localizer = Localizer(refiner.extractor, refiner.solvers, reader, conf, device)
         keys = [(p, c, i) for c in range(copies) for i in range(len(queries))]

@@ -61,13 +61,14 @@ def main(args: argparse.Namespace) -> int:
     from pipeline.mapping.features import FeatureConfig
     from pipeline.localization.refine import LocalizerConfig
     from pipeline.mapping.readers.rgbd import read_7scenes
-    from pipeline.localization.retrieval import RetrievalConfig
+    from pipeline.localization.priors import OtherPipeline
+    from pipeline.localization.retrieval import GlobalDescriptors
     from pipeline.models import localization_model
     from pipeline.localization.shard import LocalizationJob
     from pipeline.localization.verify import VerificationConfig
     from workflows.localize import plan_localization, run_sync
     from workflows.presets import load
-    from workflows.sources import load_queries
+    from pipeline.mapping.readers.sources import load_queries
 
     root = args.shared / "data" / "7scenes_stairs"
     if not root.is_dir():
@@ -91,8 +92,8 @@ def main(args: argparse.Namespace) -> int:
                 solver.interpolator.gradient_maps = gradient_maps
             lconf = LocalizerConfig(num_dbs=preset["localizer"]["num_dbs"], num_iters=preset["localizer"]["num_iters"],
                                     points_per_cell=ppc, verification=VerificationConfig(enabled=False))
-            job = LocalizationJob(str(store), fconf, fconf.model, lconf, RetrievalConfig(k=preset["retrieval"]["k"]),
-                                  prior="poses", prior_poses=str(args.work / "priors.txt"))
+            job = LocalizationJob(str(store), fconf, fconf.model, lconf, GlobalDescriptors(k=preset["retrieval"]["k"]),
+                                  prior=OtherPipeline(prior_poses=str(args.work / "priors.txt")))
             # a finished run is reused (its records keep their timings): runs of the same job, one folder per way
             records = run_sync(plan_localization(job, queries, args.work / f"run-{len(rows)}"))
             elapsed = sum(r["timings"]["total"] for r in records)

@@ -25,7 +25,8 @@ import numpy as np
 from pipeline.evaluate import evaluate, fmt
 from pipeline.mapping.features import FeatureConfig
 from pipeline.localization.refine import LocalizerConfig
-from pipeline.localization.retrieval import RetrievalConfig
+from pipeline.localization.priors import PRIORS, OtherPipeline
+from pipeline.localization.retrieval import GlobalDescriptors, RetrievalSettings
 from pipeline.localization.shard import LocalizationJob
 from pipeline.localization.sift import pnp_pose_found
 
@@ -77,7 +78,7 @@ def _sources(args, fconf):
 def virtual_gallery_map(shared: Path, work: Path, fconf):
     from pipeline.mapping.readers.colmap import triangulate_known_poses
     from pipeline.mapping.readers.kapture import read_kapture
-    from workflows.sources import load_queries
+    from pipeline.mapping.readers.sources import load_queries
     from .verification import store_complete
     root = shared / "data" / "virtual_gallery"
     store = work / "virtual_gallery.zarr"
@@ -96,13 +97,13 @@ def _truth_file(queries, out: Path) -> Path:
     return path
 
 
-def localize_priors(parts, priors: List[str], runs: Path, lconf: LocalizerConfig, retrieval: RetrievalConfig
+def localize_priors(parts, priors: List[str], runs: Path, lconf: LocalizerConfig, retrieval: RetrievalSettings
                     ) -> Tuple[Dict[str, Dict], Dict[str, np.ndarray]]:
     """Every (name, store, queries) part of a scene localized with each prior (runs kept in
     ``runs/NAME/PRIOR``: a rerun reads them back). Returns {prior: {"records", "time"}} (``time``:
     the runs' wall seconds; with ``sift`` also the peer ``sift-pnp``, its time that of the sift
     runs' stages before the LM) and the queries' ground truth."""
-    from workflows.cli_localize import store_feature_config
+    from pipeline.store.info import feature_config as store_feature_config
     per_prior: Dict[str, Dict] = {p: {"records": [], "time": 0.0} for p in priors}
     gt = {}
     for name, store, queries in parts:
@@ -111,9 +112,10 @@ def localize_priors(parts, priors: List[str], runs: Path, lconf: LocalizerConfig
         base = LocalizationJob(str(store), conf, conf.model, lconf, retrieval)
         for prior in priors:
             out = runs / name.replace("/", "-") / prior
-            job = dataclasses.replace(base, prior=prior)
             if prior == "truth":
-                job = dataclasses.replace(base, prior="poses", prior_poses=str(_truth_file(queries, out)))
+                job = dataclasses.replace(base, prior=OtherPipeline(prior_poses=str(_truth_file(queries, out))))
+            else:
+                job = dataclasses.replace(base, prior=PRIORS.entry(prior)())
             plan = plan_localization(job, queries, out, shard_size=8)
             t0 = time.perf_counter()
             records = run_sync(plan)
@@ -137,7 +139,7 @@ def main(args: argparse.Namespace) -> int:
     rows: List[Dict] = []
     for key, parts in _sources(args, fconf):
         per_prior, gt = localize_priors(parts, args.priors, args.work / "search-runs", lconf,
-                                        RetrievalConfig(k=5, same_tag="area" if key == "demo" else None))
+                                        GlobalDescriptors(k=5, same_tag="area" if key == "demo" else None))
         for prior, v in per_prior.items():
             s = evaluate(v["records"], gt, THRESHOLDS)["all"]
             rows.append({"scene": key, "prior": prior, "n": s["refined"]["count"],

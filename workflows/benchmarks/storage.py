@@ -29,7 +29,7 @@ import numpy as np
 from pipeline.evaluate import evaluate, fmt
 from pipeline.mapping.features import FeatureConfig
 from pipeline.localization.refine import LocalizerConfig
-from pipeline.localization.retrieval import RetrievalConfig
+from pipeline.localization.retrieval import GlobalDescriptors
 from pipeline.localization.shard import LocalizationJob
 from pipeline.store.feature_groups import feature_key
 from pipeline.store.layout import open_store
@@ -105,10 +105,10 @@ def scene_rows(args, key: str) -> List[Dict]:
         stores.mkdir(parents=True, exist_ok=True)
         records, gt, sizes = [], {}, []
         for name, store, queries in _parts(args, key, storage_config(base, dtype), stores):
-            from workflows.cli_localize import store_feature_config
+            from pipeline.store.info import feature_config as store_feature_config
             conf = store_feature_config(store)
             job = LocalizationJob(str(store), conf, conf.model, lconf,
-                                  RetrievalConfig(k=5, same_tag="area" if key == "demo" else None))
+                                  GlobalDescriptors(k=5, same_tag="area" if key == "demo" else None))
             out = args.work / "storage" / "runs" / f"{dtype}{suffix}" / name.replace("/", "-")
             records += run_sync(plan_localization(job, queries, out, shard_size=8))
             gt.update({q.name: q.cam_from_world_gt for q in queries})

@@ -66,7 +66,7 @@ def query_reads(reader, dbs: List[int], proxy) -> Dict:
 def main(args: argparse.Namespace) -> int:
     from pipeline.store.location import STORAGE_OPTIONS_ENV
     from pipeline.store.reader import MapReader
-    from workflows.cli_localize import store_feature_config
+    from pipeline.store.info import feature_config as store_feature_config
     from workflows.s3_server import CREDENTIALS, DelayingProxy, ServerUnavailable, moto_server
     if not (args.shared / "data" / "strecha").is_dir():
         raise SystemExit(f"{args.shared}/data/strecha not found: give --shared (or set PIXLOC_SHARED)")

@@ -26,13 +26,14 @@ from pipeline.mapping.readers.colmap import triangulate_known_poses
 from pipeline.mapping.readers.rgbd import read_7scenes
 from pipeline.mapping.readers.strecha import read_strecha
 from pipeline.scene import rotmat_to_qvec
-from pipeline.localization.retrieval import RetrievalConfig
+from pipeline.localization.priors import OtherPipeline
+from pipeline.localization.retrieval import GlobalDescriptors
 from pipeline.localization.shard import LocalizationJob
 from pipeline.localization.verify import VerificationConfig, verify
 
 from ..build_map import plan_build, run_sync as build_sync
 from ..localize import plan_localization, run_sync
-from ..sources import load_queries
+from pipeline.mapping.readers.sources import load_queries
 
 # (fraction of the median point depth, degrees) of the ground-truth perturbations
 PERTURBATIONS = ((0.05, 3.0), (0.15, 8.0), (0.4, 20.0))
@@ -131,10 +132,10 @@ def collect(args) -> List[Dict]:
     rows = []
     for key in args.scenes:
         for name, store, queries in sources[key]():
-            from workflows.cli_localize import store_feature_config
+            from pipeline.store.info import feature_config as store_feature_config
             conf = store_feature_config(store)
             job = LocalizationJob(str(store), conf, conf.model, lconf,
-                                  RetrievalConfig(k=5, same_tag="area" if key == "demo" else None))
+                                  GlobalDescriptors(k=5, same_tag="area" if key == "demo" else None))
             out = work / ("runs" if args.seed == 0 else f"runs-seed{args.seed}") / name.replace("/", "-")
             gt = {q.name: q.cam_from_world_gt for q in queries}
             runs = {"retrieval": run_sync(plan_localization(job, queries, out / "retrieval", shard_size=8))}
@@ -145,7 +146,7 @@ def collect(args) -> List[Dict]:
                 path = out / f"priors-{k}.txt"
                 path.parent.mkdir(parents=True, exist_ok=True)
                 write_priors(path, priors)
-                pjob = dataclasses.replace(job, prior="poses", prior_poses=str(path.resolve()))
+                pjob = dataclasses.replace(job, prior=OtherPipeline(prior_poses=str(path.resolve())))
                 runs[f"perturbed {frac:g}d {deg:g}deg"] = run_sync(
                     plan_localization(pjob, queries, out / f"perturbed-{k}", shard_size=8))
             for how, records in runs.items():
@@ -209,7 +210,7 @@ def night(args) -> str:
     build_map(read_colmap(args.shared / "oracle" / "sacre_coeur_sfm", root / "mapping"), store, fconf)
     path = root / "query" / "night.jpg"
     query = QueryRecord("night.jpg", path, exif_camera(path).camera, {"condition": "night"})  # f = 2735.5 px
-    job = LocalizationJob(str(store), fconf, fconf.model, LocalizerConfig(num_dbs=3), RetrievalConfig(k=5))
+    job = LocalizationJob(str(store), fconf, fconf.model, LocalizerConfig(num_dbs=3), GlobalDescriptors(k=5))
     (r,) = run_sync(plan_localization(job, [query], args.work / "runs" / "sacre_coeur_night", overwrite=True))
     e = r["evidence"]
     return (f"sacre_coeur night.jpg (no ground truth), default verification: success={r['success']}, "

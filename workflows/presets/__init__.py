@@ -1,7 +1,8 @@
 """Dataset presets: the paper's settings per dataset, as YAML data (see the .yaml files here).
 
 A preset's keys are the fields of the jobs it sets, by the same names: ``localizer.num_iters``,
-``retrieval.k``, ``prior`` ... of ``pipeline.localization.shard.LocalizationJob`` and ``features.resize`` ...
+``retrieval.k``, ``prior`` (a prior's name) ... of ``pipeline.localization.shard.LocalizationJob``, a
+prior's own settings under its name (``hloc.point_selection``), and ``features.resize`` ...
 of the map's ``pipeline.mapping.features.FeatureConfig``; a ``from_poses`` block overrides them in
 refinement mode; ``thresholds`` and ``pose_names`` set the outputs; ``description``, ``layout``
 and ``model_hint`` document it. Any other key is refused with the nearest valid name.
@@ -9,8 +10,9 @@ and ``model_hint`` document it. Any other key is refused with the nearest valid 
 
 from importlib import resources
 from pathlib import Path
-from typing import Any, Dict, List, Optional
+from typing import Any, Dict, List, Optional, Tuple
 
+from pipeline.localization.priors import PRIORS
 from pipeline.localization.shard import LocalizationJob
 from pipeline.textfiles import read_yaml
 
@@ -18,11 +20,13 @@ from ..options import check_keys, dotted, field_types
 
 # what a preset cannot set: the run's inputs, and the store's own feature settings (a localize job
 # takes them from the store)
-INPUTS = {"store", "model", "device", "prior_poses", "hloc_logs", "retrieval.method", "retrieval.pairs",
-          "retrieval.descriptors", "features"}
+INPUTS = {"store", "model", "device", "retrieval", "features"}
 DOCUMENTATION = {"description", "layout", "model_hint"}
 OUTPUTS = {"thresholds", "pose_names"}
-SETTINGS = {k for k in field_types(LocalizationJob) if k not in INPUTS and k != "features.model"}
+# a prior's own settings, under its name (``hloc.point_selection``); its input files are the run's
+ENTRY_SETTINGS = {f"{name}.{k}" for name, entry in PRIORS.items() for k in field_types(entry)
+                  if k.split(".")[0] not in entry.inputs}
+SETTINGS = {k for k in field_types(LocalizationJob) if k not in INPUTS and k != "features.model"} | ENTRY_SETTINGS
 # every key a preset may hold (also under ``from_poses``: the settings)
 PRESET_KEYS = SETTINGS | DOCUMENTATION | OUTPUTS | {f"from_poses.{k}" for k in SETTINGS}
 
@@ -40,21 +44,26 @@ def load(name: str) -> Dict:
     return preset
 
 
-def job_settings(preset: Optional[Dict], prior: Optional[str]) -> Dict[str, Any]:
-    """The localize job's fields that ``preset`` sets, by dotted path: its ``from_poses`` block
-    (the paper's refinement-mode settings) overrides the rest when the prior comes from another
-    pipeline (``prior`` ``hloc`` or ``poses``: the command line's, else the preset's); its point
-    selection (hloc's PnP inliers) applies only with ``hloc``, which has them."""
+def job_settings(preset: Optional[Dict], prior: Optional[str]) -> Tuple[Dict[str, Any], Dict[str, Dict]]:
+    """The localize job's fields that ``preset`` sets, by dotted path, and its blocks of entry
+    settings (``{"prior": {"name": its prior, NAME: {field: value}}}``). Its ``from_poses`` block
+    (the paper's refinement-mode settings) overrides the rest when the prior (``prior``, else the
+    preset's) refines another pipeline's poses (``given_poses``); a prior's own settings apply to
+    that prior only."""
     preset = dict(preset or {})
     prior = prior if prior is not None else preset.get("prior")
     from_poses = dict(preset.pop("from_poses", None) or {})
     settings = {k: v for k, v in dotted(preset, keep=("layout",)).items()
                 if k in SETTINGS and not k.startswith("features.")}
-    if prior in ("hloc", "poses") and from_poses:
-        if prior != "hloc":
-            from_poses.pop("point_selection", None)
-        settings.update(dotted(from_poses))
-    return settings
+    if prior is not None and PRIORS.entry(prior).given_poses:
+        settings.update({k: v for k, v in dotted(from_poses).items() if not k.startswith("features.")})
+    blocks: Dict[str, Dict] = {"prior": {}}
+    if "prior" in settings:
+        blocks["prior"]["name"] = settings.pop("prior")
+    for key in [k for k in settings if k in ENTRY_SETTINGS]:
+        name, field = key.split(".", 1)
+        blocks["prior"].setdefault(name, {})[field] = settings.pop(key)
+    return settings, blocks
 
 
 def feature_settings(preset: Optional[Dict]) -> Dict[str, Any]:

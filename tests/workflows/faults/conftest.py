@@ -15,10 +15,10 @@ from pipeline.mapping.depth import rgbd_scene
 from pipeline.mapping.features import FeatureConfig
 from pipeline.localization.refine import LocalizerConfig
 from pipeline.mapping.readers.rgbd import read_7scenes
-from pipeline.localization.retrieval import RetrievalConfig
+from pipeline.localization.retrieval import GlobalDescriptors
 from pipeline.localization.shard import LocalizationJob
 from pipeline.localization.verify import VerificationConfig
-from workflows.sources import load_queries
+from pipeline.mapping.readers.sources import load_queries
 
 ROOT = Path(__file__).resolve().parents[3]
 FCONF = FeatureConfig(resize=320, image_scales=(1,))
@@ -51,7 +51,7 @@ def stairs(shared, tmp_path_factory) -> Stairs:
     store = tmp_path_factory.mktemp("fault-catalogue") / "map.zarr"
     build_map(rgbd_scene(read_7scenes(root, [2, 3]), method="frames", stride=24), store, FCONF)
     queries = load_queries("7scenes", root, sequences=(1, 4))
-    return Stairs(LocalizationJob(str(store), FCONF, FCONF.model, LCONF, RetrievalConfig(k=5)), queries, root)
+    return Stairs(LocalizationJob(str(store), FCONF, FCONF.model, LCONF, GlobalDescriptors(k=5)), queries, root)
 
 
 def pixloc(*args, cwd=None, timeout=300, env=None):

@@ -23,14 +23,15 @@ from pipeline.localization.refine import LocalizerConfig
 from pipeline.mapping.readers.hloc import parse_loc
 from pipeline.mapping.readers.rgbd import read_7scenes
 from pipeline.localization.results import read_records
-from pipeline.localization.retrieval import RetrievalConfig
+from pipeline.localization.priors import Hloc, OtherPipeline, ReferenceHypotheses, Search
+from pipeline.localization.retrieval import GlobalDescriptors, PairsFile
 from pipeline.localization.shard import LocalizationJob
 from pipeline.store.feature_groups import feature_key
 from pipeline.store.layout import StoreError, open_store
 from pipeline.store.check import check_store
 from workflows.localize import plan_localization, run_sync
 from workflows.locks import OutputLocked, output_lock
-from workflows.sources import load_queries
+from pipeline.mapping.readers.sources import load_queries
 
 ROOT = Path(__file__).resolve().parents[3]
 FCONF = FeatureConfig(resize=320, image_scales=(1,))
@@ -43,7 +44,7 @@ def stairs(shared, tmp_path_factory):
     store = tmp_path_factory.mktemp("faults") / "map.zarr"
     build_map(rgbd_scene(read_7scenes(root, [2, 3]), method="frames", stride=24), store, FCONF)
     queries = load_queries("7scenes", root, sequences=(1, 4))
-    job = LocalizationJob(str(store), FCONF, FCONF.model, LCONF, RetrievalConfig(k=5))
+    job = LocalizationJob(str(store), FCONF, FCONF.model, LCONF, GlobalDescriptors(k=5))
     return job, queries, root
 
 
@@ -215,7 +216,7 @@ def test_model_without_confidences_localizes_and_reports(shared, tmp_path):
     conf = FeatureConfig(model="photometric", resize=160, image_scales=(1,))
     build_map(rgbd_scene(read_7scenes(root, [2]), method="frames", stride=32), tmp_path / "p.zarr", conf)
     queries = load_queries("7scenes", root, sequences=(1,))[:2]
-    job = LocalizationJob(str(tmp_path / "p.zarr"), conf, "photometric", LCONF, RetrievalConfig(k=3))
+    job = LocalizationJob(str(tmp_path / "p.zarr"), conf, "photometric", LCONF, GlobalDescriptors(k=3))
     records = run_sync(plan_localization(job, queries, tmp_path / "out"))
     assert all(r["per_level"] and "KeyError" not in r["reason"] for r in records)
     page = make_report(tmp_path / "out", queries, num_examples=1).read_text()
@@ -235,7 +236,7 @@ def test_one_query_error_does_not_fail_the_shard(stairs, tmp_path, monkeypatch):
     from pipeline.images import read_image
     predict.bad_mean = read_image(queries[1].path).mean()
     monkeypatch.setattr(loc.Localizer, "predict", predict)
-    job = dataclasses.replace(job, retrieval=RetrievalConfig("pairs", str(tmp_path / "pairs.txt")))
+    job = dataclasses.replace(job, retrieval=PairsFile(pairs=str(tmp_path / "pairs.txt")))
     names = [str(n) for n in open_store(job.store)["images/name"][:]]
     (tmp_path / "pairs.txt").write_text("".join(f"{q.name} {names[0]}\n{q.name} {names[1]}\n" for q in queries[:3]))
     records = run_sync(plan_localization(job, queries[:3], tmp_path / "out"))
@@ -249,11 +250,17 @@ def test_one_query_error_does_not_fail_the_shard(stairs, tmp_path, monkeypatch):
 def test_bad_job_settings_are_refused_before_any_query(stairs, tmp_path):
     """Before: an unknown retrieval method fell back to global retrieval silently."""
     job, queries, _ = stairs
-    for bad, text in [(dataclasses.replace(job, retrieval=RetrievalConfig("netvlad")), "retrieval method"),
-                      (dataclasses.replace(job, prior="best"), "Unknown prior"),
-                      (dataclasses.replace(job, point_selection="inliers"), "needs the hloc prior"),
-                      (dataclasses.replace(job, prior="poses", prior_poses=str(tmp_path / "no.txt")),
-                       "does not exist")]:
+    recorded = job.to_dict()
+    for bad, text in [({**recorded, "retrieval": {"method": "netvlad"}}, "Unknown retrieval method 'netvlad'"),
+                      ({**recorded, "prior": {"name": "best"}}, "Unknown prior 'best'"),
+                      ({**recorded, "prior": {"name": "top1", "point_selection": "inliers"}},
+                       "unknown key 'point_selection'")]:
+        with pytest.raises(ValueError, match=text):
+            LocalizationJob.from_dict(bad)
+    for bad, text in [(dataclasses.replace(job, prior=Hloc(str(tmp_path / "no.pkl"), point_selection="best")),
+                       "Unknown point selection"),
+                      (dataclasses.replace(job, prior=OtherPipeline(str(tmp_path / "no.txt"))), "does not exist"),
+                      (dataclasses.replace(job, prior=OtherPipeline()), "--prior poses needs --prior-poses FILE")]:
         with pytest.raises(ValueError, match=text):
             plan_localization(bad, queries, tmp_path / "out")
     assert not (tmp_path / "out").exists()
@@ -412,7 +419,7 @@ def test_hypotheses_keep_the_most_confident_refinement(stairs):
     from pipeline.models import localization_model
     from pipeline.localization.shard import localize_queries, prepare_query
     job, queries, _ = stairs
-    hjob = dataclasses.replace(job, prior="hypotheses", num_hypotheses=3)
+    hjob = dataclasses.replace(job, prior=ReferenceHypotheses(3))
     refiner, digest = localization_model(job.model)
     reader = MapReader(job.store, FCONF, digest)
     localizer = Localizer(refiner.extractor, refiner.solvers, reader, LCONF)
@@ -445,7 +452,7 @@ def test_search_refines_the_top1_start_first_and_searches_only_where_it_is_not_v
         localizer = Localizer(refiner.extractor, refiner.solvers, reader, lconf)
         top1 = localize_queries(dataclasses.replace(job, localizer=lconf), reader, localizer, queries[:2])
         calls.clear()
-        search = localize_queries(dataclasses.replace(job, localizer=lconf, prior="search"), reader, localizer,
+        search = localize_queries(dataclasses.replace(job, localizer=lconf, prior=Search()), reader, localizer,
                                   queries[:2])
         # the two top-1 starts, first, in one batch, with their rival starts (verification.rivals) where verifying
         assert calls[0] == 2 * (1 + (lconf.verification.rivals if lconf.verification.enabled else 0))

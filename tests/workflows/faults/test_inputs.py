@@ -19,7 +19,7 @@ from pipeline.localization.results import pose_name
 from pipeline.scene import CameraRecord, ImageRecord
 from pipeline.store.layout import open_store
 from workflows.localize import plan_localization, run_sync
-from workflows.sources import load_queries
+from pipeline.mapping.readers.sources import load_queries
 
 from .conftest import pixloc
 

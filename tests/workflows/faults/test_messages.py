@@ -173,7 +173,7 @@ def test_the_plan_shows_the_source_fields_its_kind_reads():
     """Before: 'depth_scale' and 'rgbd_points: tsdf' were printed for a Strecha map."""
     from pathlib import Path
 
-    from workflows.sources import MapSource, describe_source
+    from pipeline.mapping.readers.sources import MapSource, describe_source
     assert describe_source(MapSource("strecha", Path("/d/H")).to_dict()) == "strecha /d/H"
     assert describe_source(MapSource("7scenes", Path("/d/s"), sequences=(2, 3)).to_dict()) == \
         "7scenes /d/s (sequences [2, 3], rgbd points tsdf)"

@@ -12,6 +12,8 @@ from pipeline.mapping.build import build_map
 from pipeline.mapping.depth import rgbd_scene
 from pipeline.store.feature_groups import feature_key
 from pipeline.mapping.readers.rgbd import read_7scenes
+from pipeline.localization.priors import OtherPipeline
+from pipeline.localization.retrieval import PairsFile
 from pipeline.localization.results import read_records
 from pipeline.store.layout import PENDING, StoreError, open_store, unconsolidate
 from pipeline.textfiles import InputError
@@ -122,7 +124,7 @@ def test_priors_of_another_sequence_are_not_used(stairs, tmp_path):
     """Before: --prior poses gave sequence-1 queries sequence-4 priors and reported them refined."""
     seq1 = [q for q in stairs.queries if q.name.startswith("seq-01")][:1]
     seq4 = [q for q in stairs.queries if q.name.startswith("seq-04")]
-    job = dataclasses.replace(stairs.job, prior="poses", prior_poses=str(_poses_file(tmp_path / "p.txt", seq4)))
+    job = dataclasses.replace(stairs.job, prior=OtherPipeline(str(_poses_file(tmp_path / "p.txt", seq4))))
     records = run_sync(plan_localization(job, seq1, tmp_path / "out"))
     assert not records[0]["success"] and "no prior pose" in records[0]["reason"]
 
@@ -133,7 +135,7 @@ def test_one_bad_line_of_a_pairs_file_is_refused_before_the_run(stairs, tmp_path
     q = stairs.queries[0]
     names = [str(n) for n in open_store(stairs.job.store)["images/name"][:]]
     (tmp_path / "pairs.txt").write_text(f"{q.name} {names[0]}\n{q.name}\n")
-    job = dataclasses.replace(stairs.job, retrieval=dataclasses.replace(stairs.job.retrieval, method="pairs",
-                                                                          pairs=str(tmp_path / "pairs.txt")))
+    job = dataclasses.replace(stairs.job, retrieval=PairsFile(k=stairs.job.retrieval.k,
+                                                              pairs=str(tmp_path / "pairs.txt")))
     with pytest.raises(InputError, match=r"pairs.txt:2: expected 'query reference', got 1 fields"):
         plan_localization(job, [q], tmp_path / "out")

@@ -14,7 +14,7 @@ import pytest
 
 from pipeline.scene import SceneError
 from pipeline.textfiles import InputError
-from workflows.sources import posed_images
+from pipeline.mapping.readers.sources import posed_images
 
 from .conftest import pixloc
 
@@ -323,8 +323,8 @@ def test_hloc_descriptors_are_checked_once_at_the_start(stairs, tmp_path, damage
         if damage == "truncated":
             path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
     retrieval.hloc_descriptors.cache_clear()
-    job = dataclasses.replace(stairs.job, retrieval=dataclasses.replace(
-        stairs.job.retrieval, method="hloc", descriptors=str(path)))
+    job = dataclasses.replace(stairs.job, retrieval=retrieval.HlocDescriptors(k=stairs.job.retrieval.k,
+                                                                              descriptors=str(path)))
     with pytest.raises(InputError, match=str(path)):
         plan_localization(job, stairs.queries[:2], tmp_path / "out")
 

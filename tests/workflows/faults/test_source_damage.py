@@ -20,7 +20,7 @@ from pipeline.mapping.readers.colmap import read_colmap
 from pipeline.mapping.readers.colmap_files import check_binary_model
 from pipeline.scene import SceneError
 from pipeline.textfiles import InputError
-from workflows.sources import posed_images
+from pipeline.mapping.readers.sources import posed_images
 
 from .test_random_damage import SETTINGS, damaged
 
@@ -223,7 +223,7 @@ def test_rgbd_depth_file(shared, frame, keep, flips):
     """A damaged depth map of one RGB-D frame: that frame fails, named with its depth file, and observes
     nothing; the map is made of the others. Before: the whole build stopped, or a depth map decoded in
     part read its missing rows as zero depth."""
-    from workflows.sources import MapSource, load_scene
+    from pipeline.mapping.readers.sources import MapSource, load_scene
     kinect = shared / "data" / "rgbd_slambook" / "kinect_room"
     root = _folder({**{f"color/{p.name}": p for p in (kinect / "color").iterdir()},
                     **{f"depth/{p.name}": p for p in (kinect / "depth").iterdir() if p.stem != str(frame)},
