@@ -23,6 +23,8 @@ import cv2
 import numpy as np
 import torch
 
+from pipeline.runtime import DEFAULT_MAX_IMAGE_PIXELS, MAX_PIXELS_ENV, current  # noqa: F401
+
 
 class ImageReadError(IOError):
     """An image file that is missing, too large, or cannot be decoded."""
@@ -32,8 +34,6 @@ class ImageReadError(IOError):
 # (150 MP: a 12,000 x 12,500 photo; decoding it takes 0.45 GB, resizing 1.8 GB). Raise it with
 # the environment variable PIXLOC_MAX_IMAGE_PIXELS (inherited by local Dask workers) or the
 # command line's --max-image-pixels, which sets that variable.
-DEFAULT_MAX_IMAGE_PIXELS = 150_000_000
-MAX_PIXELS_ENV = "PIXLOC_MAX_IMAGE_PIXELS"
 
 # What libjpeg and libpng print (they do not fail) when a file is truncated or corrupt: OpenCV
 # then returns a partly grey image as if nothing happened.
@@ -45,17 +45,9 @@ _ROTATED = (5, 6, 7, 8)  # EXIF orientations that swap width and height
 
 
 def max_image_pixels() -> int:
-    """The pixel limit in force: PIXLOC_MAX_IMAGE_PIXELS, else DEFAULT_MAX_IMAGE_PIXELS."""
-    value = os.environ.get(MAX_PIXELS_ENV)
-    if not value:
-        return DEFAULT_MAX_IMAGE_PIXELS
-    try:
-        limit = int(float(value))
-    except ValueError:
-        raise ValueError(f"{MAX_PIXELS_ENV}={value!r} is not a number of pixels") from None
-    if limit < 1:
-        raise ValueError(f"{MAX_PIXELS_ENV}={value!r} must be positive")
-    return limit
+    """The pixel limit in force (``pipeline.runtime.RunSettings``: --max-image-pixels, else
+    PIXLOC_MAX_IMAGE_PIXELS, else DEFAULT_MAX_IMAGE_PIXELS)."""
+    return current().max_image_pixels
 
 
 @dataclass(frozen=True)

@@ -17,25 +17,24 @@ and their interpolators (``Interpolator.tap_reducer``) by the localizer (``pipel
 
 import functools
 import logging
-import os
 from typing import Callable, Optional, Tuple
 
 import torch
 from torch import Tensor
 
+from pipeline.runtime import NO_KERNELS_ENV as DISABLE_ENV, kernels_disabled  # noqa: F401 (named here before)
 from pixloc.interpolation import can_reduce_taps, reduce_taps as torch_reduce_taps
 from pixloc.optim.cost import Linearization, build_system as torch_build_system
 
 logger = logging.getLogger(__name__)
 
-DISABLE_ENV = "PIXLOC_NO_KERNELS"  # set to 1: the torch code everywhere (a comparison, a platform numba lacks)
 
 
 @functools.lru_cache(maxsize=1)
 def _kernels() -> Optional[Tuple[Callable, Callable]]:
     """The compiled kernels, ``reduce_taps``' and ``build_system``'s (their machine code is cached on disk
     by numba after the first process), or None where numba is missing or turned off."""
-    if os.environ.get(DISABLE_ENV, "") not in ("", "0"):
+    if kernels_disabled():
         return None
     try:
         import numba

@@ -1,17 +1,138 @@
-"""Process-level settings of pipeline tasks."""
+"""Process-level settings of pipeline tasks: the one module that reads the environment.
+
+``RunSettings`` are the settings of a run that are not its job's: the pixel limit of images and the
+storage options of a remote store. The command line makes them from its flags and the environment
+(``RunSettings.from_environment``), installs them in its process (``install``), and every task it
+submits carries them to its worker (``InSettings``): a worker of an external scheduler, which has
+none of the command's environment, runs with the same settings. Code reads them with ``current()``.
+"""
 
 import ctypes
 import ctypes.util
 import functools
+import json
 import logging
 import os
 from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator, Optional
+from typing import Any, Callable, Dict, Iterator, Optional
 
 import torch
 
 logger = logging.getLogger(__name__)
+
+DEFAULT_MAX_IMAGE_PIXELS = 150_000_000
+MAX_PIXELS_ENV = "PIXLOC_MAX_IMAGE_PIXELS"
+STORAGE_OPTIONS_ENV = "PIXLOC_STORAGE_OPTIONS"
+NO_KERNELS_ENV = "PIXLOC_NO_KERNELS"  # 1: the torch code everywhere (a comparison, a platform numba lacks)
+POISON_ENV = "PIXLOC_POISON_UNDECODED"  # 1 (the test suite's): feature-map cells not decoded hold NaN
+
+
+class SettingError(ValueError):
+    """A run setting that cannot be used, naming where it came from."""
+
+
+@dataclass(frozen=True)
+class RunSettings:
+    """max_image_pixels: images with more pixels are refused before they are decoded (a 2 MB PNG can
+    declare 30000 x 30000); storage_options: fsspec options of remote stores (a JSON object's text,
+    merged over ``pipeline.store.location``'s defaults)."""
+
+    max_image_pixels: int = DEFAULT_MAX_IMAGE_PIXELS
+    storage_options: str = ""
+
+    def __post_init__(self):
+        if not isinstance(self.max_image_pixels, int) or self.max_image_pixels < 1:
+            raise SettingError(f"the pixel limit must be a positive number of pixels, not {self.max_image_pixels!r}")
+        self.options()  # refused now when it is not a JSON object
+
+    def options(self) -> Dict[str, Any]:
+        """The storage options as a dict ({} where none are given)."""
+        text = self.storage_options.strip()
+        if not text:
+            return {}
+        try:
+            options = json.loads(text)
+        except json.JSONDecodeError as e:
+            raise SettingError(f"--storage-options ({STORAGE_OPTIONS_ENV}) is not JSON: {e}") from None
+        if not isinstance(options, dict):
+            raise SettingError(f"--storage-options ({STORAGE_OPTIONS_ENV}) must be a JSON object, "
+                               f"not {type(options).__name__}.")
+        return options
+
+    @classmethod
+    def from_environment(cls, max_image_pixels: Optional[int] = None,
+                         storage_options: Optional[str] = None) -> "RunSettings":
+        """The settings given (a command's flags), else those of the environment
+        (``PIXLOC_MAX_IMAGE_PIXELS``, ``PIXLOC_STORAGE_OPTIONS``), else the defaults."""
+        if max_image_pixels is None:
+            value = os.environ.get(MAX_PIXELS_ENV, "").strip()
+            try:
+                max_image_pixels = int(float(value)) if value else DEFAULT_MAX_IMAGE_PIXELS
+            except ValueError:
+                raise SettingError(f"{MAX_PIXELS_ENV}={value!r} is not a number of pixels") from None
+            if max_image_pixels < 1:
+                raise SettingError(f"{MAX_PIXELS_ENV}={value!r} must be positive")
+        if storage_options is None:
+            storage_options = os.environ.get(STORAGE_OPTIONS_ENV, "")
+        return cls(max_image_pixels, storage_options)
+
+
+_installed: Optional[RunSettings] = None
+
+
+def install(settings: RunSettings) -> None:
+    """Make ``settings`` this process's (a command at its start, a worker before each task)."""
+    global _installed
+    _installed = settings
+
+
+@contextmanager
+def using(settings: RunSettings) -> Iterator[None]:
+    """``install`` for the block, then the settings installed before (a command run in a process
+    that goes on, as a test's)."""
+    global _installed
+    before = _installed
+    install(settings)
+    try:
+        yield
+    finally:
+        _installed = before
+
+
+def current() -> RunSettings:
+    """The settings installed in this process, else the environment's."""
+    return _installed if _installed is not None else RunSettings.from_environment()
+
+
+@dataclass(frozen=True)
+class InSettings:
+    """A task function that runs with the settings of the process that submitted it (picklable:
+    Dask sends it to the worker with its arguments)."""
+
+    fn: Callable
+    settings: RunSettings
+
+    def __call__(self, *args, **kwargs):
+        install(self.settings)
+        return self.fn(*args, **kwargs)
+
+
+def environment(name: str) -> Optional[str]:
+    """A variable of the environment that a library reads itself (for messages: AWS_ENDPOINT_URL)."""
+    return os.environ.get(name)
+
+
+def kernels_disabled() -> bool:
+    """``PIXLOC_NO_KERNELS`` set (not 0): the LM's torch code everywhere, no compiled kernels."""
+    return os.environ.get(NO_KERNELS_ENV, "") not in ("", "0")
+
+
+def poison_undecoded() -> bool:
+    """``PIXLOC_POISON_UNDECODED`` is 1: feature-map cells that a tiled decode leaves out hold NaN, so
+    that a read that bypassed the decode shows (the test suite sets it, for its worker processes too)."""
+    return os.environ.get(POISON_ENV) == "1"
 
 # glibc mallopt parameters (malloc.h)
 _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD, _M_MMAP_MAX = -1, -3, -4
@@ -91,3 +212,20 @@ def native_bfloat16(cpuinfo: Optional[str] = None) -> Optional[bool]:
     if not flags:
         return None
     return any(flag in BFLOAT16_FLAGS for flag in flags[0])
+
+
+def shared_folder() -> Path:
+    """The shared data folder (real scenes, oracle outputs): ``PIXLOC_SHARED``, else ``../shared``."""
+    return Path(os.environ.get("PIXLOC_SHARED", "../shared"))
+
+
+def subprocess_environment(**extra: str) -> Dict[str, str]:
+    """This process's environment with ``extra`` set, for a process it starts."""
+    return {**os.environ, **extra}
+
+
+def quiet_colmap_logs() -> str:
+    """COLMAP's (glog's) minimum log level for this process and those it starts: the environment's
+    ``GLOG_minloglevel``, else 1 (warnings and errors only), set in the environment, which glog reads
+    when pycolmap loads."""
+    return os.environ.setdefault("GLOG_minloglevel", "1")

@@ -11,7 +11,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from pipeline.localization.finest import POISON_ENV, FinestFill
+from pipeline.localization.finest import FinestFill
+from pipeline.runtime import POISON_ENV
 from pixloc.nets.unet import FinestMaps
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -85,8 +85,8 @@ def plan_build(scene: Scene, store, conf: FeatureConfig, *, batch_size: int = 1,
     store = location.normalize(store)
     problems = scene.check()  # images that cannot be used: write_structure records them as failed
     if location.exists(store) and not overwrite:
-        from pipeline.store.layout import open_store, read
-        stored = set(str(n) for n in read(open_store(store), "images/name"))
+        from pipeline.store.info import image_names
+        stored = set(image_names(store))
         new = sum(im.name not in stored for im in scene.images)
         todo = pending_images(store, conf) + list(range(len(stored), len(stored) + new))
         todo = sorted(set(todo))

@@ -144,22 +144,19 @@ def main(argv: Optional[List[str]] = None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 0
-    from pipeline.images import MAX_PIXELS_ENV, max_image_pixels
-    if getattr(args, "max_image_pixels", None) is not None:
-        os.environ[MAX_PIXELS_ENV] = str(args.max_image_pixels)  # inherited by local Dask workers
-    try:  # a setting from the environment is checked as its flag is, before any work
-        max_image_pixels()  # refused here when it is not positive (0 was ignored)
-    except ValueError as e:
-        flag = "--max-image-pixels" if getattr(args, "max_image_pixels", None) is not None else "environment"
-        print(f"pixloc: error: {flag}: {e}", file=sys.stderr)
+    from pipeline import runtime
+    pixels = getattr(args, "max_image_pixels", None)
+    try:  # the run's settings, from the flags else the environment, checked before any work; its tasks carry them
+        if pixels is not None and pixels < 1:
+            raise runtime.SettingError(f"--max-image-pixels: {pixels} must be a positive number of pixels")
+        settings = runtime.RunSettings.from_environment(pixels, getattr(args, "storage_options", None))
+    except runtime.SettingError as e:
+        print(f"pixloc: error: {e}", file=sys.stderr)
         return 2
     previous = _on_sigterm_stop()
     try:
-        from pipeline.store.location import STORAGE_OPTIONS_ENV, storage_options
-        if getattr(args, "storage_options", None):
-            os.environ[STORAGE_OPTIONS_ENV] = args.storage_options  # inherited by local Dask workers
-        storage_options()  # refused here when it is not a JSON object, from the flag or the environment
-        return args.func(args)
+        with runtime.using(settings):
+            return args.func(args)
     except KeyboardInterrupt as e:  # finished shards and images are on disk (executor.dask_client quiets teardown)
         said = "terminated (SIGTERM)" if isinstance(e, Terminated) else "interrupted"
         print(f"pixloc: {said}; run the same command again to resume", file=sys.stderr)

@@ -96,8 +96,8 @@ def main(args: argparse.Namespace) -> int:
     if not location.is_url(store) and Path(store).is_file():
         raise ValueError(f"--store {store} is a file: a map store is a folder (or a URL).")
     if location.exists(store) and not args.overwrite:
-        from pipeline.store.layout import open_store
-        open_store(store)  # something else than a store there is refused now, not after the reconstruction
+        from pipeline.store.info import check_store
+        check_store(store)  # something else than a store there is refused now, not after the reconstruction
     source = MapSource(args.kind, absolute(args.path), absolute(args.images), tuple(args.sequences),
                        args.rgbd_points, args.densify, tuple(args.intrinsics), args.depth_scale, args.depth_ext,
                        tuple(args.hold_out))

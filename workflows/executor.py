@@ -13,6 +13,8 @@ import uuid
 from pathlib import Path
 from typing import Callable, Dict, Iterator, List, Optional, Sequence
 
+from pipeline.runtime import InSettings, current
+
 logger = logging.getLogger(__name__)
 RETRIES = 3  # a task whose worker dies is rerun elsewhere (tasks are idempotent)
 
@@ -242,7 +244,8 @@ def run_dask(client, fn: Callable, calls: Sequence[tuple], name: str, device: st
     resources = task_resources(device)
     check_resources(client, resources)
     run = uuid.uuid4().hex[:8]
-    futures = [client.submit(fn, *args, key=f"{name}-{k}-{run}", pure=False, retries=RETRIES,
+    task = InSettings(fn, current())  # the run's settings reach every worker, an external scheduler's too
+    futures = [client.submit(task, *args, key=f"{name}-{k}-{run}", pure=False, retries=RETRIES,
                              resources=resources) for k, args in enumerate(calls)]
     if on_done:
         for future in as_completed(futures):

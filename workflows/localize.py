@@ -37,6 +37,7 @@ from pipeline.localization.results import (
     write_records,
 )
 from pipeline.localization.shard import LocalizationJob, localize_shard, retrieve_queries
+from pipeline import runtime
 from pipeline.progress import count
 from pipeline.queries import QueryRecord
 from pipeline.regions import camera_centres, region_order
@@ -287,7 +288,7 @@ def plan_localization(job: LocalizationJob, queries: List[QueryRecord], output, 
     return plan
 
 
-RECORDED = ("store", "thresholds")  # recorded in job.json, not part of the job a rerun must match
+RECORDED = ("store", "thresholds", "runtime")  # recorded in job.json, not part of the job a rerun must match
 
 
 def _current(stored: Dict) -> Dict:
@@ -333,6 +334,8 @@ def _job_json(job: LocalizationJob, names: List[str], shard_size: int, order: st
         out["store"] = {k: v for k, v in store.items() if k != "pending"}
     if thresholds:
         out["thresholds"] = [list(t) for t in thresholds]
+    if store:  # the run's settings that are not the job's (``pipeline.runtime``; storage options may hold secrets)
+        out["runtime"] = {"max_image_pixels": runtime.current().max_image_pixels}
     return json.loads(json.dumps(out))
 
 

@@ -3,9 +3,10 @@ plan, progress and summary themselves); the log file in the run's folder gets ev
 INFO on, with times, including COLMAP's own log during SfM and triangulation."""
 
 import logging
-import os
 import sys
 from pathlib import Path
+
+from pipeline.runtime import quiet_colmap_logs
 
 FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
 
@@ -27,7 +28,7 @@ def configure(verbose: bool) -> None:
         # per query of the sift prior. glog reads this when pycolmap loads, in the local cluster's worker
         # processes, which inherit the environment; here pycolmap is loaded already (by the parser's imports).
         # ``colmap_to_file`` turns them on again, into its file
-        level = os.environ.setdefault("GLOG_minloglevel", "1")
+        level = quiet_colmap_logs()
         if "pycolmap" in sys.modules and level.isdigit():
             sys.modules["pycolmap"].logging.minloglevel = int(level)
 

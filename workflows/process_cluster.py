@@ -3,13 +3,14 @@ and worker processes without nannies (a killed worker stays dead until another i
 tests that claim distribution and the scale benchmarks run on it; ``pixloc`` itself uses a
 ``LocalCluster`` or a scheduler the user gives (workflows/executor.py)."""
 
-import os
 import signal
 import subprocess
 import sys
 import time
 from pathlib import Path
 from typing import Callable, Dict, Iterable, Optional
+
+from pipeline.runtime import subprocess_environment
 
 ROOT = Path(__file__).resolve().parents[1]
 DASK = Path(sys.executable).parent / "dask"
@@ -35,7 +36,7 @@ class ProcessCluster:
             raise FileNotFoundError(f"the dask command is not installed next to this Python ({DASK})")
         self.sched = Path(work) / "scheduler.json"
         self.sched.unlink(missing_ok=True)
-        self.env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT)}
+        self.env = subprocess_environment(OMP_NUM_THREADS="1", PYTHONPATH=str(ROOT))
         self.cwd = cwd
         self.procs: Dict[str, subprocess.Popen] = {"scheduler": subprocess.Popen(
             [str(DASK), "scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard", "--scheduler-file",

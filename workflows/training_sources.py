@@ -3,7 +3,6 @@ scenes, photos for self-supervised pairs, official MegaDepth and CMU layouts, th
 ``pixloc build-map``) as ``Source`` objects whose ``dataset`` draws training pairs."""
 
 import logging
-import os
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Dict, List, Optional, Tuple
@@ -14,13 +13,13 @@ from pipeline.data.photo_pairs import PhotoPairs
 from pipeline.data.training_data import PairConfig, PairDataset, synthetic_scene
 
 from pipeline.mapping.readers.sources import MapSource, load_scene
+from pipeline.runtime import shared_folder
 
 logger = logging.getLogger(__name__)
 
 
 def default_data_root() -> Path:
-    shared = os.environ.get("PIXLOC_SHARED")
-    return Path(shared) / "data" if shared else Path("../shared/data")
+    return shared_folder() / "data"
 
 
 @dataclass

@@ -11,13 +11,13 @@ those of the whole map to float rounding. Cells not decoded are left as allocate
 per 90 MB map, most of it the first touch of pages that nothing else reads.
 """
 
-import os
 from typing import Dict, Optional, Tuple
 
 import torch
 from torch import Tensor
 
-from pixloc.nets.unet import POISON_ENV, TILE, FinestMaps, tile_cells, write_cells
+from pipeline.runtime import poison_undecoded
+from pixloc.nets.unet import TILE, FinestMaps, tile_cells, write_cells
 
 # a first request for more than this fraction of a map's tiles decodes the whole map in one pass,
 # cheaper per pixel than tiles with their context (docs/benchmarks.md, "The CPU query")
@@ -109,10 +109,10 @@ class FinestFill:
     """``FeaturemetricProblem.fill`` for a batch whose rows ``finest`` (row -> ``FinestMaps``) have
     their finest level deferred: their rows of ``maps`` (B, C + 1, H, W) get the query's decoded tiles
     (``Decoded``) where they are sampled; the rest of them is left as allocated, or NaN with ``poison``
-    (the test suite sets ``POISON_ENV`` to 1, for its worker processes too: a read that bypassed the fill
+    (the test suite sets ``PIXLOC_POISON_UNDECODED`` to 1, for its worker processes too: a read that bypassed the fill
     is then NaN, not features)."""
 
-    poison = os.environ.get(POISON_ENV) == "1"
+    poison = poison_undecoded()
 
     def __init__(self, maps: Tensor, finest: Dict[int, FinestMaps]):
         self.maps, self.decoded = maps, {b: Decoded.of(f) for b, f in finest.items()}
@@ -155,3 +155,6 @@ class FinestFill:
         values = decoded.values(ids)
         write_cells(self.maps[b], pixels, values if inside is None else values[inside])
         done.view(-1)[ids] = True
+
+
+FinestMaps.poison = FinestFill.poison  # the network's decode too, in every process that localizes

@@ -30,7 +30,7 @@ from typing import Callable, ClassVar, Dict, List, Optional, Tuple, Union
 
 import numpy as np
 
-from pipeline.localization.refine import Candidate, QueryResult
+from pipeline.localization.refine import Candidate, QueryCache, QueryResult
 from pipeline.store.reader import MapReader
 from pipeline.localization.pose_averaging import covisibility_clusters, pose_approximation
 from pipeline.queries import QueryRecord
@@ -56,7 +56,7 @@ class Start:
     reader: MapReader
     query: QueryRecord
     rgb: np.ndarray
-    cache: Dict
+    cache: QueryCache
     references: Callable[[], Retrieved]
     num_dbs: int
 

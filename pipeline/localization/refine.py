@@ -8,6 +8,7 @@ then per image scale the query's dense features and LM from the coarsest to
 the finest level. A failure at any level keeps the prior, marked failed.
 """
 
+import copy
 import dataclasses
 import logging
 import time
@@ -29,6 +30,7 @@ from pipeline import kernels
 from pipeline.localization.finest import FinestFill, level_like, level_shape, write_level
 from pipeline.store.reader import MapReader, Observations, StoreReadError
 from pipeline.queries import QueryRecord
+from pipeline.localization.candidates import Candidate, QueryCache, QueryResult  # noqa: F401 (named here before)
 from pipeline.localization.verify import VerificationConfig, verify
 
 logger = logging.getLogger(__name__)
@@ -78,55 +80,6 @@ class LocalizerConfig:
 
 
 @dataclass
-class QueryResult:
-    """The outcome of one query; poses are cam_from_world (3, 4)."""
-
-    name: str
-    success: bool
-    prior: Optional[np.ndarray]
-    refined: Optional[np.ndarray]
-    references: List[str] = field(default_factory=list)
-    num_points: int = 0
-    cost: float = float("nan")
-    iterations: int = 0
-    reason: str = ""
-    timings: Dict[str, float] = field(default_factory=dict)
-    per_level: List[Dict] = field(default_factory=list)
-    confidence: float = 0.0
-    evidence: Dict[str, float] = field(default_factory=dict)
-    notes: List[str] = field(default_factory=list)
-    filters: Dict[str, int] = field(default_factory=dict)  # what the point filters left out
-
-    @property
-    def pose(self) -> Optional[np.ndarray]:
-        """The pose to report: refined if successful (verified), else the prior."""
-        return self.refined if self.success else self.prior
-
-
-@dataclass
-class Candidate:
-    """One start of a query's refinement: the references ``dbs`` (map image indices), the start
-    pose ``prior`` (cam_from_world, 3 x 4) and where it came from (``origin``, e.g. "top-1
-    reference"). The starts of one query share its image ``rgb`` and ``cache`` (scale index ->
-    network prediction, and the references' features); ``selected``: (point, reference) pairs that
-    restrict the observations (hloc's PnP inliers); ``rival``: a rival start of verification
-    (``pipeline.localization.search.rival_starts``), stopped where it joins one of its query's own
-    starts (those sharing its ``cache``; ``Localizer.localize_batch``); ``levels``: the levels this
-    start is refined on, of the localizer's (refinement mode for a pose from another method: the two
-    finest); it always ends at the localizer's finest level, whose evidence verification reads."""
-
-    query: QueryRecord
-    dbs: List[int]
-    prior: np.ndarray
-    rgb: Optional[np.ndarray] = None
-    cache: Optional[Dict] = None
-    selected: Optional[np.ndarray] = None
-    origin: str = "prior"
-    rival: bool = False
-    levels: Optional[Sequence[int]] = None
-
-
-@dataclass
 class LevelState:
     """A candidate while ``Localizer.localize_batch`` refines it: its observations and current pose
     ``T``, the reference features of the image scale being run (``refs``), whether it is still
@@ -136,7 +89,7 @@ class LevelState:
 
     query: QueryRecord
     rgb: Optional[np.ndarray]
-    cache: Dict
+    cache: QueryCache
     result: QueryResult
     active: bool = False
     t_own: float = 0.0
@@ -146,6 +99,21 @@ class LevelState:
     refs: Optional[Tuple] = None
     own: Optional[List[Dict[Tuple[int, int], np.ndarray]]] = None
     levels: Sequence[int] = ()
+
+
+def own_solvers(solvers: Sequence[LevenbergMarquardt], compiled: bool) -> List[LevenbergMarquardt]:
+    """Copies of ``solvers`` in eval mode that share their learned parameters (the damping) and have
+    their own interpolator and kernels: the compiled ones (``pipeline.kernels``) or, with
+    ``compiled`` False, the torch code. The solvers given are left as they are."""
+    out = []
+    for solver in solvers:
+        mine = copy.copy(solver)  # a new attribute dict; parameters and submodules shared, as read
+        mine.__dict__["training"] = False
+        mine.__dict__["interpolator"] = copy.copy(solver.interpolator)
+        mine.interpolator.tap_reducer = kernels.reduce_taps if compiled else None
+        mine.__dict__["system_builder"] = kernels.build_system if compiled else None
+        out.append(mine)
+    return out
 
 
 class Localizer:
@@ -164,9 +132,11 @@ class Localizer:
         pass is cheap and a tile request would wait for the device at every LM iteration): in the pass.
         compiled_kernels: on CPU, the solvers reduce the LM's taps and form its normal equations with the
         compiled kernels (``pipeline.kernels``; the same figures to float rounding) where numba is there;
-        False: their torch code.
-        (It is set on the solvers, which Localizers built on them share.)"""
-        self.net, self.solvers, self.reader, self.conf, self.device = net, list(solvers), reader, conf, device
+        False: their torch code. The solvers given (a process's cached model's) are not changed: the
+        localizer works with copies that share their learned parameters (``own_solvers``)."""
+        compiled = compiled_kernels and kernels.available() and torch.device(device).type == "cpu"
+        self.net, self.reader, self.conf, self.device = net, reader, conf, device
+        self.solvers = own_solvers(solvers, compiled)
         self.max_points, self.finest_on_demand = max_points, finest_on_demand
         if levels is not None and not set(levels) <= set(range(len(net.strides))):
             raise ValueError(f"levels {list(levels)}: the network has levels 0 (finest) to {len(net.strides) - 1}.")
@@ -176,11 +146,6 @@ class Localizer:
         if missing:
             raise ValueError(f"Image scales {missing} are not in the store (it has {stored}).")
         self.scales = [k for k, s in enumerate(stored) if scales is None or s in scales]
-        compiled = compiled_kernels and kernels.available() and torch.device(device).type == "cpu"
-        for s in self.solvers:
-            s.eval()
-            s.interpolator.tap_reducer = kernels.reduce_taps if compiled else None
-            s.system_builder = kernels.build_system if compiled else None
 
     def reference_features(self, obs: Observations, scale: int, stats: Optional[Dict] = None,
                            levels: Optional[Sequence[int]] = None):
@@ -220,9 +185,9 @@ class Localizer:
 
     @torch.no_grad()
     def localize(self, query: QueryRecord, dbs: List[int], prior: np.ndarray,
-                 rgb: Optional[np.ndarray] = None, cache: Optional[Dict] = None,
+                 rgb: Optional[np.ndarray] = None, cache: Optional[QueryCache] = None,
                  selected: Optional[np.ndarray] = None) -> QueryResult:
-        """Refine ``prior`` against references ``dbs``; ``rgb`` and ``cache`` (k -> prediction)
+        """Refine ``prior`` against references ``dbs``; ``rgb`` and ``cache`` (``QueryCache``)
         let callers reuse the query image and predictions across hypotheses; ``selected``
         (K, 2) (point, reference) pairs restricts the observations (hloc PnP inliers)."""
         return self.localize_batch([Candidate(query, dbs, prior, rgb, cache, selected)])[0]
@@ -244,15 +209,15 @@ class Localizer:
         owns = [i for i, c in enumerate(candidates) if not (c.rival and c.cache is not None)]
         for i, r in zip(owns, self._refine([candidates[i] for i in owns])):
             results[i] = r
-        verified = {id(candidates[i].cache) for i in owns if results[i].success}
-        tracks: Dict[int, List[Dict]] = {}  # per verified query (its cache): its own starts' poses per level
+        verified = {candidates[i].query.name for i in owns if results[i].success}
+        tracks: Dict[str, List[Dict]] = {}  # per verified query: its own starts' poses per level
         for i in owns:
-            if id(candidates[i].cache) in verified:
-                tracks.setdefault(id(candidates[i].cache), []).append(
+            if candidates[i].query.name in verified:
+                tracks.setdefault(candidates[i].query.name, []).append(
                     {(p["scale"], p["level"]): np.asarray(p["pose"]) for p in results[i].per_level if not p["failed"]})
-        rivals = [i for i, r in enumerate(results) if r is None and id(candidates[i].cache) in verified]
+        rivals = [i for i, r in enumerate(results) if r is None and candidates[i].query.name in verified]
         for i, r in zip(rivals, self._refine([candidates[i] for i in rivals],
-                                             [tracks[id(candidates[i].cache)] for i in rivals])):
+                                             [tracks[candidates[i].query.name] for i in rivals])):
             results[i] = r
         for i, r in enumerate(results):
             if r is None:
@@ -275,7 +240,7 @@ class Localizer:
             result = self._unrefined(c)
             levels = self.levels if c.levels is None else sorted(set(c.levels) & set(self.levels) | {self.levels[-1]},
                                                                   reverse=True)
-            st = LevelState(query, c.rgb, {} if c.cache is None else c.cache, result, levels=levels)
+            st = LevelState(query, c.rgb, QueryCache() if c.cache is None else c.cache, result, levels=levels)
             states.append(st)
             try:
                 seen = self.reader.observations(c.dbs, 1, c.selected)
@@ -317,13 +282,12 @@ class Localizer:
                     obs = st.obs
                     key = ("refs", k, tuple(st.levels), hash((obs.point.tobytes(), obs.db.tobytes(),
                                                                obs.rows.tobytes())))
-                    if key not in st.cache:
+                    if key not in st.cache.references:
                         stats: Dict = {}
-                        st.cache[key] = (self.reference_features(obs, k, stats, st.levels), stats)
-                    st.refs, stats = st.cache[key]
+                        st.cache.references[key] = (self.reference_features(obs, k, stats, st.levels), stats)
+                    st.refs, stats = st.cache.references[key]
                     st.result.filters.update(stats)
-                    if k not in st.cache:
-                        st.cache[k] = self.predict(st.rgb, k)
+                    st.cache.network(k, lambda: self.predict(st.rgb, k))
                 except (StoreReadError, ValueError, RuntimeError) as e:
                     self._fail(st, f"{type(e).__name__}: {e}" if not isinstance(e, StoreReadError) else str(e))
                 # this query's own work at this scale: its reference features and its network pass
@@ -332,7 +296,7 @@ class Localizer:
             groups: Dict[Tuple, List[LevelState]] = {}
             for st in active:
                 if st.active:
-                    key = (level_shape(st.cache[k][0], 0), st.query.camera.to_pixloc().distortion)
+                    key = (level_shape(st.cache.passes[k][0], 0), st.query.camera.to_pixloc().distortion)
                     groups.setdefault(key, []).append(st)
             t0 = time.perf_counter()
             for level in self.levels:
@@ -410,14 +374,15 @@ class Localizer:
         Records the evidence of the level's start and end poses (``pixloc.optim.evidence``) and, at the
         ``final`` level, the contrast and uncertainty of its end pose, for verification."""
         stride = self.net.strides[level]
-        shape = level_shape(group[0].cache[k][0], level)
+        first = group[0].cache.passes[k][0]
+        shape = level_shape(first, level)
         subsets = [self._subset(len(st.refs[0]), shape[-2] * shape[-1], level) for st in group]
         n_max = max(len(st.refs[0]) if sub is None else len(sub) for st, sub in zip(group, subsets))
         p3d, F_ref, W_ref, mask, cams = [], [], [], [], []
         # normalised features + confidence; a deferred finest level is decoded where it is sampled
-        maps = new_query_maps((len(group),) + shape[1:], level_like(group[0].cache[k][0], level), dtype=torch.float32)
-        deferred = {b: st.cache[k][0]["finest"] for b, st in enumerate(group)
-                    if st.cache[k][0]["features"][level] is None}
+        maps = new_query_maps((len(group),) + shape[1:], level_like(first, level), dtype=torch.float32)
+        deferred = {b: st.cache.passes[k][0]["finest"] for b, st in enumerate(group)
+                    if st.cache.passes[k][0]["features"][level] is None}
         for st, sub in zip(group, subsets):
             xyz, levels = st.refs
             f, w = levels[level]
@@ -429,7 +394,7 @@ class Localizer:
             F_ref.append(torch.cat([f, f.new_zeros(pad, f.shape[1])]))
             W_ref.append(torch.cat([w, w.new_zeros(pad)]))
             mask.append(torch.arange(n_max) < n)
-            pred, (sx, sy) = st.cache[k]
+            pred, (sx, sy) = st.cache.passes[k]
             if len(cams) not in deferred:  # official: the dense map is L2-normalised (as F.normalize)
                 write_level(maps[len(cams)], pred["features"][level][0],
                             pred["confidences"][level][0] if "confidences" in pred else None)

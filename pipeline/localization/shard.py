@@ -17,7 +17,7 @@ import numpy as np
 
 from pipeline.mapping.features import FeatureConfig, global_descriptor
 from pipeline.images import ImageReadError, read_image_for
-from pipeline.localization.refine import Localizer, LocalizerConfig, QueryResult
+from pipeline.localization.refine import Localizer, LocalizerConfig, QueryCache, QueryResult
 from pipeline.store.reader import MapReader, open_reader
 from pipeline.models import localization_model
 from pipeline.localization.priors import PRIORS, PriorSettings, Prepared, Start, Top1, failure
@@ -113,14 +113,13 @@ def fit_query(query: QueryRecord) -> Tuple[QueryRecord, np.ndarray]:
     return query, rgb
 
 
-def describer(reader: MapReader, localizer: Localizer, rgb: Optional[np.ndarray], cache: Dict):
+def describer(reader: MapReader, localizer: Localizer, rgb: Optional[np.ndarray], cache: QueryCache):
     """The query's global descriptor, computed when first asked (the network at the coarsest
     image scale, kept in ``cache`` for the refinement)."""
     def describe() -> np.ndarray:
         k_last = len(reader.conf.image_scales) - 1
-        if k_last not in cache:
-            cache[k_last] = localizer.predict(rgb, k_last)
-        return global_descriptor(cache[k_last][0]["features"][-1][0], reader.conf.descriptor).cpu().numpy()
+        pred = cache.network(k_last, lambda: localizer.predict(rgb, k_last))[0]
+        return global_descriptor(pred["features"][-1][0], reader.conf.descriptor).cpu().numpy()
     return describe
 
 
@@ -136,7 +135,7 @@ def prepare_query(job: LocalizationJob, reader: MapReader, localizer: Localizer,
         query, rgb = fit_query(query)
     except ImageReadError as e:
         return failure(query, str(e))
-    cache: Dict = {}
+    cache = QueryCache()
     describe = describer(reader, localizer, rgb, cache)
     return job.prior.prepare(Start(reader, query, rgb, cache, lambda: retrieve(job.retrieval, reader, query, describe),
                                    job.localizer.num_dbs))
@@ -220,7 +219,7 @@ def retrieve_queries(job: LocalizationJob, queries: List[QueryRecord], out_path)
                 if q.error or q.camera is None or q.camera.check():
                     continue
                 rgb = fit_query(q)[1] if job.retrieval.needs_image else None
-                found = retrieve(job.retrieval, reader, q, describer(reader, localizer, rgb, {}))
+                found = retrieve(job.retrieval, reader, q, describer(reader, localizer, rgb, QueryCache()))
                 dbs, sim = found.dbs, found.similarity
             except (OSError, ValueError, RuntimeError, ImageReadError) as e:
                 logger.warning("Retrieval of %s failed: %s", q.name, e)

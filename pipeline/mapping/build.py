@@ -19,20 +19,8 @@ from pipeline.models import network
 from pipeline.runtime import keep_freed_memory, torch_threads
 from pipeline.scene import Scene
 from pipeline.store.compression import fit_pca
-from pipeline.store.feature_groups import feature_key, init_features, mark_failed, needs_pca, write_image_features
-from pipeline.store.structure import create_store
-from pipeline.store.layout import (
-    DONE,
-    FAILED,
-    PENDING,
-    consolidate,
-    consolidated,
-    image_records,
-    open_store,
-    read,
-    store_index,
-    unconsolidate,
-)
+from pipeline.store.writer import DONE, FAILED, PENDING, FeatureWriter, create_map, finish_group, image_count, \
+    image_states
 
 logger = logging.getLogger(__name__)
 REFUSED = "refused: "  # reason prefix of images that cannot be used at all (not retried)
@@ -56,23 +44,20 @@ def write_structure(scene: Scene, store_path, conf: FeatureConfig, *, chunk_rows
     Returns the images (store indices) whose features are still to be made (``pending_images``).
     """
     problems = scene.check()
-    root = create_store(store_path, scene, chunk_rows=chunk_rows, overwrite=overwrite, source=source,
-                        shard_rows=shard_rows)
+    create_map(store_path, scene, chunk_rows=chunk_rows, overwrite=overwrite, source=source, shard_rows=shard_rows)
     net, digest = network(conf.model, device)
-    bases = fit_store_pca(scene, conf, net, problems, device) if needs_pca(root, conf) else None
-    group = init_features(root, conf, digest, list(net.output_dims), pca=bases)
-    meta = root.attrs["pixloc_map"]
-    status, reasons = read(group, "status", meta), read(group, "reason", meta).astype(object)
-    if not consolidated(group, meta) or (status != DONE).any():
-        unconsolidate(group)  # images will be written: readers use the per-image arrays meanwhile
-    index = store_index(root, scene)  # scene order -> store order (an added session may differ)
+    bases = fit_store_pca(scene, conf, net, problems, device) if FeatureWriter.needs_pca(store_path, conf) else None
+    writer = FeatureWriter(store_path, conf, digest, list(net.output_dims), pca=bases)
+    writer.open_images()
+    status, reasons = writer.states()
+    index = writer.store_index(scene)  # scene order -> store order (an added session may differ)
     for k, i in enumerate(index):
         if k in problems and status[i] != DONE:
-            mark_failed(group, i, f"{REFUSED}{problems[k]}")
+            writer.fail(i, f"{REFUSED}{problems[k]}")
             status[i], reasons[i] = FAILED, f"{REFUSED}{problems[k]}"
             logger.warning("Image %s left out of the map: %s", scene.images[k].name, problems[k])
         elif k not in problems and status[i] == FAILED and str(reasons[i]).startswith(REFUSED):
-            group["status"][i] = PENDING  # the problem is gone (e.g. the file is back): retry
+            writer.retry(i)  # the problem is gone (e.g. the file is back)
             status[i] = PENDING
     return _pending(status, reasons)
 
@@ -137,52 +122,41 @@ def extract_features(store_path, conf: FeatureConfig, indices: Sequence[int], de
 
 def _extract_features(store_path, conf, indices, device, overwrite) -> List[ImageResult]:
     net, digest = network(conf.model, device)
-    root = open_store(store_path, mode="r+")
-    images = image_records(root)
-    xyz = root["points/xyz"][:]
-    group = init_features(root, conf, digest, list(net.output_dims))  # refuses another model
+    writer = FeatureWriter(store_path, conf, digest, list(net.output_dims))  # refuses another model
+    images, xyz = writer.images(), writer.points()
     results = []
     for i in indices:
         image = images[i]
-        status = int(group["status"][i])
+        status, reason = writer.state(i)
         if status == DONE and not overwrite:
             results.append(ImageResult(i, image.name, "skipped"))
             continue
-        if status == FAILED and str(group["reason"][i]).startswith(REFUSED):
-            results.append(ImageResult(i, image.name, "failed", str(group["reason"][i])))
+        if status == FAILED and reason.startswith(REFUSED):
+            results.append(ImageResult(i, image.name, "failed", reason))
             continue
-        start, n = int(root["images/row_start"][i]), int(root["images/num_obs"][i])
-        point_ids = root["observations/point"][start:start + n]
         try:
-            feats = extract_image_features(net, conf, image, xyz[point_ids], device=device)
+            feats = extract_image_features(net, conf, image, xyz[writer.observed_points(i)], device=device)
         except (OSError, ValueError, RuntimeError) as e:  # per-image failure, recorded with its reason
             reason = f"{type(e).__name__}: {e}"
-            mark_failed(group, i, reason)
+            writer.fail(i, reason)
             logger.warning("Image %s failed: %s", image.name, reason)
             results.append(ImageResult(i, image.name, "failed", reason))
             continue
-        write_image_features(group, root, i, feats)
+        writer.write(i, feats)
         results.append(ImageResult(i, image.name, "done"))
     return results
 
 
 def pending_images(store_path, conf: FeatureConfig) -> List[int]:
     """Images whose features are not done (pending, or failed for a reason that may pass)."""
-    root = open_store(store_path)
-    key = f"features/{feature_key(conf)}"
-    if key not in root:
-        return list(range(root.attrs["pixloc_map"]["num_images"]))
-    meta = root.attrs["pixloc_map"]
-    return _pending(read(root, f"{key}/status", meta), read(root, f"{key}/reason", meta))
+    states = image_states(store_path, conf)
+    return list(range(image_count(store_path))) if states is None else _pending(*states)
 
 
 def finish_build(store_path, conf: FeatureConfig) -> None:
     """After a build: consolidate the feature group's per-image arrays for fast opening
     (``pipeline.store.layout.consolidate``), unless they already are."""
-    root = open_store(store_path, mode="r+")
-    group = root[f"features/{feature_key(conf)}"]
-    if not consolidated(group, root.attrs["pixloc_map"]):
-        consolidate(root, group)
+    finish_group(store_path, conf)
 
 
 def build_map(scene: Scene, store_path, conf: FeatureConfig, **kwargs) -> List[ImageResult]:

@@ -12,7 +12,7 @@ from pipeline.store.layout import StoreError, image_records, open_store, read, t
 from pipeline.store.schema import FeatureConfig
 
 __all__ = ["feature_config", "image_names", "camera_poses", "level_count", "map_source", "map_images",
-           "tags_in_map"]
+           "tags_in_map", "check_store", "map_counts", "observations_per_image", "feature_configs"]
 
 
 def feature_config(store, key: Optional[str] = None) -> FeatureConfig:
@@ -59,3 +59,26 @@ def map_images(store):
 def tags_in_map(store) -> Dict[str, int]:
     """{tag family: how many map images carry it}."""
     return tag_families(open_store(store))
+
+
+def check_store(store) -> None:
+    """Refuse (StoreError) what is not a map store at ``store``."""
+    open_store(store)
+
+
+def map_counts(store) -> Dict[str, int]:
+    """The map's sizes: num_images, num_points, num_observations (as its structure records them)."""
+    meta = dict(open_store(store).attrs["pixloc_map"])
+    return {k: int(meta[k]) for k in ("num_images", "num_points", "num_observations") if k in meta}
+
+
+def observations_per_image(store) -> np.ndarray:
+    """Each map image's number of observations, in store order."""
+    return read(open_store(store), "images/num_obs")
+
+
+def feature_configs(store) -> List[FeatureConfig]:
+    """The settings of every feature group of the store, by group name."""
+    root = open_store(store)
+    keys = sorted(root["features"].group_keys()) if "features" in root else []
+    return [FeatureConfig.from_dict(dict(root[f"features/{k}"].attrs["config"])) for k in keys]

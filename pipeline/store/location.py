@@ -13,7 +13,6 @@ environment, see docs/cluster.md).
 """
 
 import contextlib
-import json
 import logging
 import os
 import re
@@ -27,10 +26,10 @@ from typing import Any, Dict, FrozenSet, List, Optional, Tuple, Union
 from zarr.storage import WrapperStore
 
 # StoreObjectError is raised through this module's stores too: callers catch it as location's
+from pipeline.runtime import STORAGE_OPTIONS_ENV, SettingError, current, environment  # noqa: F401
 from pipeline.store.local_files import LocalObjects, StoreObjectError, checked_metadata, read_file  # noqa: F401
 
 logger = logging.getLogger(__name__)
-STORAGE_OPTIONS_ENV = "PIXLOC_STORAGE_OPTIONS"
 # fsspec caches directory listings per process; a store that other processes write (build
 # workers, a build while localizing) must be listed afresh
 _FRESH = {"s3": {"use_listings_cache": False}, "gs": {"cache_timeout": 0}}
@@ -115,18 +114,12 @@ def normalize(store: StoreName) -> str:
 
 
 def storage_options() -> Dict[str, Any]:
-    """The fsspec storage options of ``PIXLOC_STORAGE_OPTIONS`` (a JSON object), else {}."""
-    text = os.environ.get(STORAGE_OPTIONS_ENV, "").strip()
-    if not text:
-        return {}
+    """The fsspec storage options of the run (``pipeline.runtime.RunSettings``: --storage-options,
+    else ``PIXLOC_STORAGE_OPTIONS``, a JSON object), else {}."""
     try:
-        options = json.loads(text)
-    except json.JSONDecodeError as e:
-        raise StoreLocationError(f"{STORAGE_OPTIONS_ENV} (--storage-options) is not JSON: {e}") from None
-    if not isinstance(options, dict):
-        raise StoreLocationError(f"{STORAGE_OPTIONS_ENV} (--storage-options) must be a JSON object, "
-                                 f"not {type(options).__name__}.")
-    return options
+        return current().options()
+    except SettingError as e:
+        raise StoreLocationError(str(e)) from None
 
 
 # packages whose errors (missing credentials, an endpoint that cannot be reached) are not OSErrors
@@ -145,7 +138,7 @@ def waiting_note(url: StoreName, what: str = "an answer"):
         return
 
     def note():
-        endpoint = storage_options().get("endpoint_url") or os.environ.get("AWS_ENDPOINT_URL") or "its endpoint"
+        endpoint = storage_options().get("endpoint_url") or environment("AWS_ENDPOINT_URL") or "its endpoint"
         read = _options(normalize(url).split("://", 1)[0]).get("config_kwargs", {})
         logger.warning("Still waiting for %s from %s (%s) after %.0f s; the command stops after the storage "
                        "timeouts (connect %s s, read %s s per request; --storage-options config_kwargs)", what,

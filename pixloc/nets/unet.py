@@ -9,7 +9,6 @@ dicts load strictly.
 """
 
 import functools
-import os
 from typing import Dict, List, Optional, Sequence, Tuple
 
 import torch
@@ -233,7 +232,6 @@ TILE = 8  # the side in pixels of the tiles in which ``FinestMaps`` decodes the 
 # map: a finest tile (ty, tx) reads rows and columns 4 t - 1 .. 4 t + 4 of the map before it, one such
 # tile for odd t and two for even t, where a grid at 0 needs two for every t (4 per finest tile, not 2.25)
 STAGE_ORIGIN = 2
-POISON_ENV = "PIXLOC_POISON_UNDECODED"  # 1: cells not decoded hold NaN (``FinestMaps.poison``, and the pipeline's)
 
 
 class FinestMaps:
@@ -247,7 +245,7 @@ class FinestMaps:
     where a tile of the next block reads them (a third of the map at stride 2 at Cambridge settings): cells
     not decoded are left as allocated (NaN with ``poison``, which the tests turn on)."""
 
-    poison = os.environ.get(POISON_ENV) == "1"
+    poison = False  # a test hook (``pipeline.runtime.poison_undecoded``)
 
     def __init__(self, net: UNet, source: Tensor, skips: Sequence[Tensor], dtype: Optional[torch.dtype]):
         self.blocks = list(net.decoder)[len(net.decoder) - len(skips):]

@@ -4,6 +4,7 @@ import pytest
 import torch
 
 from pipeline import kernels
+from pipeline.runtime import NO_KERNELS_ENV
 from pixloc.interpolation import reduce_taps
 from pixloc.optim import LevenbergMarquardt
 from pixloc.optim.cost import (Linearization, build_system, linearize, use_cell_products, use_compiled_taps,
@@ -124,6 +125,6 @@ def test_pixloc_no_kernels_turns_them_off():
     code = ("from pipeline import kernels; import torch; m = torch.rand(1, 3, 4, 4).contiguous(memory_format="
             "torch.channels_last); torch.set_grad_enabled(False); "
             "print(kernels.available(), kernels.reduce_taps(m, torch.rand(1, 5, 2) * 3, torch.rand(1, 5, 2))[0].shape)")
-    out = subprocess.run([sys.executable, "-c", code], env={**os.environ, kernels.DISABLE_ENV: "1"},
+    out = subprocess.run([sys.executable, "-c", code], env={**os.environ, NO_KERNELS_ENV: "1"},
                          capture_output=True, text=True, check=True).stdout.split()
     assert out[0] == "False" and out[1] == "torch.Size([1,"

@@ -181,7 +181,7 @@ def test_numbers_out_of_range_are_refused_before_any_query():
         out = run(*argv)  # counts of the commands that no dataclass holds: before, -2 examples were taken
         assert out.returncode == 2 and said in out.stderr, out.stderr
     out = run("--max-image-pixels", "0", "queries", "nowhere")  # 0 was ignored (the default limit stayed)
-    assert out.returncode == 2 and "--max-image-pixels: PIXLOC_MAX_IMAGE_PIXELS='0' must be positive" in out.stderr
+    assert out.returncode == 2 and "--max-image-pixels: 0 must be a positive number of pixels" in out.stderr
     # build-map's: before, --image-scales 0 or --chunk-rows 0 passed the plan and failed in the work
     # (a division by zero), --batch-size 0 said 'range() arg 3 must not be zero'
     from pipeline.mapping.features import FeatureConfig

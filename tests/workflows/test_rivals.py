@@ -12,7 +12,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from pipeline.localization.refine import Candidate, LocalizerConfig, QueryResult
+from pipeline.localization.refine import Candidate, LocalizerConfig, QueryCache, QueryResult
 from pipeline.localization.retrieval import GlobalDescriptors
 from pipeline.localization.search import check_rivals, rival_starts
 from pipeline.localization.verify import VerificationConfig
@@ -36,7 +36,7 @@ def test_rival_starts_are_the_next_references_that_are_not_a_start():
     names = ["a", "b", "c", "d"]
     poses = [_pose(0), _pose(0.5), _pose(8), _pose(16)]
     reader = SimpleNamespace(cam_from_world=poses, names=names)
-    top1 = Candidate(SimpleNamespace(name="q.jpg"), [0, 1, 2, 3], poses[0], rgb=np.zeros(1), cache={},
+    top1 = Candidate(SimpleNamespace(name="q.jpg"), [0, 1, 2, 3], poses[0], rgb=np.zeros(1), cache=QueryCache(),
                      origin="top-1 reference")
     rivals = rival_starts(reader, [top1], VerificationConfig(rivals=2))
     assert [c.origin for c in rivals] == ["rival: reference b", "rival: reference c"]

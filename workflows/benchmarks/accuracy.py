@@ -25,13 +25,13 @@ import argparse
 import dataclasses
 import json
 import math
-import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Dict, Iterator, List, Optional, Tuple
 
 import numpy as np
 
+from pipeline.runtime import shared_folder
 from pipeline.evaluate import fmt, record_errors, usable_ground_truth
 from pipeline.localization.refine import LocalizerConfig
 from pipeline.localization.retrieval import GlobalDescriptors
@@ -92,7 +92,7 @@ SCENES = ("fountain", "herzjesus", "7scenes", "sacre_coeur", "virtual_gallery", 
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--shared", type=Path, default=Path(os.environ.get("PIXLOC_SHARED", "../shared")),
+    p.add_argument("--shared", type=Path, default=shared_folder(),
                    help="the shared data folder (default: $PIXLOC_SHARED, else ../shared)")
     p.add_argument("--work", type=Path, default=Path("outputs/benchmark-accuracy"), help="maps and runs")
     p.add_argument("--scenes", nargs="+", default=list(SCENES), choices=SCENES, help="scenes to run")
@@ -373,11 +373,11 @@ def main(args: argparse.Namespace) -> int:
 def store_bytes(work: Path, key: str) -> Optional[Tuple[float, float]]:
     """(store bytes, feature bytes) per observation of a scene's maps in ``work`` (every fold)."""
     from pipeline.store import location
-    from pipeline.store.layout import open_store
+    from pipeline.store.info import map_counts
 
     total = features = observations = 0
     for store in sorted(work.glob(f"{key}*.zarr")):
-        observations += open_store(store).attrs["pixloc_map"]["num_observations"]
+        observations += map_counts(store)["num_observations"]
         total += location.total_bytes(store)
         features += location.total_bytes(store / "features")
     return (total / observations, features / observations) if observations else None
@@ -385,12 +385,11 @@ def store_bytes(work: Path, key: str) -> Optional[Tuple[float, float]]:
 
 def storage_name(work: Path) -> str:
     """The feature storage of a work folder's maps, as their feature groups record it."""
-    from pipeline.store.layout import open_store
+    from pipeline.store.info import feature_configs
 
     for store in sorted(work.glob("*.zarr")):
-        for _, group in open_store(store)["features"].groups():
-            conf = group.attrs["config"]
-            return conf["dtype"] + (f" + PCA {conf['pca']}" if conf.get("pca") else "")
+        for conf in feature_configs(store):
+            return conf.dtype + (f" + PCA {conf.pca}" if conf.pca else "")
     return "unknown"
 
 

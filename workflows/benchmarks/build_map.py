@@ -6,7 +6,6 @@ worker processes (one thread each) in one run.
 """
 
 import argparse
-import os
 import resource
 import shutil
 import tempfile
@@ -14,6 +13,7 @@ import time
 from pathlib import Path
 
 from pipeline.mapping.features import FeatureConfig
+from pipeline.runtime import shared_folder
 from pipeline.mapping.readers.colmap import read_colmap
 
 from .. import executor
@@ -21,7 +21,7 @@ from ..build_map import plan_build, run_dask
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--shared", type=Path, default=Path(os.environ.get("PIXLOC_SHARED", "../shared")),
+    p.add_argument("--shared", type=Path, default=shared_folder(),
                    help="the shared data folder (default: $PIXLOC_SHARED, else ../shared)")
     p.add_argument("--repeat", type=int, default=6, help="copies of the 4 Maupertuis images")
     p.add_argument("--resize", type=int, default=1024, help="longer image side of the features")

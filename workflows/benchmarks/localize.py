@@ -10,7 +10,6 @@ workers have imported the pipeline and loaded the network before the clock start
 """
 
 import argparse
-import os
 from dataclasses import replace
 import resource
 import shutil
@@ -18,6 +17,7 @@ import tempfile
 import time
 from pathlib import Path
 
+from pipeline.runtime import shared_folder
 from pipeline.mapping.build import build_map
 from pipeline.mapping.features import FeatureConfig
 from pipeline.localization.refine import LocalizerConfig
@@ -32,7 +32,7 @@ from ..localize import plan_localization, run_dask
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--shared", type=Path, default=Path(os.environ.get("PIXLOC_SHARED", "../shared")),
+    p.add_argument("--shared", type=Path, default=shared_folder(),
                    help="the shared data folder (default: $PIXLOC_SHARED, else ../shared)")
     p.add_argument("--workers", type=int, nargs="+", default=[1, 2], help="worker counts to compare")
     p.add_argument("--iters", type=int, default=100, help="LM iterations per level")

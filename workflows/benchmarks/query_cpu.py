@@ -44,7 +44,6 @@ import argparse
 import copy
 import dataclasses
 import json
-import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -53,6 +52,7 @@ from typing import Callable, Dict, List
 import torch
 from torch import nn
 
+from pipeline.runtime import shared_folder
 from pipeline.localization.refine import Localizer, LocalizerConfig
 from pipeline.localization.results import result_to_record
 from pipeline.localization.priors import Search, Top1
@@ -124,7 +124,7 @@ COMPILED = [Variant("torch.compile", _compiled, rivals=1),
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--shared", type=Path, default=Path(os.environ.get("PIXLOC_SHARED", "../shared")),
+    p.add_argument("--shared", type=Path, default=shared_folder(),
                    help="the shared data folder (default: $PIXLOC_SHARED, else ../shared)")
     p.add_argument("--work", type=Path, default=Path("outputs/benchmark-query-cpu"), help="maps (reused)")
     p.add_argument("--scenes", nargs="+", default=list(SCENES), choices=accuracy.SCENES, help="scenes to run")

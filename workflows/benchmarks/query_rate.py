@@ -18,13 +18,13 @@ is pooled over the scenes at the accuracy benchmark's thresholds.
 import argparse
 import dataclasses
 import json
-import os
 import time
 from pathlib import Path
 from typing import Dict
 
 import torch
 
+from pipeline.runtime import shared_folder
 from pipeline.localization.results import result_to_record
 from pipeline.localization.priors import Top1
 from pipeline.localization.retrieval import GlobalDescriptors
@@ -44,7 +44,7 @@ GOAL = 20.0  # queries per second on a GPU (issue 31)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--shared", type=Path, default=Path(os.environ.get("PIXLOC_SHARED", "../shared")),
+    p.add_argument("--shared", type=Path, default=shared_folder(),
                    help="the shared data folder (default: $PIXLOC_SHARED, else ../shared)")
     p.add_argument("--work", type=Path, default=Path("outputs/benchmark-query-cpu"),
                    help="maps (reused; the query-cpu benchmark's by default)")

@@ -24,16 +24,17 @@ difference to the baseline.
 
 import argparse
 import json
-import os
 from pathlib import Path
 
 import numpy as np
+
+from pipeline.runtime import shared_folder
 
 WAYS = (("baseline", False, 0.0), ("gradient maps", True, 0.0), ("+ points per cell 1", True, 1.0))
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--shared", type=Path, default=Path(os.environ.get("PIXLOC_SHARED", "../shared")),
+    p.add_argument("--shared", type=Path, default=shared_folder(),
                    help="the shared data folder (default: $PIXLOC_SHARED, else ../shared)")
     p.add_argument("--work", type=Path, default=Path("outputs/benchmark-rgbd"), help="work folder (maps, runs)")
     p.add_argument("--queries", type=int, default=6, help="of the 6 test frames")

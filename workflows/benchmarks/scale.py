@@ -34,13 +34,14 @@ version-2 layout (one file per 256-row chunk per array, float16), computed for t
 import argparse
 import dataclasses
 import json
-import os
 import subprocess
 import time
 from pathlib import Path
 from typing import Dict
 
 import numpy as np
+
+from pipeline.runtime import shared_folder
 
 from pipeline.mapping.features import FeatureConfig, ImageFeatures
 from pipeline.scene import CameraRecord, ImageRecord, Scene
@@ -65,7 +66,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="S2: photos (default): 320 px, streets 14 m wide, references every 2 m, the Strecha photos "
                    "of --shared on every facade, queries around the references; procedural: the city before "
                    "(160 px, 10 m streets, every 4 m, procedural facades, queries anywhere on the street)")
-    p.add_argument("--shared", type=Path, default=Path(os.environ.get("PIXLOC_SHARED", "../shared")),
+    p.add_argument("--shared", type=Path, default=shared_folder(),
                    help="the shared data folder, for the photo city's textures (default: $PIXLOC_SHARED, "
                    "else ../shared)")
     p.add_argument("--s1-blocks", type=int, default=10,
@@ -109,25 +110,24 @@ def synthetic_scene(num_images: int, num_points: int, num_obs: int, seed: int = 
 
 
 def build(store: Path, scene: Scene, conf: FeatureConfig, seed: int) -> Dict:
-    from pipeline.store.feature_groups import init_features, write_image_features
-    from pipeline.store.layout import consolidate
-    from pipeline.store.structure import create_store
+    from pipeline.store.info import observations_per_image
+    from pipeline.store.writer import FeatureWriter, create_map, finish_group
     rng = np.random.default_rng(seed + 1)
     t0 = time.perf_counter()
-    root = create_store(store, scene, overwrite=True)
-    group = init_features(root, conf, "synthetic", DIMS, pca={  # random orthonormal bases
+    create_map(store, scene, overwrite=True)
+    writer = FeatureWriter(store, conf, "synthetic", DIMS, pca={  # random orthonormal bases
         (k, level): (np.zeros(d, np.float32), np.linalg.qr(rng.normal(size=(d, conf.pca)))[0].astype(np.float32))
         for k in range(len(conf.image_scales)) for level, d in enumerate(DIMS) if d > conf.pca})
     t1 = time.perf_counter()
-    num_obs = root["images/num_obs"][:]
+    num_obs = observations_per_image(store)
     for i, n in enumerate(num_obs):
         samples = {(k, level): (rng.normal(size=(n, d)).astype(np.float32), rng.uniform(0, 1, n).astype(np.float32),
                                 np.ones(n, bool))
                    for k in range(len(conf.image_scales)) for level, d in enumerate(DIMS)}
-        write_image_features(group, root, i, ImageFeatures(samples, rng.normal(size=DIMS[-1]).astype(np.float32)))
+        writer.write(i, ImageFeatures(samples, rng.normal(size=DIMS[-1]).astype(np.float32)))
         if i % 500 == 0:
             print(f"  features: {i}/{len(num_obs)} images, {time.perf_counter() - t1:.0f} s", flush=True)
-    consolidate(root, group)  # as a finished build does
+    finish_group(store, conf)  # as a finished build does
     t2 = time.perf_counter()
     return {"structure_s": t1 - t0, "features_s": t2 - t1, "images_per_s": len(num_obs) / (t2 - t1)}
 
@@ -338,15 +338,12 @@ def store_at_scale(args: argparse.Namespace) -> int:
     print(f"S3: a store of {counts['images']} images, {counts['points']} points, {counts['observations']} "
           f"observations ({args.fraction:g} x Aachen v1.1), {args.dtype}, image scales {args.image_scales}, "
           f"PCA {args.pca or 'off'} -> {store}")
-    from pipeline.store.layout import open_store
+    from pipeline.store.info import map_counts, observations_per_image
+    from pipeline.store.writer import finish_group
     if args.reuse and store.exists():
-        root = open_store(store)
-        assert root.attrs["pixloc_map"]["num_images"] == counts["images"], "--reuse: another size"
-        num_obs, gen_s, built = root["images/num_obs"][:], float("nan"), None
-        from pipeline.store.layout import consolidate, consolidated
-        group = root[f"features/{next(iter(root['features'].group_keys()))}"]
-        if not consolidated(group, root.attrs["pixloc_map"]):
-            consolidate(open_store(store, mode="r+"), open_store(store, mode="r+")[group.path])
+        assert map_counts(store)["num_images"] == counts["images"], "--reuse: another size"
+        num_obs, gen_s, built = observations_per_image(store), float("nan"), None
+        finish_group(store, conf)
     else:
         t0 = time.perf_counter()
         scene = synthetic_scene(counts["images"], counts["points"], counts["observations"], args.seed)

@@ -15,13 +15,13 @@ no pose elsewhere), from the same runs.
 
 import argparse
 import dataclasses
-import os
 import time
 from pathlib import Path
 from typing import Dict, List, Tuple
 
 import numpy as np
 
+from pipeline.runtime import shared_folder
 from pipeline.evaluate import evaluate, fmt
 from pipeline.mapping.features import FeatureConfig
 from pipeline.localization.refine import LocalizerConfig
@@ -46,7 +46,7 @@ HELD_OUT = {"fountain": ("fountain-P11", ["0002.jpg", "0004.jpg", "0006.jpg", "0
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--shared", type=Path, default=Path(os.environ.get("PIXLOC_SHARED", "../shared")),
+    p.add_argument("--shared", type=Path, default=shared_folder(),
                    help="the shared data folder (default: $PIXLOC_SHARED, else ../shared)")
     p.add_argument("--work", type=Path, default=Path("outputs/benchmark-verification"),
                    help="maps and runs (default: the verification benchmark's folder, whose maps it reuses)")

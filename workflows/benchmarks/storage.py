@@ -20,19 +20,19 @@ Stores and runs are kept in ``--work``/storage: a rerun reprints.
 import argparse
 import dataclasses
 import json
-import os
 from pathlib import Path
 from typing import Dict, List
 
 import numpy as np
 
+from pipeline.runtime import shared_folder
 from pipeline.evaluate import evaluate, fmt
 from pipeline.mapping.features import FeatureConfig
 from pipeline.localization.refine import LocalizerConfig
 from pipeline.localization.retrieval import GlobalDescriptors
 from pipeline.localization.shard import LocalizationJob
 from pipeline.store.feature_groups import feature_key
-from pipeline.store.layout import open_store
+from pipeline.store.info import map_counts
 from pixloc.nets.registry import DEFAULT_MODEL
 
 from ..localize import plan_localization, run_sync
@@ -44,7 +44,7 @@ DTYPES = ("float16", "int8")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--shared", type=Path, default=Path(os.environ.get("PIXLOC_SHARED", "../shared")),
+    p.add_argument("--shared", type=Path, default=shared_folder(),
                    help="the shared data folder (default: $PIXLOC_SHARED, else ../shared)")
     p.add_argument("--work", type=Path, default=Path("outputs/benchmark-verification"),
                    help="the verification benchmark's folder (its triangulations are reused); stores and "
@@ -78,7 +78,7 @@ def _parts(args, key: str, fconf: FeatureConfig, stores: Path):
 
 def store_bytes(store: Path, conf: FeatureConfig) -> Dict[str, float]:
     """Bytes on disk per observation (feature group; whole store) and files per image."""
-    meta = open_store(store).attrs["pixloc_map"]
+    meta = map_counts(store)
     files = [f for f in store.rglob("*") if f.is_file()]
     group = store / "features" / feature_key(conf)
     n_obs, n_img = max(meta["num_observations"], 1), max(meta["num_images"], 1)

@@ -25,6 +25,8 @@ from typing import Dict, List
 
 import numpy as np
 
+from pipeline.runtime import shared_folder
+
 GOAL_S = 0.5
 URL = "s3://maps/hj.zarr"
 
@@ -35,7 +37,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--latency-ms", type=float, nargs="+", default=[0, 20, 50],
                         help="added latency per request, milliseconds")
     parser.add_argument("--references", type=int, default=5, help="references per query (the localizer's num_dbs)")
-    parser.add_argument("--shared", type=Path, default=Path(os.environ.get("PIXLOC_SHARED", "../shared")),
+    parser.add_argument("--shared", type=Path, default=shared_folder(),
                         help="the shared data folder (default: $PIXLOC_SHARED, else ../shared)")
 
 
@@ -64,7 +66,9 @@ def query_reads(reader, dbs: List[int], proxy) -> Dict:
 
 
 def main(args: argparse.Namespace) -> int:
-    from pipeline.store.location import STORAGE_OPTIONS_ENV
+    import dataclasses
+
+    from pipeline import runtime
     from pipeline.store.reader import MapReader
     from pipeline.store.info import feature_config as store_feature_config
     from workflows.s3_server import CREDENTIALS, DelayingProxy, ServerUnavailable, moto_server
@@ -80,7 +84,8 @@ def main(args: argparse.Namespace) -> int:
             s3fs.S3FileSystem(endpoint_url=endpoint).put(str(store), URL[len("s3://"):], recursive=True)
             for latency in args.latency_ms:
                 proxy = DelayingProxy(int(endpoint.rsplit(":", 1)[1]), latency / 1000)
-                os.environ[STORAGE_OPTIONS_ENV] = json.dumps({"endpoint_url": proxy.endpoint})
+                runtime.install(dataclasses.replace(runtime.current(),
+                                                    storage_options=json.dumps({"endpoint_url": proxy.endpoint})))
                 for threads in (16, 1):
                     proxy.reset()
                     t0 = time.perf_counter()

@@ -12,12 +12,12 @@ many right ones are rejected. The records are kept in ``--work``: a rerun only r
 import argparse
 import dataclasses
 import json
-import os
 from pathlib import Path
 from typing import Dict, List, Optional
 
 import numpy as np
 
+from pipeline.runtime import shared_folder
 from pipeline.mapping.depth import rgbd_scene
 from pipeline.evaluate import pose_errors
 from pipeline.mapping.features import FeatureConfig
@@ -40,7 +40,7 @@ PERTURBATIONS = ((0.05, 3.0), (0.15, 8.0), (0.4, 20.0))
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--shared", type=Path, default=Path(os.environ.get("PIXLOC_SHARED", "../shared")),
+    p.add_argument("--shared", type=Path, default=shared_folder(),
                    help="the shared data folder (default: $PIXLOC_SHARED, else ../shared)")
     p.add_argument("--work", type=Path, default=Path("outputs/benchmark-verification"), help="work folder (maps, runs)")
     p.add_argument("--model", default=None, help="feature model (default: the shipped model)")
