@@ -229,3 +229,8 @@ def quiet_colmap_logs() -> str:
     ``GLOG_minloglevel``, else 1 (warnings and errors only), set in the environment, which glog reads
     when pycolmap loads."""
     return os.environ.setdefault("GLOG_minloglevel", "1")
+
+
+def set_environment(**values: str) -> None:
+    """Set variables that libraries read themselves (a benchmark's S3 credentials for s3fs)."""
+    os.environ.update(values)

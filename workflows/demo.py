@@ -22,7 +22,9 @@ from pipeline.mapping.features import FeatureConfig
 from pipeline.localization.refine import LocalizerConfig
 from pipeline.scene import CameraRecord
 from pipeline.localization.retrieval import GlobalDescriptors
+from pipeline.descriptors import Grid
 from pipeline.localization.priors import PRIORS, Top1
+from pipeline.mapping.readers.sources import Synthetic
 from pipeline.localization.shard import LocalizationJob
 from pipeline.data.synthetic import SyntheticConfig, ensure_generated, read_synthetic
 from pipeline.textfiles import write_atomic
@@ -69,9 +71,9 @@ def run_demo(output: Path, model: str = "pixloc-lite0", num_references: int = 30
     t = _stage(2, f"building the map store from depth and known poses, features of {model}")
     scene = rgbd_scene(mapping, method="frames", stride=8, min_track_length=3)
     fconf = FeatureConfig(model=model, resize=max(DEMO_CAMERA.width, DEMO_CAMERA.height), image_scales=(1,),
-                          descriptor="grid")
+                          descriptor=Grid.name)
     store = output / "map.zarr"
-    plan = build_map.plan_build(scene, store, fconf, source={"kind": "synthetic", "seed": seed})
+    plan = build_map.plan_build(scene, store, fconf, source={"kind": Synthetic.name, "seed": seed})
     todo = sum(len(b) for b in plan.batches)
     build_map.run_sync(plan, progress=True)
     print(f"      {len(scene.images)} images, {len(scene.points)} points in {time.perf_counter() - t:.1f} s"

@@ -38,7 +38,7 @@ from pixloc.training import Trainer, TrainConfig, reprojection_px
 
 from .locks import output_lock
 from .options import at_least, build, check_keys
-from .training_sources import default_data_root, load_sources
+from .training_sources import SYNTHETIC, default_data_root, load_sources
 
 logger = logging.getLogger(__name__)
 TRAIN_KEYS = ("error_px/init", "error_px", "total", "reprojection_error/init", "reprojection_error/0",
@@ -435,7 +435,7 @@ def main(args: argparse.Namespace) -> int:
     from .logs import colmap_to_file
     colmap_to_file(args.output)  # the SfM and triangulation of map sources log there, not on the terminal
     if args.synthetic_only:
-        run = replace(run, data=tuple(d for d in run.data if d["kind"] == "synthetic"))
+        run = replace(run, data=tuple(d for d in run.data if d["kind"] == SYNTHETIC))
     if args.contact_sheet:
         print(f"contact sheet: {contact_sheet(run, args.output, args.data_root or default_data_root())}")
         return 0

@@ -16,6 +16,7 @@ from pipeline.mapping.readers.sources import MapSource, load_scene
 from pipeline.runtime import shared_folder
 
 logger = logging.getLogger(__name__)
+SYNTHETIC = "synthetic"  # the kind of the training source generated here (the others are map sources)
 
 
 def default_data_root() -> Path:
@@ -68,7 +69,7 @@ def load_sources(entries: List[Dict], data_root: Path, work_dir: Path, camera: C
         kind, weight = entry.pop("kind"), float(entry.pop("weight", 1.0))
         init_range = entry.pop("init_range", None)
         pairs = None
-        if kind == "synthetic":
+        if kind == SYNTHETIC:
             seed = int(entry.pop("seed"))
             textures = [data_root / t for t in entry.pop("textures", [])]
             name = f"synthetic-{seed}" + ("-photos" if textures else "")

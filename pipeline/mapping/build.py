@@ -19,8 +19,9 @@ from pipeline.models import network
 from pipeline.runtime import keep_freed_memory, torch_threads
 from pipeline.scene import Scene
 from pipeline.store.compression import fit_pca
-from pipeline.store.writer import DONE, FAILED, PENDING, FeatureWriter, create_map, finish_group, image_count, \
-    image_states
+from pipeline.store.feature_groups import (DONE, FAILED, PENDING, FeatureWriter, finish_group, image_count,
+                                           image_states)
+from pipeline.store.structure import create_store
 
 logger = logging.getLogger(__name__)
 REFUSED = "refused: "  # reason prefix of images that cannot be used at all (not retried)
@@ -44,13 +45,11 @@ def write_structure(scene: Scene, store_path, conf: FeatureConfig, *, chunk_rows
     Returns the images (store indices) whose features are still to be made (``pending_images``).
     """
     problems = scene.check()
-    create_map(store_path, scene, chunk_rows=chunk_rows, overwrite=overwrite, source=source, shard_rows=shard_rows)
+    create_store(store_path, scene, chunk_rows=chunk_rows, overwrite=overwrite, source=source, shard_rows=shard_rows)
     net, digest = network(conf.model, device)
-    bases = fit_store_pca(scene, conf, net, problems, device) if FeatureWriter.needs_pca(store_path, conf) else None
-    writer = FeatureWriter(store_path, conf, digest, list(net.output_dims), pca=bases)
-    writer.open_images()
-    status, reasons = writer.states()
-    index = writer.store_index(scene)  # scene order -> store order (an added session may differ)
+    writer = FeatureWriter(store_path, conf, digest, list(net.output_dims),
+                           fit_pca=lambda: fit_store_pca(scene, conf, net, problems, device), scene=scene)
+    index, status, reasons = writer.index, writer.status, writer.reasons  # an added session's order may differ
     for k, i in enumerate(index):
         if k in problems and status[i] != DONE:
             writer.fail(i, f"{REFUSED}{problems[k]}")
@@ -123,11 +122,11 @@ def extract_features(store_path, conf: FeatureConfig, indices: Sequence[int], de
 def _extract_features(store_path, conf, indices, device, overwrite) -> List[ImageResult]:
     net, digest = network(conf.model, device)
     writer = FeatureWriter(store_path, conf, digest, list(net.output_dims))  # refuses another model
-    images, xyz = writer.images(), writer.points()
+    images, xyz = writer.contents()
     results = []
     for i in indices:
         image = images[i]
-        status, reason = writer.state(i)
+        status, reason, observed = writer.state(i)
         if status == DONE and not overwrite:
             results.append(ImageResult(i, image.name, "skipped"))
             continue
@@ -135,7 +134,7 @@ def _extract_features(store_path, conf, indices, device, overwrite) -> List[Imag
             results.append(ImageResult(i, image.name, "failed", reason))
             continue
         try:
-            feats = extract_image_features(net, conf, image, xyz[writer.observed_points(i)], device=device)
+            feats = extract_image_features(net, conf, image, xyz[observed], device=device)
         except (OSError, ValueError, RuntimeError) as e:  # per-image failure, recorded with its reason
             reason = f"{type(e).__name__}: {e}"
             writer.fail(i, reason)

@@ -5,7 +5,7 @@ failed (with a reason)."""
 
 import functools
 from pathlib import Path
-from typing import Dict, List, Optional, Tuple
+from typing import Callable, Dict, List, Optional, Tuple
 
 import numpy as np
 import zarr
@@ -15,8 +15,10 @@ from pipeline.descriptors import DEFAULT_DESCRIPTOR, DESCRIPTORS
 from pipeline.store.schema import FeatureConfig, ImageFeatures
 from pipeline.images import file_sha256
 from pipeline.keypoints import DESCRIPTOR_DIM
-from pipeline.store.layout import (DONE, FAILED, PENDING, StoreError, image_rows, new_array, new_rows_array,
-                                   padded_rows, write_rows)
+from pipeline.scene import ImageRecord, Scene
+from pipeline.store.layout import (DONE, FAILED, PENDING, StoreError, consolidate, consolidated, image_records,
+                                   image_rows, new_array, new_rows_array, open_store, padded_rows, read, store_index,
+                                   unconsolidate, write_rows)
 
 
 @functools.lru_cache(maxsize=16)
@@ -149,3 +151,71 @@ def write_image_features(group: zarr.Group, root: zarr.Group, i: int, feats: Ima
 def mark_failed(group: zarr.Group, i: int, reason: str) -> None:
     group["reason"][i] = reason
     group["status"][i] = FAILED
+
+
+class FeatureWriter:
+    """The one writer of a feature group: the group of ``conf`` in the store at ``path``, opened for
+    writing (created when it is not there, with the PCA bases that ``fit_pca()`` gives where
+    ``needs_pca``). Another model's group of the same key is refused (``StoreError``). What the map
+    build (``pipeline.mapping.build``) asks of the store, without its keys: which images are done,
+    failed (and why) or pending, an image's observed points, its features (rows first, status last)
+    or its failure; ``finish_group`` consolidates the group when the build is over. Opened for the
+    build of a ``scene``, it holds the store's index of each of its images (``index``: the store keeps
+    its own order) and every image's ``status`` (PENDING, DONE, FAILED) and ``reasons``."""
+
+    def __init__(self, path, conf: FeatureConfig, digest: str, dims: List[int],
+                 fit_pca: Optional[Callable[[], PCABases]] = None, scene: Optional[Scene] = None):
+        self.root = open_store(path, mode="r+")
+        pca = fit_pca() if fit_pca is not None and needs_pca(self.root, conf) else None
+        self.group = init_features(self.root, conf, digest, dims, pca=pca)
+        self.meta = self.root.attrs["pixloc_map"]
+        if scene is not None:  # opened for a build of ``scene``: ``index``, ``status``, ``reasons``
+            self.status = read(self.group, "status", self.meta)
+            self.reasons = read(self.group, "reason", self.meta).astype(object)
+            if not consolidated(self.group, self.meta) or (self.status != DONE).any():
+                unconsolidate(self.group)  # images will be written: readers use the per-image arrays meanwhile
+            self.index = store_index(self.root, scene)  # scene order -> store order
+
+    def contents(self) -> Tuple[List[ImageRecord], np.ndarray]:
+        """The map's images (records) and points (N, 3)."""
+        return image_records(self.root), self.root["points/xyz"][:]
+
+    def state(self, i: int) -> Tuple[int, str, np.ndarray]:
+        """Image i's status, reason, and the points it observes (in its rows' order)."""
+        start, n = int(self.root["images/row_start"][i]), int(self.root["images/num_obs"][i])
+        return int(self.group["status"][i]), str(self.group["reason"][i]), \
+            self.root["observations/point"][start:start + n]
+
+    def write(self, i: int, feats: ImageFeatures) -> None:
+        """Image i's features, then its status done (a crash in between leaves it pending)."""
+        write_image_features(self.group, self.root, i, feats)
+
+    def fail(self, i: int, reason: str) -> None:
+        mark_failed(self.group, i, reason)
+
+    def retry(self, i: int) -> None:
+        """Image i pending again (the problem that failed it is gone)."""
+        self.group["status"][i] = PENDING
+
+
+def image_states(path, conf: FeatureConfig) -> Optional[Tuple[np.ndarray, np.ndarray]]:
+    """Every image's status and reason in the feature group of ``conf``; None where the store has no
+    such group (every image is to be made)."""
+    root = open_store(path)
+    key = f"features/{feature_key(conf)}"
+    if key not in root:
+        return None
+    meta = root.attrs["pixloc_map"]
+    return read(root, f"{key}/status", meta), read(root, f"{key}/reason", meta)
+
+
+def image_count(path) -> int:
+    return int(open_store(path).attrs["pixloc_map"]["num_images"])
+
+
+def finish_group(path, conf: FeatureConfig) -> None:
+    """After a build: consolidate the group's per-image arrays for fast opening, unless they are."""
+    root = open_store(path, mode="r+")
+    group = root[f"features/{feature_key(conf)}"]
+    if not consolidated(group, root.attrs["pixloc_map"]):
+        consolidate(root, group)

@@ -56,9 +56,9 @@ class MapReader:
             available = sorted(root["features"].group_keys()) if "features" in root else []
             raise StoreError(f"{path} has no features for {conf.to_dict()} (it has: {available or 'none'}).")
         self.group = root[key]
-        check_feature_group(self.group, meta, path)
         if not conf.made(self.group.attrs.get("config")):
             raise StoreError(f"{path}: features {key} were made with {self.group.attrs.get('config')}.")
+        check_feature_group(self.group, meta, path)
         if digest is not None and self.group.attrs.get("model_digest") != digest:
             raise StoreError(f"{path}: features were made with model {self.group.attrs.get('model_digest')}, "
                              f"not the localizer's {digest}: rebuild the map with this model.")

@@ -34,6 +34,7 @@ import numpy as np
 from pipeline.runtime import shared_folder
 from pipeline.evaluate import fmt, record_errors, usable_ground_truth
 from pipeline.localization.refine import LocalizerConfig
+from pipeline.localization.priors import Search, Sift, Top1
 from pipeline.localization.retrieval import GlobalDescriptors
 from pipeline.mapping.features import COMPACT_PCA, DTYPES, FeatureConfig
 from pipeline.mapping.readers.colmap import run_sfm
@@ -49,7 +50,7 @@ from .verification import seven_scenes_map, store_complete
 
 RELATIVE = ((0.01, 1.0), (0.05, 2.0), (0.10, 5.0))  # (fraction of the scene's scale, degrees)
 METRIC = ((0.05, 1.0), (0.25, 2.0))  # (metres, degrees), where the scene is metric
-PRIORS = ("top1", "search", "sift")
+PRIORS = (Top1.name, Search.name, Sift.name)  # the benchmark's rows: from retrieval, the search, SIFT + PnP
 
 
 @dataclass(frozen=True)
@@ -63,29 +64,22 @@ class Split:
     metric: bool = False
 
 
-def _data(*parts: str) -> Path:
-    return Path("data", *parts)  # relative to --shared
+def load_splits() -> Dict[str, Split]:
+    """The scenes with a fixed split, as data (``scenes.yaml`` beside this module)."""
+    from importlib import resources
+    from pipeline.textfiles import read_yaml
+    path = Path(str(resources.files(__package__) / "scenes.yaml"))
+    out = {}
+    for key, scene in read_yaml(path, "benchmark scenes").items():
+        source = dict(scene.pop("source"))
+        source = MapSource(source.pop("kind"), Path(source.pop("path")),
+                           Path(source.pop("images")) if "images" in source else None,
+                           **{k: tuple(v) if isinstance(v, list) else v for k, v in source.items()})
+        out[key] = Split(source, **scene)
+    return out
 
 
-SPLITS: Dict[str, Split] = {
-    "fountain": Split(MapSource("strecha", _data("strecha", "fountain-P11")), metric=True),
-    "herzjesus": Split(MapSource("strecha", _data("strecha", "Herz-Jesus-P8")), metric=True),
-    # 4 images: one query (a map of two would share 2 points)
-    "maupertuis": Split(MapSource("colmap", _data("maupertuis", "reconstruction"), _data("maupertuis", "images")),
-                        every=4),
-    "kinect_room": Split(MapSource("posetxt", _data("rgbd_slambook", "kinect_room"),
-                                   intrinsics=(518.0, 519.0, 325.5, 253.5), depth_ext=".pgm", rgbd_points="frames"),
-                         metric=True),
-    "beer": Split(MapSource("llff", _data("beer_capture")), folds=2),
-    "templeRing": Split(MapSource("middlebury", _data("middlebury", "templeRing")), folds=2),
-    "dino": Split(MapSource("middlebury", _data("middlebury", "dino")), folds=2),
-    "kermit": Split(MapSource("bundler", _data("bundler_kermit", "results.example", "bundle.out"),
-                              _data("bundler_kermit"))),
-    "berlin": Split(MapSource("opensfm", _data("opensfm_berlin", "reconstruction_example.json"),
-                              _data("opensfm_berlin", "images"))),
-    # OpenMVS's scene.mvs is a binary serialization that we do not parse: the poses are an SfM's
-    "sceaux": Split(MapSource("sfm", _data("sceaux_castle", "images"))),
-}
+SPLITS: Dict[str, Split] = load_splits()
 # the scenes that keep the splits they have in other benchmarks, and whether each is metric
 OWN_SPLITS = {"7scenes": True, "sacre_coeur": False, "virtual_gallery": True}
 SCENES = ("fountain", "herzjesus", "7scenes", "sacre_coeur", "virtual_gallery", *list(SPLITS)[2:])
@@ -296,7 +290,7 @@ def goals(rows: List[Dict]) -> List[str]:
     scenes = [s for s in dict.fromkeys(r["scene"] for r in rows) if s != "all"]
     peer_good = [s for s in scenes if (s, "sift-pnp") in get and (get[s, "sift-pnp"][key] or 0) >= 0.9]
     out = []
-    for prior, goal in (("sift", 0.95), ("search", 0.80)):
+    for prior, goal in ((Sift.name, 0.95), (Search.name, 0.80)):
         if not peer_good or not all((s, prior) in get for s in peer_good):
             continue
         miss = [f"{s} {100 * get[s, prior][key]:.0f} %" for s in peer_good if get[s, prior][key] < goal]
@@ -344,13 +338,13 @@ def main(args: argparse.Namespace) -> int:
         scale = scene_scale(parts[0][1])
         metric = OWN_SPLITS[key] if key in OWN_SPLITS else SPLITS[key].metric
         per_prior, gt = localize_priors(parts, list(args.priors), runs, lconf, GlobalDescriptors(k=5))
-        if "top1" in per_prior:  # the prior itself: the top-1 reference's pose, unrefined
-            per_prior["reference"] = {"records": [dict(r, success=False) for r in per_prior["top1"]["records"]],
+        if Top1.name in per_prior:  # the prior itself: the top-1 reference's pose, unrefined
+            per_prior["reference"] = {"records": [dict(r, success=False) for r in per_prior[Top1.name]["records"]],
                                       "time": None}
         for prior, v in per_prior.items():
             rows.append(row(key, prior, v["records"], gt, scale, metric, v["time"]))
-        if key == "sacre_coeur" and "search" in per_prior and "night.jpg" in gt:  # the goal on the night photo
-            rec = next((r for r in per_prior["search"]["records"] if r["name"] == "night.jpg"), None)
+        if key == "sacre_coeur" and Search.name in per_prior and "night.jpg" in gt:  # the goal on the night photo
+            rec = next((r for r in per_prior[Search.name]["records"] if r["name"] == "night.jpg"), None)
             t, R = record_errors(rec, gt["night.jpg"])["result"]
             within = t < RELATIVE[1][0] * scale and R < RELATIVE[1][1]
             remarks.append(f"the night photo from search: {100 * t / scale:.2f} %, {R:.2f} deg, "

@@ -18,12 +18,14 @@ the queries in 1, then split between 2 independent in-process runs at once.
 """
 
 import json
-import os
 import signal
 import subprocess
 import time
 from pathlib import Path
 from typing import Dict, List, Optional
+
+from pipeline.runtime import subprocess_environment
+from pipeline.descriptors import Grid
 
 from ..process_cluster import ProcessCluster, wait_for
 from .drivers import CITY_THRESHOLDS, command
@@ -31,7 +33,7 @@ from .drivers import CITY_THRESHOLDS, command
 def driver(root: Path, store: Path, out: Path, cluster: ProcessCluster, limit: int = 0, order: str = "list",
            warm: bool = False):
     return subprocess.Popen(command("city", root, store, out, cluster.sched, limit, order, int(warm)),
-                            env={**os.environ, "OMP_NUM_THREADS": "1"},
+                            env=subprocess_environment(OMP_NUM_THREADS="1"),
                             stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
 
 
@@ -61,7 +63,7 @@ def build_city(args, blocks: int, per_condition: int) -> Dict:
     t1 = time.perf_counter()
     scene = rgbd_scene(mapping, method="frames", stride=8, min_track_length=3)
     t2 = time.perf_counter()
-    conf = FeatureConfig(resize=160, image_scales=(1,), dtype="int8", descriptor="grid", pca=0)
+    conf = FeatureConfig(resize=160, image_scales=(1,), dtype="int8", descriptor=Grid.name, pca=0)
     plan = plan_build(scene, store, conf, batch_size=4)
     cluster = ProcessCluster(args.work, ("w0", "w1"))
     try:
@@ -157,7 +159,7 @@ def bare_run(args, root: Path, store: Path, parts: int) -> Dict:
     for out in outs:
         shutil.rmtree(out, ignore_errors=True)
     procs = [subprocess.Popen(command("city", root, store, out, f"sync:{k}/{parts}", args.p3_queries, "list", 1),
-                              env={**os.environ, "OMP_NUM_THREADS": "1"},
+                              env=subprocess_environment(OMP_NUM_THREADS="1"),
                               stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
              for k, out in enumerate(outs)]
     done = [lines(p)[-1] for p in procs]

@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Callable, Dict, List
 
 import numpy as np
+from pipeline.localization.priors import Top1
 
 CITY_THRESHOLDS = ((0.25, 2.0), (1.0, 5.0))  # (m, deg): the city's recall, the first also its wrong accepted poses
 
@@ -32,7 +33,7 @@ def rss() -> int:
     return int(Path("/proc/self/status").read_text().split("VmRSS:")[1].split()[0]) * 1024
 
 
-def _job(store: str, points_per_cell: float = 0.0, prior: str = "top1", num_iters: int = 30):
+def _job(store: str, points_per_cell: float = 0.0, prior: str = Top1.name, num_iters: int = 30):
     """The benchmarks' localization job: 3 references, 30 LM iterations, retrieval within the area;
     ``points_per_cell`` as the localizer's (1 for the dense maps of the photo city); another ``prior`` or
     ``num_iters`` per level for the S2 driver's experiments."""
@@ -111,7 +112,7 @@ def read(store: str, conf: str, queries: str, seed: str) -> None:
                       "bytes_read": reader.stats["bytes"], "blocks": reader.stats["blocks"]}))
 
 
-def localize(root: str, store: str, out: str, points_per_cell: str = "0", prior: str = "top1",
+def localize(root: str, store: str, out: str, points_per_cell: str = "0", prior: str = Top1.name,
              num_iters: str = "30") -> None:
     from pipeline.evaluate import evaluate, record_errors
     from pipeline.data.synthetic import read_synthetic

@@ -69,7 +69,7 @@ def main(args: argparse.Namespace) -> int:
     from pipeline.localization.verify import VerificationConfig
     from workflows.localize import plan_localization, run_sync
     from workflows.presets import load
-    from pipeline.mapping.readers.sources import load_queries
+    from pipeline.mapping.readers.sources import SevenScenes, load_queries
 
     root = args.shared / "data" / "7scenes_stairs"
     if not root.is_dir():
@@ -81,7 +81,7 @@ def main(args: argparse.Namespace) -> int:
     store = args.work / "map.zarr"
     if not store.exists():
         build_map(rgbd_scene(read_7scenes(root, [2, 3]), method="tsdf"), store, fconf)  # build-map 7scenes
-    queries = load_queries("7scenes", root, sequences=(1, 4))[:args.queries]
+    queries = load_queries(SevenScenes.name, root, sequences=(1, 4))[:args.queries]
     priors(queries, args.work / "priors.txt")
     gt = {q.name: q.cam_from_world_gt for q in queries}
     refiner, _ = localization_model(fconf.model, "cpu")

@@ -45,6 +45,8 @@ from pipeline.runtime import shared_folder
 
 from pipeline.mapping.features import FeatureConfig, ImageFeatures
 from pipeline.scene import CameraRecord, ImageRecord, Scene
+from pipeline.descriptors import Grid
+from pipeline.localization.priors import Search, Sift, Top1
 
 from .drivers import command
 
@@ -59,7 +61,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--cities", type=int, nargs="+", default=[2, 4, 10],
                    help="S2: blocks per side of each city (96, 384 and 2,400 references)")
     p.add_argument("--city-queries", type=int, default=8, help="S2: queries per condition (4 conditions)")
-    p.add_argument("--city-priors", nargs="+", default=["top1", "sift"], choices=["top1", "search", "sift"],
+    p.add_argument("--city-priors", nargs="+", default=[Top1.name, Sift.name],
+                   choices=[Top1.name, Search.name, Sift.name],
                    help="S2: the priors each city's queries are localized from, each in a process of its own (top1: "
                    "the retrieved reference's pose; sift: SIFT + PnP refined on the two finest levels)")
     p.add_argument("--city-style", choices=["photos", "procedural"], default="photos",
@@ -111,11 +114,12 @@ def synthetic_scene(num_images: int, num_points: int, num_obs: int, seed: int = 
 
 def build(store: Path, scene: Scene, conf: FeatureConfig, seed: int) -> Dict:
     from pipeline.store.info import observations_per_image
-    from pipeline.store.writer import FeatureWriter, create_map, finish_group
+    from pipeline.store.feature_groups import FeatureWriter, finish_group
+    from pipeline.store.structure import create_store
     rng = np.random.default_rng(seed + 1)
     t0 = time.perf_counter()
-    create_map(store, scene, overwrite=True)
-    writer = FeatureWriter(store, conf, "synthetic", DIMS, pca={  # random orthonormal bases
+    create_store(store, scene, overwrite=True)
+    writer = FeatureWriter(store, conf, "synthetic", DIMS, fit_pca=lambda: {  # random orthonormal bases
         (k, level): (np.zeros(d, np.float32), np.linalg.qr(rng.normal(size=(d, conf.pca)))[0].astype(np.float32))
         for k in range(len(conf.image_scales)) for level, d in enumerate(DIMS) if d > conf.pca})
     t1 = time.perf_counter()
@@ -159,11 +163,11 @@ def city_rows(args) -> list:
         t1 = time.perf_counter()
         scene = rgbd_scene(mapping, method="frames", stride=8, min_track_length=3)
         store = root.with_suffix(".zarr")
-        conf = FeatureConfig(resize=style["camera"].width, image_scales=(1,), dtype="int8", descriptor="grid", pca=0)
+        conf = FeatureConfig(resize=style["camera"].width, image_scales=(1,), dtype="int8", descriptor=Grid.name, pca=0)
         build_sync(plan_build(scene, store, conf))
         t2 = time.perf_counter()
         for prior in args.city_priors:
-            run = root.parent / (f"{root.name}-run" + ("" if prior == "top1" else f"-{prior}"))
+            run = root.parent / (f"{root.name}-run" + ("" if prior == Top1.name else f"-{prior}"))
             out = subprocess.run(command("localize", root, store, run, style["points_per_cell"], prior),
                                  capture_output=True, text=True, check=True)
             r = json.loads(out.stdout.strip().splitlines()[-1])
@@ -224,7 +228,7 @@ def add_rows(args) -> Dict:
                   query_spread=0.5, query_block="0-0")
     mapping, _ = read_synthetic(root)
     n_new = len(mapping) // 10
-    conf = FeatureConfig(resize=160, image_scales=(1,), dtype="int8", descriptor="grid", pca=0)
+    conf = FeatureConfig(resize=160, image_scales=(1,), dtype="int8", descriptor=Grid.name, pca=0)
     t0 = time.perf_counter()
     scene = rgbd_scene(mapping, method="frames", stride=8, min_track_length=3)
     scene_s = time.perf_counter() - t0
@@ -339,7 +343,7 @@ def store_at_scale(args: argparse.Namespace) -> int:
           f"observations ({args.fraction:g} x Aachen v1.1), {args.dtype}, image scales {args.image_scales}, "
           f"PCA {args.pca or 'off'} -> {store}")
     from pipeline.store.info import map_counts, observations_per_image
-    from pipeline.store.writer import finish_group
+    from pipeline.store.feature_groups import finish_group
     if args.reuse and store.exists():
         assert map_counts(store)["num_images"] == counts["images"], "--reuse: another size"
         num_obs, gen_s, built = observations_per_image(store), float("nan"), None

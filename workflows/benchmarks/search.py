@@ -25,7 +25,7 @@ from pipeline.runtime import shared_folder
 from pipeline.evaluate import evaluate, fmt
 from pipeline.mapping.features import FeatureConfig
 from pipeline.localization.refine import LocalizerConfig
-from pipeline.localization.priors import PRIORS, OtherPipeline
+from pipeline.localization.priors import PRIORS, Average, OtherPipeline, ReferenceHypotheses, Search, Sift, Top1
 from pipeline.localization.retrieval import GlobalDescriptors, RetrievalSettings
 from pipeline.localization.shard import LocalizationJob
 from pipeline.localization.sift import pnp_pose_found
@@ -38,6 +38,7 @@ from .sacre_coeur import sacre_coeur
 from .verification import demo_map, seven_scenes_map, strecha_maps, write_priors
 
 THRESHOLDS = ((0.05, 1.0), (0.25, 2.0), (1.0, 5.0))
+FROM_RETRIEVAL = [name for name, entry in PRIORS.items() if entry.retrieves and not entry.inputs]  # no file needed
 SCENES = ("fountain", "herzjesus", "demo", "7scenes", "sacre_coeur", "sacre_coeur_night", "virtual_gallery")
 # the official localization setting of the Sacre Coeur cases (oracle/localization_cases.json, avg)
 SACRE_COEUR_FEATURES = FeatureConfig(model=DEFAULT_MODEL, resize=1024, image_scales=(4, 1), dtype="float16")
@@ -51,8 +52,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--work", type=Path, default=Path("outputs/benchmark-verification"),
                    help="maps and runs (default: the verification benchmark's folder, whose maps it reuses)")
     p.add_argument("--scenes", nargs="+", default=list(SCENES), choices=SCENES, help="scenes to run")
-    p.add_argument("--priors", nargs="+", default=["top1", "average", "hypotheses", "search"],
-                   choices=["top1", "average", "hypotheses", "search", "sift", "truth"],
+    p.add_argument("--priors", nargs="+", default=[Top1.name, Average.name, ReferenceHypotheses.name, Search.name],
+                   choices=[*FROM_RETRIEVAL, "truth"],
                    help="truth: refine from the ground-truth pose (prior poses), the most any prior can reach; "
                         "sift: SIFT + PnP refined, with the peer SIFT + PnP alone as the row sift-pnp")
 
@@ -78,7 +79,7 @@ def _sources(args, fconf):
 def virtual_gallery_map(shared: Path, work: Path, fconf):
     from pipeline.mapping.readers.colmap import triangulate_known_poses
     from pipeline.mapping.readers.kapture import read_kapture
-    from pipeline.mapping.readers.sources import load_queries
+    from pipeline.mapping.readers.sources import Kapture, load_queries
     from .verification import store_complete
     root = shared / "data" / "virtual_gallery"
     store = work / "virtual_gallery.zarr"
@@ -86,7 +87,7 @@ def virtual_gallery_map(shared: Path, work: Path, fconf):
         scene = triangulate_known_poses(read_kapture(root / "mapping"), root / "mapping" / "sensors" / "records_data",
                                         work / "virtual_gallery.work")
         build_sync(plan_build(scene, store, fconf))
-    yield "virtual_gallery", store, load_queries("kapture", root / "query")
+    yield "virtual_gallery", store, load_queries(Kapture.name, root / "query")
 
 
 def _truth_file(queries, out: Path) -> Path:
@@ -126,7 +127,7 @@ def localize_priors(parts, priors: List[str], runs: Path, lconf: LocalizerConfig
                 records = [dict(r, success=r["refined"] is not None) for r in records]
             per_prior[prior]["records"] += records
             per_prior[prior]["time"] += float((out / "wall_s.txt").read_text())
-            if prior == "sift":  # the peer: the PnP pose alone, where PnP found one
+            if prior == Sift.name:  # the peer: the PnP pose alone, where PnP found one
                 peer = per_prior.setdefault("sift-pnp", {"records": [], "time": 0.0})
                 peer["records"] += [pnp_only(r) for r in records]
                 peer["time"] += sum(r.get("timings", {}).get("prior", 0.0) for r in records)
@@ -161,7 +162,7 @@ def table(rows: List[Dict]) -> str:
     lines = ["| scene | prior | queries | its start: median t, R | " + " | ".join(k[len("recall@"):] for k in keys)
              + " | s / query | x top1 |", "| --- | --- | ---: | --- | " + " | ".join("---:" for _ in keys)
              + " | ---: | ---: |"]
-    top1 = {r["scene"]: r["s_per_query"] for r in rows if r["prior"] == "top1"}
+    top1 = {r["scene"]: r["s_per_query"] for r in rows if r["prior"] == Top1.name}
     for r in rows:
         ratio = r["s_per_query"] / top1[r["scene"]] if top1.get(r["scene"]) and r["s_per_query"] else None
         lines.append(f"| {r['scene']} | {r['prior']} | {r['n']} | {fmt(r['prior_t'], '.2f')} m, "

@@ -15,7 +15,6 @@ query's reads under 0.5 s at 50 ms.
 
 import argparse
 import json
-import os
 import statistics
 import subprocess
 import sys
@@ -76,7 +75,7 @@ def main(args: argparse.Namespace) -> int:
         raise SystemExit(f"{args.shared}/data/strecha not found: give --shared (or set PIXLOC_SHARED)")
     store = build_store(args.shared, args.work)
     conf = store_feature_config(store)
-    os.environ.update(CREDENTIALS)
+    runtime.set_environment(**CREDENTIALS)
     rows = []
     try:
         with moto_server() as endpoint:

@@ -34,6 +34,8 @@ from pipeline.localization.verify import VerificationConfig, verify
 from ..build_map import plan_build, run_sync as build_sync
 from ..localize import plan_localization, run_sync
 from pipeline.mapping.readers.sources import load_queries
+from pipeline.descriptors import Grid
+from pipeline.mapping.readers.sources import SevenScenes, Strecha
 
 # (fraction of the median point depth, degrees) of the ground-truth perturbations
 PERTURBATIONS = ((0.05, 3.0), (0.15, 8.0), (0.4, 20.0))
@@ -65,7 +67,7 @@ def strecha_maps(shared: Path, work: Path, folder: str, held_out: List[str], fco
             scene = triangulate_known_poses([im for im in images if im.name != name], root / "images",
                                             work / f"{folder}-{name}.work")
             build_sync(plan_build(scene, store, fconf))
-        yield f"{folder}/{name}", store, [q for q in load_queries("strecha", root) if q.name == name]
+        yield f"{folder}/{name}", store, [q for q in load_queries(Strecha.name, root) if q.name == name]
 
 
 def store_complete(store: Path, fconf: FeatureConfig) -> bool:
@@ -84,7 +86,7 @@ def demo_map(work: Path, fconf: FeatureConfig, stores: Optional[Path] = None):
     ensure_generated(root, SyntheticConfig(seed=DEMO_SEED), 30, 5, DEMO_CAMERA, query_spread=0.5)
     mapping, queries = read_synthetic(root)
     store = (stores or work) / "demo.zarr"
-    conf = dataclasses.replace(fconf, resize=320, descriptor="grid")
+    conf = dataclasses.replace(fconf, resize=320, descriptor=Grid.name)
     build_sync(plan_build(rgbd_scene(mapping, method="frames", stride=8, min_track_length=3), store, conf))
     yield "demo", store, queries
 
@@ -94,7 +96,7 @@ def seven_scenes_map(shared: Path, work: Path, fconf: FeatureConfig, stores: Opt
     store = (stores or work) / "7scenes.zarr"
     build_sync(plan_build(rgbd_scene(read_7scenes(root, [2, 3]), method="frames", stride=24), store,
                           dataclasses.replace(fconf, resize=320)))
-    yield "7scenes", store, load_queries("7scenes", root, sequences=(1, 4))
+    yield "7scenes", store, load_queries(SevenScenes.name, root, sequences=(1, 4))
 
 
 def perturb(T: np.ndarray, depth: float, frac: float, deg: float, rng) -> np.ndarray:

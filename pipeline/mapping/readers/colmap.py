@@ -129,6 +129,9 @@ def _pairs_fingerprint(pairs: PairsConfig, num_images: int, posed: bool) -> dict
     return out
 
 
+SFM, TRIANGULATION = "sfm", "triangulation"  # what a reconstruction's fingerprint is of (its "kind")
+
+
 def images_fingerprint(image_dir: Path, names: Sequence[str], **extra) -> dict:
     """What a reconstruction depends on: its image files (name, size, digest of the bytes) and
     settings. Not the modification times: a dataset copied to another disk or machine keeps its
@@ -205,7 +208,7 @@ def run_sfm(image_dir, work_dir, names: Optional[Sequence[str]] = None, tags=Non
         raise SceneError(f"{image_dir}: {len(names)} images (JPEG or PNG files directly in the folder"
                          f"{', after --hold-out' if image_files(image_dir) else ''}) to reconstruct: SfM needs at "
                          "least 2.")
-    fingerprint = images_fingerprint(image_dir, names, kind="sfm", **_pairs_fingerprint(pairs, len(names), False))
+    fingerprint = images_fingerprint(image_dir, names, kind=SFM, **_pairs_fingerprint(pairs, len(names), False))
     rec = cached_model(work_dir, "sfm.json", "model", fingerprint, image_dir)
     if rec is not None:
         return scene_from_reconstruction(rec, image_dir, tags)
@@ -252,7 +255,7 @@ def triangulate_known_poses(images: List[ImageRecord], image_root, work_dir, *,
     work_dir.mkdir(parents=True, exist_ok=True)
     names = [im.name for im in images]
     by_name = {im.name: im for im in images}
-    fingerprint = images_fingerprint(image_root, names, kind="triangulation", min_track_length=min_track_length,
+    fingerprint = images_fingerprint(image_root, names, kind=TRIANGULATION, min_track_length=min_track_length,
                                max_reprojection_error=max_reprojection_error,
                                cameras=[im.camera.to_json() for im in images],
                                poses=[np.round(np.asarray(im.cam_from_world, np.float64), 12).tolist()
