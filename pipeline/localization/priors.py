@@ -216,7 +216,8 @@ class OtherPipeline(PriorSettings):
         dbs = r.dbs[:s.num_dbs]
         prior = poses_file(self.prior_poses).find(s.query.name)
         if prior is None:
-            return failure(s.query, f"no prior pose for this query in {self.prior_poses}", refs=dbs)
+            return failure(s.query, f"no prior pose for this query in {self.prior_poses}",
+                           refs=[s.reader.names[i] for i in dbs])
         return [s.candidate(dbs, prior, f"pose in {self.prior_poses}")]
 
 
@@ -322,3 +323,32 @@ class Sift(PriorSettings):
             return search_starts(replace(s, query=replace(s.query, notes=s.query.notes + (note,))), self.search)
         noted = replace(s, query=replace(s.query, notes=s.query.notes + (found.describe(),)))
         return [noted.candidate(dbs, found.pose, "SIFT PnP pose", levels=self.sift.levels)]
+
+
+@PRIORS.register("pnp")
+@dataclass(frozen=True)
+class PnP(PriorSettings):
+    """The SIFT + PnP pose itself, not refined: the classical pipeline that ``sift`` refines, as its
+    peer. A query whose PnP finds fewer than ``sift.min_inliers`` inliers fails, with no fallback."""
+
+    sift: SiftConfig = SiftConfig()
+    help: ClassVar[str] = "SIFT matches to the references and PnP, the pose reported as PnP gives it (not refined)"
+    flags: ClassVar[Dict[str, Flag]] = {
+        "--pnp-min-inliers": Flag("sift.min_inliers", "with --prior pnp: PnP inliers a pose needs")}
+
+    def validate(self) -> None:
+        self.sift.validate()
+
+    def prepare(self, s: Start) -> Prepared:
+        r = s.references()
+        if not r.dbs:
+            return failure(s.query, NO_MATCH)
+        refs = [s.reader.names[i] for i in r.dbs[:s.num_dbs]]
+        found = sift_pnp(s.reader, r.dbs[:s.num_dbs], s.rgb, s.query.camera, self.sift)
+        notes = list(s.query.notes) + [found.describe()]
+        if found.pose is None:
+            return QueryResult(s.query.name, False, None, None, refs, notes=notes,
+                               reason=f"PnP found {found.inliers} inliers (< {self.sift.min_inliers})")
+        return QueryResult(s.query.name, True, found.pose, found.pose, refs, notes=notes + ["not refined (prior pnp)"],
+                           evidence={"pnp_inliers": float(found.inliers),
+                                     "pnp_correspondences": float(found.correspondences)})

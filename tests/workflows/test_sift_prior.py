@@ -133,3 +133,21 @@ def test_reference_images_that_cannot_be_read_are_named_and_the_others_still_mat
         for path in aside.iterdir():
             path.rename(images / path.name)
         reference_sift.cache_clear()
+
+
+def test_the_pnp_prior_reports_the_pose_that_sift_refines(temple):
+    """--prior pnp: the SIFT + PnP pose itself, as the classical peer (its record's prior and
+    reported pose), the same pose the sift prior starts from; too few inliers fail the query."""
+    from pipeline.localization.priors import PnP
+    from pipeline.localization.sift import SiftConfig
+    job, queries, work = temple
+    pnp = run_sync(plan_localization(dataclasses.replace(job, prior=PnP()), queries, work / "pnp"))
+    sift = run_sync(plan_localization(dataclasses.replace(job, prior=Sift()), queries, work / "sift-again"))
+    for p, s, q in zip(pnp, sift, queries):
+        assert p["success"] and p["refined"] == p["prior"] and p["notes"][-1] == "not refined (prior pnp)"
+        assert np.allclose(p["prior"], s["prior"], atol=1e-9) and p["evidence"]["pnp_inliers"] >= 10
+        t, R = pose_errors(record_pose(p), q.cam_from_world_gt)
+        assert t < 0.01 and R < 1.0
+    strict = PnP(SiftConfig(min_inliers=100_000))
+    (failed,) = run_sync(plan_localization(dataclasses.replace(job, prior=strict), queries[:1], work / "pnp-strict"))
+    assert not failed["success"] and failed["refined"] is None and "PnP found" in failed["reason"]
