@@ -31,7 +31,7 @@ from pipeline.store.reader import MapReader, by_name
 from pipeline.queries import QueryRecord
 from pipeline.registry import Registry, check_inputs
 from pipeline.settings import Flag
-from pipeline.textfiles import InputError, read_pairs
+from pipeline.textfiles import InputError, PoseTable, read_pairs, read_poses
 
 logger = logging.getLogger(__name__)
 
@@ -207,3 +207,44 @@ def retrieve(conf: RetrievalSettings, reader: MapReader, query: QueryRecord,
         value = query.tags.get(conf.same_tag)
         candidates = [i for i, t in enumerate(reader.tags) if t.get(conf.same_tag) == value]
     return conf.rank(reader, query, describe, candidates)
+
+
+@functools.lru_cache(maxsize=2)
+def poses_table(path: str) -> PoseTable:
+    """A poses file, read once per process (``pipeline.textfiles.read_poses``)."""
+    return read_poses(path)
+
+
+@RETRIEVERS.register("covisible")
+@dataclass(frozen=True)
+class Covisible(RetrievalSettings):
+    """poses: a poses file with a prior pose per query (``name qw qx qy qz tx ty tz``, cam_from_world):
+    the references are the map images that observe the most map points inside the query's view at
+    that pose (in front of it, projecting into its image; lens distortion left out), most first.
+    Reads every usable map image's points once per process (``MapReader.image_points``)."""
+
+    poses: Optional[str] = None
+    help: ClassVar[str] = "the map images that see the most points in the view of a prior pose (--covisible-poses)"
+    flags: ClassVar[Dict[str, Flag]] = {
+        "--covisible-poses": Flag("poses", "covisible retrieval: a poses file with a prior pose per query",
+                                  file=True)}
+    inputs: ClassVar[Tuple[str, ...]] = ("poses",)
+
+    def validate(self) -> None:
+        super().validate()
+        poses_table(self.poses)  # read in full now: a bad line is one clear error (file:line)
+
+    def rank(self, reader, query, describe, candidates) -> Retrieved:
+        T = poses_table(self.poses).find(query.name)
+        if T is None:
+            return Retrieved([])
+        cam = (reader.xyz @ np.asarray(T)[:, :3].T) + np.asarray(T)[:, 3]
+        f, (cx, cy) = query.camera.focals(), query.camera.principal_point()
+        fx, fy = f[0], f[-1]
+        z = np.maximum(cam[:, 2], 1e-9)
+        u, v = fx * cam[:, 0] / z + cx, fy * cam[:, 1] / z + cy
+        seen = (cam[:, 2] > 0) & (u >= 0) & (u < query.camera.width) & (v >= 0) & (v < query.camera.height)
+        ids = [i for i in (candidates if candidates is not None else range(len(reader.names))) if reader.usable(i)]
+        counts = np.array([np.count_nonzero(seen[reader.image_points(i)]) for i in ids], dtype=np.float64)
+        order = [j for j in np.argsort(-counts, kind="stable") if counts[j] > 0][:self.k]
+        return Retrieved([ids[j] for j in order], counts[order] / max(counts.max(initial=0.0), 1.0))

@@ -376,3 +376,44 @@ def _group_alive(pgid: int) -> bool:
         return True
     except ProcessLookupError:
         return False
+
+
+def test_covisible_retrieval_ranks_the_map_images_by_the_points_they_see_in_view(seven_scenes, tmp_path):
+    """A retrieval method added as a newcomer adds one: ``covisible`` ranks the map images by the map
+    points they observe inside the query's view at a prior pose (a poses file): a query's ranking
+    follows the counts of points in view, and a map image given its own pose sees all the points it
+    observes and retrieves images of its own sequence (the stairs' two are 50 deg apart)."""
+    from pipeline.localization.retrieval import RETRIEVERS, Covisible, poses_table, retrieve
+    from pipeline.mapping.readers.sources import as_query
+    from pipeline.store.info import map_images
+    from pipeline.store.reader import MapReader
+    from workflows.benchmarks.verification import write_priors
+    job, queries = seven_scenes
+    assert RETRIEVERS["covisible"] is Covisible
+    images = map_images(job.store)
+    own = [as_query(im) for im in images]
+    poses = tmp_path / "priors.txt"
+    write_priors(poses, {q.name: np.asarray(q.cam_from_world_gt) for q in queries + own})
+    conf = Covisible(k=len(images), poses=str(poses))
+    conf.validate()
+    reader = MapReader(job.store, job.features)
+    def in_view(q):
+        T = np.asarray(poses_table(str(poses)).find(q.name))  # as the method reads it
+        cam = reader.xyz @ T[:, :3].T + T[:, 3]
+        f, (cx, cy) = q.camera.focals(), q.camera.principal_point()
+        u, v = f[0] * cam[:, 0] / cam[:, 2] + cx, f[-1] * cam[:, 1] / cam[:, 2] + cy
+        return (cam[:, 2] > 0) & (u >= 0) & (u < q.camera.width) & (v >= 0) & (v < q.camera.height)
+    for k, q in enumerate(own):
+        found = retrieve(conf, reader, q, lambda: None)
+        assert in_view(q)[reader.image_points(k)].mean() > 0.98
+        assert [reader.names[i].split("/")[0] for i in found.dbs[:3]] == [q.name.split("/")[0]] * 3
+    for q in queries:
+        found, seen = retrieve(conf, reader, q, lambda: None), in_view(q)
+        counts = [int(seen[reader.image_points(i)].sum()) for i in found.dbs]
+        assert found.dbs and counts == sorted(counts, reverse=True) and counts[-1] > 0
+        assert np.allclose(found.similarity, np.asarray(counts) / counts[0])
+    records = run_sync(plan_localization(dataclasses.replace(job, retrieval=conf), queries[:2], tmp_path / "run"))
+    assert all(r["references"] for r in records)
+    missing = dataclasses.replace(job, retrieval=Covisible(poses=str(tmp_path / "none.txt")))
+    with pytest.raises(ValueError, match="does not exist"):
+        plan_localization(missing, queries, tmp_path / "none")
