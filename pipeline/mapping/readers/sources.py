@@ -278,6 +278,40 @@ class Transforms(PosedFormat):
         return read_transforms(path), path.parent
 
 
+@SOURCES.register("posetable")
+@dataclass(frozen=True)
+class PoseList(PosedFormat):
+    """A plain list of ``NAME QW QX QY QZ TX TY TZ`` (cam_from_world, COLMAP convention; an optional
+    ninth field: the image's camera id) with a COLMAP ``cameras.txt`` beside it (``CAMERA_ID MODEL
+    WIDTH HEIGHT PARAMS...``): one camera for every image, or the one each line names."""
+
+    help: ClassVar[str] = ("a list of NAME QW QX QY QZ TX TY TZ [CAMERA_ID] with a COLMAP cameras.txt beside it "
+                           "(images: --images, default the list's folder)")
+
+    def read(self, path, images):
+        from pipeline.textfiles import InputError, data_lines, pose_from_line
+        cameras_file, root = path.parent / "cameras.txt", Path(images) if images else path.parent
+        cameras = {}
+        for line_no, fields in data_lines(cameras_file, "COLMAP cameras file"):
+            try:
+                cameras[fields[0]] = CameraRecord(fields[1], int(fields[2]), int(fields[3]),
+                                                  tuple(float(v) for v in fields[4:]))
+            except (IndexError, ValueError):
+                raise InputError(f"{cameras_file}:{line_no}: expected 'CAMERA_ID MODEL WIDTH HEIGHT PARAMS...', "
+                                 f"got {' '.join(fields)!r}") from None
+        found = []
+        for line_no, (name, *fields) in data_lines(path, "pose list"):
+            where = f"{path}:{line_no}"
+            camera_id = fields.pop() if len(fields) == 8 else next(iter(cameras)) if len(cameras) == 1 else None
+            if camera_id not in cameras:
+                raise InputError(f"{where}: " + (f"camera {camera_id} is not in {cameras_file}" if camera_id else
+                                                 f"{cameras_file} holds {len(cameras)} cameras: give each image's "
+                                                 "camera id after its pose"))
+            found.append(ImageRecord(name, root / name, cameras[camera_id], pose_from_line(fields, where),
+                                     origin=where))
+        return found, root
+
+
 @SOURCES.register("7scenes")
 @dataclass(frozen=True)
 class SevenScenes(SourceFormat):
