@@ -152,7 +152,9 @@ class LocalizationPlan:
                 f"{self.job.store}\n"
                 f"  to run  {count(c['to_run'], 'query')} ({count(c['retried'], 'failure')} retried); reused "
                 f"{count(c['reused_queries'], 'query')}, {count(c['reused_shards'], 'finished shard')}\n"
-                f"  output  {self.output}\n  model   {self.job.model}")
+                f"  output  {self.output}\n  model   {self.job.model}\n  prior   {self.job.prior.name}"
+                + (f" from {self.job.retrieval.name} retrieval (k={self.job.retrieval.k})" if self.job.prior.retrieves
+                   else ""))
 
 
 OURS = {"job.json", LOCK, "shards", "retrieval", "pixloc.log"}  # what a run writes before its first shard is done
