@@ -7,6 +7,7 @@ a name written with fewer folders (a bare file name, or ``camera/file``) matches
 path ends with it, only where that is unambiguous (``PoseTable.find``).
 """
 
+import functools
 import json
 import logging
 import os
@@ -190,6 +191,12 @@ def read_poses(path) -> PoseTable:
         poses[name] = pose_from_line(fields, where)
         first[name] = line_no
     return PoseTable(poses, path)
+
+
+@functools.lru_cache(maxsize=4)
+def poses_file(path: str) -> PoseTable:
+    """A poses file (priors), read once per process (``read_poses``)."""
+    return read_poses(path)
 
 
 def warn_partial_matches(table: PoseTable, names: List[str], what: str) -> None:

@@ -40,7 +40,7 @@ from pipeline.localization.sift import FALLBACK, SiftConfig, sift_pnp
 from pipeline.localization.search import Hypotheses, SearchConfig, hypotheses, median_depth
 from pipeline.registry import Registry, check_inputs
 from pipeline.settings import Flag
-from pipeline.textfiles import NameIndex, PoseTable, find_by_name, read_poses
+from pipeline.textfiles import NameIndex, find_by_name, poses_file
 
 logger = logging.getLogger(__name__)
 
@@ -185,12 +185,6 @@ class Search(PriorSettings):
 
     def prepare(self, s: Start) -> Prepared:
         return search_starts(s, self.search)
-
-
-@functools.lru_cache(maxsize=2)
-def poses_file(path: str) -> PoseTable:
-    """A poses file (priors), read once per process (``pipeline.textfiles.read_poses``)."""
-    return read_poses(path)
 
 
 @PRIORS.register("poses")

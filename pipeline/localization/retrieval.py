@@ -31,7 +31,7 @@ from pipeline.store.reader import MapReader, by_name
 from pipeline.queries import QueryRecord
 from pipeline.registry import Registry, check_inputs
 from pipeline.settings import Flag
-from pipeline.textfiles import InputError, PoseTable, read_pairs, read_poses
+from pipeline.textfiles import InputError, poses_file, read_pairs
 
 logger = logging.getLogger(__name__)
 
@@ -209,12 +209,6 @@ def retrieve(conf: RetrievalSettings, reader: MapReader, query: QueryRecord,
     return conf.rank(reader, query, describe, candidates)
 
 
-@functools.lru_cache(maxsize=2)
-def poses_table(path: str) -> PoseTable:
-    """A poses file, read once per process (``pipeline.textfiles.read_poses``)."""
-    return read_poses(path)
-
-
 @RETRIEVERS.register("covisible")
 @dataclass(frozen=True)
 class Covisible(RetrievalSettings):
@@ -232,10 +226,10 @@ class Covisible(RetrievalSettings):
 
     def validate(self) -> None:
         super().validate()
-        poses_table(self.poses)  # read in full now: a bad line is one clear error (file:line)
+        poses_file(self.poses)  # read in full now: a bad line is one clear error (file:line)
 
     def rank(self, reader, query, describe, candidates) -> Retrieved:
-        T = poses_table(self.poses).find(query.name)
+        T = poses_file(self.poses).find(query.name)
         if T is None:
             return Retrieved([])
         cam = (reader.xyz @ np.asarray(T)[:, :3].T) + np.asarray(T)[:, 3]

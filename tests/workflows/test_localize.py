@@ -383,7 +383,8 @@ def test_covisible_retrieval_ranks_the_map_images_by_the_points_they_see_in_view
     points they observe inside the query's view at a prior pose (a poses file): a query's ranking
     follows the counts of points in view, and a map image given its own pose sees all the points it
     observes and retrieves images of its own sequence (the stairs' two are 50 deg apart)."""
-    from pipeline.localization.retrieval import RETRIEVERS, Covisible, poses_table, retrieve
+    from pipeline.localization.retrieval import RETRIEVERS, Covisible, retrieve
+    from pipeline.textfiles import poses_file
     from pipeline.mapping.readers.sources import as_query
     from pipeline.store.info import map_images
     from pipeline.store.reader import MapReader
@@ -398,7 +399,7 @@ def test_covisible_retrieval_ranks_the_map_images_by_the_points_they_see_in_view
     conf.validate()
     reader = MapReader(job.store, job.features)
     def in_view(q):
-        T = np.asarray(poses_table(str(poses)).find(q.name))  # as the method reads it
+        T = np.asarray(poses_file(str(poses)).find(q.name))  # as the method reads it
         cam = reader.xyz @ T[:, :3].T + T[:, 3]
         f, (cx, cy) = q.camera.focals(), q.camera.principal_point()
         u, v = f[0] * cam[:, 0] / cam[:, 2] + cx, f[-1] * cam[:, 1] / cam[:, 2] + cy
