@@ -1,6 +1,6 @@
 """Where a query's refinement starts: the registry ``PRIORS`` (the job's ``prior`` and the command
-line's choices come from it). An entry is its settings dataclass: ``prepare(start) -> Prepared``
-gives the query's candidates (``pipeline.localization.refine.Candidate``, several for
+line's choices come from it). An entry is its settings dataclass: ``start(start, references) ->
+Prepared`` (``prepare(start)`` for a prior that retrieves nothing) gives the query's candidates (``pipeline.localization.refine.Candidate``, several for
 ``hypotheses`` and ``search``), or its failure with the reason.
 
 - ``top1``: the pose of the best reference (official PixLoc retrieval default);
@@ -87,6 +87,13 @@ class PriorSettings:
     inputs: ClassVar[Tuple[str, ...]] = ()
 
     def prepare(self, s: Start) -> Prepared:
+        """The query's starts from its references (``start``), or its failure where it has none."""
+        r = s.references()
+        if not r.dbs:
+            return failure(s.query, NO_MATCH)
+        return self.start(s, r)
+
+    def start(self, s: Start, r: Retrieved) -> Prepared:
         raise NotImplementedError
 
     def validate(self) -> None:
@@ -109,10 +116,7 @@ class Top1(PriorSettings):
     help: ClassVar[str] = "the pose of the best reference"
     rivals: ClassVar[bool] = True
 
-    def prepare(self, s: Start) -> Prepared:
-        r = s.references()
-        if not r.dbs:
-            return failure(s.query, NO_MATCH)
+    def start(self, s: Start, r: Retrieved) -> Prepared:
         return [s.candidate(r.dbs[:s.num_dbs], s.reader.cam_from_world[r.dbs[0]], "top-1 reference")]
 
 
@@ -130,10 +134,7 @@ class Average(PriorSettings):
     help: ClassVar[str] = "the references' covisibility cluster, its poses averaged"
     rivals: ClassVar[bool] = True
 
-    def prepare(self, s: Start) -> Prepared:
-        r = s.references()
-        if not r.dbs:
-            return failure(s.query, NO_MATCH)
+    def start(self, s: Start, r: Retrieved) -> Prepared:
         cluster, prior = average_pose(s, r)
         return [s.candidate(cluster, prior, "average pose")]
 
@@ -151,20 +152,14 @@ class ReferenceHypotheses(PriorSettings):
         if self.num_hypotheses < 1:
             raise ValueError("num_hypotheses must be at least 1.")
 
-    def prepare(self, s: Start) -> Prepared:
-        r = s.references()
-        if not r.dbs:
-            return failure(s.query, NO_MATCH)
+    def start(self, s: Start, r: Retrieved) -> Prepared:
         dbs = r.dbs[:s.num_dbs]
         return [s.candidate(dbs, s.reader.cam_from_world[i], f"reference {n + 1}")
                 for n, i in enumerate(r.dbs[:self.num_hypotheses])]
 
 
-def search_starts(s: Start, conf: SearchConfig) -> Prepared:
-    """The search's starts (``pipeline.localization.search``) around the query's references."""
-    r = s.references()
-    if not r.dbs:
-        return failure(s.query, NO_MATCH)
+def search_starts(s: Start, r: Retrieved, conf: SearchConfig) -> Prepared:
+    """The search's starts (``pipeline.localization.search``) around the query's references ``r``."""
     prior = average_pose(s, r)[1] if conf.average else None
     starts = hypotheses(s.reader, r.dbs, conf, prior)
     # always refined: the top-1 pose (first) and the average pose (first of the last block)
@@ -183,8 +178,8 @@ class Search(PriorSettings):
     def validate(self) -> None:
         self.search.validate()
 
-    def prepare(self, s: Start) -> Prepared:
-        return search_starts(s, self.search)
+    def start(self, s: Start, r: Retrieved) -> Prepared:
+        return search_starts(s, r, self.search)
 
 
 @PRIORS.register("poses")
@@ -203,10 +198,7 @@ class OtherPipeline(PriorSettings):
         super().validate()
         poses_file(self.prior_poses)
 
-    def prepare(self, s: Start) -> Prepared:
-        r = s.references()
-        if not r.dbs:
-            return failure(s.query, NO_MATCH)
+    def start(self, s: Start, r: Retrieved) -> Prepared:
         dbs = r.dbs[:s.num_dbs]
         prior = poses_file(self.prior_poses).find(s.query.name)
         if prior is None:
@@ -306,15 +298,12 @@ class Sift(PriorSettings):
         self.search.validate()
         self.sift.validate()
 
-    def prepare(self, s: Start) -> Prepared:
-        r = s.references()
-        if not r.dbs:
-            return failure(s.query, NO_MATCH)
+    def start(self, s: Start, r: Retrieved) -> Prepared:
         dbs = r.dbs[:s.num_dbs]
         found = sift_pnp(s.reader, dbs, s.rgb, s.query.camera, self.sift)
         if found.pose is None:
             note = f"{found.describe()}: fewer than {self.sift.min_inliers} inliers, {FALLBACK}"
-            return search_starts(replace(s, query=replace(s.query, notes=s.query.notes + (note,))), self.search)
+            return search_starts(replace(s, query=replace(s.query, notes=s.query.notes + (note,))), r, self.search)
         noted = replace(s, query=replace(s.query, notes=s.query.notes + (found.describe(),)))
         return [noted.candidate(dbs, found.pose, "SIFT PnP pose", levels=self.sift.levels)]
 
@@ -333,10 +322,7 @@ class PnP(PriorSettings):
     def validate(self) -> None:
         self.sift.validate()
 
-    def prepare(self, s: Start) -> Prepared:
-        r = s.references()
-        if not r.dbs:
-            return failure(s.query, NO_MATCH)
+    def start(self, s: Start, r: Retrieved) -> Prepared:
         refs = [s.reader.names[i] for i in r.dbs[:s.num_dbs]]
         found = sift_pnp(s.reader, r.dbs[:s.num_dbs], s.rgb, s.query.camera, self.sift)
         notes = list(s.query.notes) + [found.describe()]
