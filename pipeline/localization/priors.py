@@ -1,7 +1,8 @@
 """Where a query's refinement starts: the registry ``PRIORS`` (the job's ``prior`` and the command
 line's choices come from it). An entry is its settings dataclass: ``start(start, references) ->
-Prepared`` (``prepare(start)`` for a prior that retrieves nothing) gives the query's candidates (``pipeline.localization.refine.Candidate``, several for
-``hypotheses`` and ``search``), or its failure with the reason.
+Prepared`` (``prepare(start)`` for a prior that retrieves nothing) gives the query's candidates
+(``pipeline.localization.refine.Candidate``, several for ``hypotheses`` and ``search``), or its
+failure with the reason.
 
 - ``top1``: the pose of the best reference (official PixLoc retrieval default);
 - ``average``: the references' covisibility cluster averaged (``pipeline.localization.pose_averaging``);

@@ -4,6 +4,7 @@ consolidated copies that readers open fast. A group's ``status`` is per image: p
 failed (with a reason)."""
 
 import functools
+from dataclasses import fields
 from pathlib import Path
 from typing import Callable, Dict, List, Optional, Tuple
 
@@ -26,10 +27,14 @@ def _file_digest(path: str, size: int, mtime_ns: int) -> str:
     return file_sha256(path)[:8]  # cached while the file keeps its size and time
 
 
+KEYED = ("model", "resize", "image_scales", "pad", "dtype", "descriptor", "pca", "sift")  # named in every key
+
+
 def feature_key(conf: FeatureConfig) -> str:
     """The store group of a feature config: derived from it, so two configs never share one.
     A model file is named by its stem and the digest of its bytes: two different ``model.pt``
-    files never share a group."""
+    files never share a group. A setting added to ``FeatureConfig`` later is named only where it
+    differs from its default: the groups made before it keep their keys."""
     name = conf.model
     if Path(conf.model).suffix:
         path = Path(conf.model)
@@ -42,7 +47,9 @@ def feature_key(conf: FeatureConfig) -> str:
     descriptor = "" if conf.descriptor == DEFAULT_DESCRIPTOR else f"_{conf.descriptor}"
     pca = f"_pca{conf.pca}" if conf.pca else ""
     sift = f"_sift{conf.sift}" if conf.sift else ""
-    return f"{name}_r{conf.resize}_s{scales}_p{conf.pad}{dtype}{descriptor}{pca}{sift}"
+    later = "".join(f"_{f.name}{getattr(conf, f.name)}" for f in fields(conf)
+                    if f.name not in KEYED and getattr(conf, f.name) != f.default)
+    return f"{name}_r{conf.resize}_s{scales}_p{conf.pad}{dtype}{descriptor}{pca}{sift}{later}"
 
 
 def descriptor_dim(kind: str, channels: int) -> int:
