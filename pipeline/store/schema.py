@@ -86,7 +86,7 @@ class FeatureConfig:
         """Whether a group whose attributes record ``recorded`` (``to_dict`` of this or an earlier
         version) was made with this config."""
         try:
-            return isinstance(recorded, dict) and FeatureConfig.from_dict(recorded) == self
+            return isinstance(recorded, dict) and type(self).from_dict(recorded) == self
         except (ValueError, TypeError):
             return False
 

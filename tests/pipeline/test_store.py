@@ -355,3 +355,15 @@ def test_a_finished_build_is_consolidated_for_fast_opening(built, maupertuis, tm
     write_structure(maupertuis, partial, CONF)
     extract_features(partial, CONF, [0])  # a build under way (or killed): not consolidated
     assert not MapReader(partial, CONF).static and MapReader(partial, CONF).usable(0)
+
+
+def test_a_feature_setting_added_later_keeps_the_keys_of_earlier_groups():
+    """Before: a new FeatureConfig field needed its own line in feature_key, or two configs that differ
+    in it shared one group; now it is named where it differs from its default, and a group recorded
+    without it reads as made with its default."""
+    @dataclasses.dataclass(frozen=True)
+    class Later(FeatureConfig):
+        blur: int = 0
+    assert feature_key(Later()) == feature_key(FeatureConfig())
+    assert feature_key(Later(blur=2)) == feature_key(FeatureConfig()) + "_blur2"
+    assert Later().made(FeatureConfig().to_dict()) and not Later(blur=2).made(FeatureConfig().to_dict())
