@@ -57,14 +57,15 @@ class MapReader:
             raise StoreError(f"{path} has no features for {conf.to_dict()} (it has: {available or 'none'}).")
         self.group = root[key]
         if not conf.made(self.group.attrs.get("config")):
+            check_feature_group(self.group, meta, path)  # a damaged record is named as such
             raise StoreError(f"{path}: features {key} were made with {self.group.attrs.get('config')}.")
         check_feature_group(self.group, meta, path)
+        self.dims: List[int] = list(self.group.attrs["dims"])
+        self.stored_dims = stored_dims(self.group)
         if digest is not None and self.group.attrs.get("model_digest") != digest:
             raise StoreError(f"{path}: features were made with model {self.group.attrs.get('model_digest')}, "
                              f"not the localizer's {digest}: rebuild the map with this model.")
         self.conf = conf
-        self.dims: List[int] = list(self.group.attrs["dims"])
-        self.stored_dims = stored_dims(self.group)
 
         def read(group, name):
             try:

@@ -134,7 +134,7 @@ def test_a_demo_folder_of_another_job_is_redone_not_refused(demo, demo_dir, tmp_
     assert "every image already had its features" in text
     assert summary["all"]["refined"]["count"] == 12
     job = json.loads((out / "localization" / "job.json").read_text())
-    assert job["job"]["localizer"]["num_iters"] == 40 and job["job"]["prior"] == "sift"
+    assert job["job"]["localizer"]["num_iters"] == 40 and job["job"]["prior"]["name"] == "sift"
     records = read_records(out / "localization" / "records.jsonl")
     assert sum(r["notes"][0].startswith("SIFT PnP: ") and "search prior instead" not in r["notes"][0]
                for r in records) >= 8  # 9 of the 12 (2026-12-05)
