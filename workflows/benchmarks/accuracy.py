@@ -321,7 +321,7 @@ def main(args: argparse.Namespace) -> int:
     lconf = LocalizerConfig(num_dbs=3, num_iters=50)
     args.work.mkdir(parents=True, exist_ok=True)
     settings = args.work / "features.json"  # one work folder, one feature setting: its maps hold one group
-    if settings.exists() and json.loads(settings.read_text()) != fconf.to_dict():
+    if settings.exists() and not fconf.made(json.loads(settings.read_text())):  # as recorded by any version
         raise SystemExit(f"pixloc: error: {args.work} holds maps of features {settings.read_text().strip()}, "
                          f"not {json.dumps(fconf.to_dict())} (--resize, --sift, --dtype, --pca): give another --work")
     settings.write_text(json.dumps(fconf.to_dict()) + "\n")
