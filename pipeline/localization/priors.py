@@ -103,10 +103,6 @@ class PriorSettings:
         query."""
         check_inputs(self, f"--prior {self.name}")
 
-    def files(self) -> List[str]:
-        """The input files the prior reads."""
-        return [getattr(self, name) for name in self.inputs if getattr(self, name)]
-
 
 PRIORS = Registry("prior")
 

@@ -58,10 +58,6 @@ class RetrievalSettings:
             raise ValueError("retrieval k must be at least 1.")
         check_inputs(self, f"Retrieval {self.name}")
 
-    def files(self) -> List[str]:
-        """The input files the method reads."""
-        return [getattr(self, name) for name in self.inputs if getattr(self, name)]
-
     def check(self, map_names: List[str]) -> None:
         """Checks against the map, once before any query (an input that matches none of its images)."""
 
