@@ -72,6 +72,10 @@ FLAGS = {
     "--rival-sharper-by": Flag("localizer.verification.sharper_by", "verification: a rival verified elsewhere does "
                                "not reject a pose whose cost is this many times sharper (3 px contrast) than the "
                                "rival's (0: every such rival rejects it)"),
+    "--max-keypoint-chi2": Flag("localizer.verification.max_keypoint_chi2", "verification: where a start comes "
+                                "from PnP, a refined pose that raises its inliers' chi-square by more than this is "
+                                "replaced by the PnP pose (e.g. 16.8: the 0.99 quantile of 6 degrees of freedom; "
+                                "default 0: never)"),
     "--no-verify": Flag("localizer.verification.enabled", "report every converged refinement as a success (official "
                         "PixLoc behaviour)", value=False),
     "--network-precision": Flag("localizer.network_precision", "the query's network pass in bfloat16 (a query's CPU "

@@ -51,6 +51,19 @@ class QueryCache:
         return self.passes[k]
 
 
+@dataclass(frozen=True, eq=False)
+class Keypoints:
+    """A start's 2D-3D evidence (a PnP pose's inliers): keypoints ``xy`` (M, 2) in COLMAP pixels of the
+    query image, their map points ``xyz`` (M, 3), their reprojection error's scale at the start (``scale``,
+    pixels: ``pixloc.optim.keypoints.residual_scale``), and the ``weight`` of their reprojection term in the
+    refinement's cost (0: the features alone; verification still reads how far the refined pose left them)."""
+
+    xy: np.ndarray
+    xyz: np.ndarray
+    scale: float
+    weight: float = 1.0
+
+
 @dataclass
 class Candidate:
     """One start of a query's refinement: the references ``dbs`` (map image indices), the start
@@ -61,7 +74,9 @@ class Candidate:
     (``pipeline.localization.search.rival_starts``), stopped where it joins one of its query's own
     starts (those of the same query; ``Localizer.localize_batch``); ``levels``: the levels this
     start is refined on, of the localizer's (refinement mode for a pose from another method: the two
-    finest); it always ends at the localizer's finest level, whose evidence verification reads."""
+    finest); it always ends at the localizer's finest level, whose evidence verification reads;
+    ``keypoints``: the 2D-3D matches that support the start (``Keypoints``), whose reprojection error the
+    refinement adds to its cost and verification reads."""
 
     query: QueryRecord
     dbs: List[int]
@@ -72,3 +87,4 @@ class Candidate:
     origin: str = "prior"
     rival: bool = False
     levels: Optional[Sequence[int]] = None
+    keypoints: Optional[Keypoints] = None

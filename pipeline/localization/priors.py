@@ -31,7 +31,7 @@ from typing import Callable, ClassVar, Dict, List, Optional, Tuple, Union
 
 import numpy as np
 
-from pipeline.localization.refine import Candidate, QueryCache, QueryResult
+from pipeline.localization.candidates import Candidate, Keypoints, QueryCache, QueryResult
 from pipeline.store.reader import MapReader
 from pipeline.localization.pose_averaging import covisibility_clusters, pose_approximation
 from pipeline.queries import QueryRecord
@@ -62,9 +62,10 @@ class Start:
     num_dbs: int
 
     def candidate(self, dbs: List[int], prior: np.ndarray, origin: str,
-                  selected: Optional[np.ndarray] = None, levels: Optional[Tuple[int, ...]] = None) -> Candidate:
+                  selected: Optional[np.ndarray] = None, levels: Optional[Tuple[int, ...]] = None,
+                  keypoints: Optional[Keypoints] = None) -> Candidate:
         return Candidate(self.query, list(dbs), np.asarray(prior, np.float64), self.rgb, self.cache, selected, origin,
-                         levels=levels)
+                         levels=levels, keypoints=keypoints)
 
 
 def failure(query: QueryRecord, reason: str, prior=None, refs=None) -> QueryResult:
@@ -280,20 +281,28 @@ class Hloc(PriorSettings):
 @dataclass(frozen=True)
 class Sift(PriorSettings):
     """The SIFT + PnP pose, refined; the search prior (``search``) where PnP fails. Each query's
-    notes say which."""
+    notes say which. keypoint_weight: the weight of the PnP inliers' reprojection error in the
+    refinement's cost, beside the featuremetric cost, each normalised by its residual scale
+    (``pixloc.optim.keypoints``; 0: the features alone, as the official refinement of PnP poses)."""
 
     sift: SiftConfig = SiftConfig()
     search: SearchConfig = SearchConfig()
+    keypoint_weight: float = 1.0
     help: ClassVar[str] = "SIFT matches to the references and PnP (the search where PnP fails)"
     flags: ClassVar[Dict[str, Flag]] = {
         "--sift-min-inliers": Flag("sift.min_inliers", "with --prior sift: PnP inliers a pose needs"),
         "--sift-max-size": Flag("sift.max_size", "with --prior sift: longer image side of SIFT extraction"),
         "--sift-levels": Flag("sift.levels", "with --prior sift: the levels a PnP pose is refined on (the two "
-                              "finest, as the official refinement of PnP poses; 0 1 2: every level)")}
+                              "finest, as the official refinement of PnP poses; 0 1 2: every level)"),
+        "--sift-keypoint-weight": Flag("keypoint_weight", "with --prior sift: the weight of the PnP inliers' "
+                                       "reprojection error in the refinement, beside the features (0: features "
+                                       "alone)")}
 
     def validate(self) -> None:
         self.search.validate()
         self.sift.validate()
+        if not self.keypoint_weight >= 0:
+            raise ValueError(f"keypoint_weight must not be negative, not {self.keypoint_weight}.")
 
     def start(self, s: Start, r: Retrieved) -> Prepared:
         dbs = r.dbs[:s.num_dbs]
@@ -302,7 +311,8 @@ class Sift(PriorSettings):
             note = f"{found.describe()}: fewer than {self.sift.min_inliers} inliers, {FALLBACK}"
             return search_starts(replace(s, query=replace(s.query, notes=s.query.notes + (note,))), r, self.search)
         noted = replace(s, query=replace(s.query, notes=s.query.notes + (found.describe(),)))
-        return [noted.candidate(dbs, found.pose, "SIFT PnP pose", levels=self.sift.levels)]
+        keypoints = replace(found.keypoints, weight=self.keypoint_weight)
+        return [noted.candidate(dbs, found.pose, "SIFT PnP pose", levels=self.sift.levels, keypoints=keypoints)]
 
 
 @PRIORS.register("pnp")

@@ -23,6 +23,7 @@ from pixloc.geometry import Camera, Pose, relative_motion
 from pixloc.optim import (FeaturemetricProblem, LevenbergMarquardt, alignment_contrast, alignment_evidence,
                           alignment_uncertainty)
 from pixloc.optim.cost import new_query_maps
+from pixloc.optim.keypoints import KeypointTerm
 from pixloc.nets.unet import NETWORK_PRECISIONS, UNet, predict_in_precision
 
 from pipeline.images import ImageReadError, read_image_for, resize_max, to_tensor
@@ -30,8 +31,8 @@ from pipeline import kernels
 from pipeline.localization.finest import FinestFill, level_like, level_shape, write_level
 from pipeline.store.reader import MapReader, Observations, StoreReadError
 from pipeline.queries import QueryRecord
-from pipeline.localization.candidates import Candidate, QueryCache, QueryResult  # noqa: F401 (named here before)
-from pipeline.localization.verify import VerificationConfig, verify
+from pipeline.localization.candidates import Candidate, Keypoints, QueryCache, QueryResult  # noqa: F401
+from pipeline.localization.verify import VerificationConfig, keep_start, verify
 
 logger = logging.getLogger(__name__)
 # pixels at the finest level of the contrast that verification reads (pixloc.optim.evidence); the
@@ -85,7 +86,7 @@ class LevelState:
     ``T``, the reference features of the image scale being run (``refs``), whether it is still
     ``active``, its own seconds (``t_own``) and the result being filled; for a rival start, its
     query's own starts' poses at the end of each level (``own``: (image scale, level) -> 3 x 4 pose);
-    the ``levels`` it is refined on."""
+    the ``levels`` it is refined on; the 2D-3D matches that support its start (``keypoints``)."""
 
     query: QueryRecord
     rgb: Optional[np.ndarray]
@@ -99,6 +100,7 @@ class LevelState:
     refs: Optional[Tuple] = None
     own: Optional[List[Dict[Tuple[int, int], np.ndarray]]] = None
     levels: Sequence[int] = ()
+    keypoints: Optional[Keypoints] = None
 
 
 def own_solvers(solvers: Sequence[LevenbergMarquardt], compiled: bool) -> List[LevenbergMarquardt]:
@@ -240,7 +242,8 @@ class Localizer:
             result = self._unrefined(c)
             levels = self.levels if c.levels is None else sorted(set(c.levels) & set(self.levels) | {self.levels[-1]},
                                                                   reverse=True)
-            st = LevelState(query, c.rgb, QueryCache() if c.cache is None else c.cache, result, levels=levels)
+            st = LevelState(query, c.rgb, QueryCache() if c.cache is None else c.cache, result, levels=levels,
+                            keypoints=c.keypoints)
             states.append(st)
             try:
                 seen = self.reader.observations(c.dbs, 1, c.selected)
@@ -326,6 +329,10 @@ class Localizer:
                 result.confidence, reason = verify(result.evidence, self.conf.verification)
                 result.success = reason is None
                 result.reason = reason or ""
+                kept = keep_start(result.evidence, self.conf.verification) if result.success else None
+                if kept:  # the refinement left the keypoints' support: their pose is reported
+                    result.refined = np.asarray(result.prior, np.float64)
+                    result.notes.append(kept)
             result.timings["total"] = st.t_own  # its own work, plus its share of the batched LM
         return [st.result for st in states]
 
@@ -406,8 +413,9 @@ class Localizer:
                                        torch.stack(mask).to(device), maps=maps,
                                        fill=FinestFill(maps, deferred) if deferred else None)
         T = Pose.stack([st.T for st in group]).to(device)
+        keypoints = keypoint_term(group)
         solver = self.solvers[level]
-        lm = solver(problem, T, num_iters=self.conf.num_iters)
+        lm = solver(problem, T, num_iters=self.conf.num_iters, keypoints=keypoints)
         start = alignment_evidence(problem, T, solver.loss_fn, solver.interpolator)
         end = alignment_evidence(problem, lm.pose, solver.loss_fn, solver.interpolator)
         contrast = {}
@@ -436,6 +444,31 @@ class Localizer:
                 result.evidence = evidence_summary(result.per_level, {key: float(v[b]) for key, v in contrast.items()},
                     np.asarray(result.prior), st.T.to_matrix(orthonormal=True),
                     problem.p3d_world[b][problem.mask[b]].cpu().numpy())
+                if st.keypoints is not None:  # how far the refined pose left the keypoints' support
+                    one = keypoints.index(slice(b, b + 1))
+                    result.evidence["keypoint_chi2"] = float(one.chi2(st.T[None]) - one.chi2(st.prior_T[None]))
+                    result.evidence["keypoints"] = float(len(st.keypoints.xy))
+
+
+def keypoint_term(group: List[LevelState]) -> Optional[KeypointTerm]:
+    """The keypoint term of a batch (``pixloc.optim.keypoints``) where one of its candidates has keypoints:
+    their reprojection in each query's own camera, padded to a common count (weight 0 where none)."""
+    if all(st.keypoints is None for st in group):
+        return None
+    m = max(len(st.keypoints.xy) if st.keypoints is not None else 0 for st in group)
+    B = len(group)
+    p3d, p2d, mask = torch.zeros(B, m, 3), torch.zeros(B, m, 2), torch.zeros(B, m, dtype=torch.bool)
+    scale, weight = torch.ones(B), torch.zeros(B)
+    for b, st in enumerate(group):
+        if st.keypoints is not None:
+            k = st.keypoints
+            n = len(k.xy)
+            p3d[b, :n] = torch.from_numpy(np.asarray(k.xyz, np.float32))
+            p2d[b, :n] = torch.from_numpy(np.asarray(k.xy, np.float32)) - 0.5  # pixloc's pixel centres
+            mask[b, :n] = True
+            scale[b], weight[b] = k.scale, k.weight
+    cameras = Camera.stack([st.query.camera.to_pixloc() for st in group])
+    return KeypointTerm(p3d, p2d, cameras, scale, mask, weight)
 
 
 def evidence_summary(per_level: List[Dict], contrast: Dict[str, float],

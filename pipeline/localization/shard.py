@@ -20,7 +20,7 @@ from pipeline.images import ImageReadError, read_image_for
 from pipeline.localization.refine import Localizer, LocalizerConfig, QueryCache, QueryResult
 from pipeline.store.reader import MapReader, open_reader
 from pipeline.models import localization_model
-from pipeline.localization.priors import PRIORS, PriorSettings, Prepared, Start, Top1, failure
+from pipeline.localization.priors import PRIORS, PriorSettings, Prepared, Sift, Start, Top1, failure
 from pipeline.queries import QueryRecord
 from pipeline.localization.results import read_records, result_to_record, write_records
 from pipeline.localization.retrieval import RETRIEVERS, GlobalDescriptors, RetrievalSettings, retrieve
@@ -44,8 +44,9 @@ class LocalizationJob:
     these of the store's image scales (e.g. (1,) of a [4, 1] store: refinement mode runs the full
     resolution only).
 
-    ``to_dict`` records the schema version; ``from_dict`` reads every earlier version, absent
-    fields at their defaults: a run recorded before a setting existed is the same run.
+    ``to_dict`` records the schema version; ``from_dict`` reads every earlier version: a setting
+    added since is read at the value that the earlier version ran with (``_from_schema_2``), else at
+    its default, so that a run recorded before a setting existed is the run it was.
     """
 
     store: str
@@ -58,7 +59,7 @@ class LocalizationJob:
     levels: Optional[Tuple[int, ...]] = None
     scales: Optional[Tuple[int, ...]] = None
 
-    SCHEMA: ClassVar[int] = 2
+    SCHEMA: ClassVar[int] = 3
 
     def to_dict(self) -> Dict:
         """The job as recorded in job.json (and compared by reruns, after ``from_dict``)."""
@@ -70,9 +71,12 @@ class LocalizationJob:
     def from_dict(cls, d: Dict, where: str = "job") -> "LocalizationJob":
         """The job that ``to_dict`` recorded, of this or an earlier schema (ValueError naming the
         key where it holds something no job has)."""
-        d = dict(d)
-        if d.pop("schema", 1) == 1:
+        d = json.loads(json.dumps(d))  # a deep copy: the recorded dict is not changed
+        schema = d.pop("schema", 1)
+        if schema == 1:
             d = _from_schema_1(d)
+        if schema <= 2:
+            d = _from_schema_2(d)
         retrieval = RETRIEVERS.parse(d.pop("retrieval", {"method": GlobalDescriptors.name}), where)
         prior = PRIORS.parse(d.pop("prior", {"name": Top1.name}), where)
         features = FeatureConfig.from_dict(d.pop("features", {}))
@@ -100,6 +104,15 @@ def _from_schema_1(d: Dict) -> Dict:
     method = RETRIEVERS.entry(retrieval.pop("method", GlobalDescriptors.name))
     return {**d, "prior": {"name": prior.name, **own(prior, flat)},
             "retrieval": {"method": method.name, **own(method, retrieval)}}
+
+
+def _from_schema_2(d: Dict) -> Dict:
+    """A job recorded before the PnP inliers' term (schema 3): a ``sift`` job ran without it and without its
+    gate (the other priors have no keypoints: the new settings change nothing there, they take the defaults)."""
+    if (d.get("prior") or {}).get("name") == Sift.name:
+        d.setdefault("localizer", {}).setdefault("verification", {}).setdefault("max_keypoint_chi2", 0.0)
+        d["prior"].setdefault("keypoint_weight", 0.0)
+    return d
 
 
 def fit_query(query: QueryRecord) -> Tuple[QueryRecord, np.ndarray]:

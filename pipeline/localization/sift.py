@@ -16,8 +16,10 @@ from typing import Dict, List, Optional, Tuple
 import numpy as np
 
 from pipeline.images import ImageReadError, read_image
+from pipeline.localization.candidates import Keypoints
 from pipeline.keypoints import MAX_FEATURES, MAX_GAP, extract_sift, from_uint8, nearest_within
 from pipeline.scene import CameraRecord
+from pixloc.optim.keypoints import residual_scale
 from pipeline.store.reader import MapReader
 
 
@@ -49,13 +51,15 @@ class SiftConfig:
 @dataclass
 class PnPResult:
     """The pose (cam_from_world, 3 x 4) or None, and the evidence: correspondences, inliers,
-    matches per reference."""
+    matches per reference; where a pose was found, its inliers (``keypoints``: their query keypoints in
+    COLMAP pixels, map points and residual scale)."""
 
     pose: Optional[np.ndarray]
     correspondences: int
     inliers: int
     matches: List[int]
     unreadable: List[str] = field(default_factory=list)  # references whose image could not be read, and why
+    keypoints: Optional[Keypoints] = None
 
     def describe(self) -> str:
         """The note a query's record carries (ending in ``FALLBACK`` where the search took over)."""
@@ -156,4 +160,10 @@ def sift_pnp(reader: MapReader, dbs: List[int], rgb: np.ndarray, camera: CameraR
         return PnPResult(None, len(keys), 0, per_ref, unreadable)
     inliers = int(found["num_inliers"])
     pose = np.asarray(found["cam_from_world"].matrix(), np.float64)
-    return PnPResult(pose if inliers >= conf.min_inliers else None, len(keys), inliers, per_ref, unreadable)
+    if inliers < conf.min_inliers:
+        return PnPResult(None, len(keys), inliers, per_ref, unreadable)
+    mask = np.asarray(found["inlier_mask"], bool)
+    xy, xyz = p2d[mask], p3d[mask]
+    projected = cam.img_from_cam(xyz @ pose[:, :3].T + pose[:, 3])
+    return PnPResult(pose, len(keys), inliers, per_ref, unreadable,
+                     Keypoints(xy, xyz, residual_scale(xy, projected)))

@@ -16,6 +16,7 @@ from ..interpolation import Interpolator
 from ..losses import get_loss
 from .cost import FeaturemetricProblem, Linearization, build_system, linearize, robust_weights, use_cell_products
 from .damping import ConstantDamping
+from .keypoints import KeypointTerm, scaled_system
 
 logger = logging.getLogger(__name__)
 
@@ -156,7 +157,8 @@ class LevenbergMarquardt(nn.Module):
                 for begin, stop in runs for i in range(begin, stop, size)]
 
     def _normal_equations(self, T: Pose, chunks):
-        """Per problem: gradient (B, 6), Hessian (B, 6, 6), valid count (B,), mean robust cost (B,)."""
+        """Per problem: gradient (B, 6), Hessian (B, 6, 6), valid count (B,), mean robust cost (B,), and the
+        residuals' scale: the unit-weight variance sum w |r|^2 / valid count (B,), w the LM's weights."""
         out = []
         for sl, part in chunks:
             lin = linearize(T[sl], part, self.interpolator)
@@ -164,12 +166,16 @@ class LevenbergMarquardt(nn.Module):
             rho, weights = robust_weights(lin, self.loss_fn)
             g, H = (self.system_builder or build_system)(lin, weights)
             conf = lin.confidence if lin.confidence is not None else lin.valid.to(rho.dtype)
-            out.append((g, H, num_valid, (rho * conf).sum(-1) / num_valid.clamp(min=1)))
+            n = num_valid.clamp(min=1)
+            out.append((g, H, num_valid, (rho * conf).sum(-1) / n, (weights * lin.sq).sum(-1) / n))
         return [torch.cat(x) for x in zip(*out)] if len(out) > 1 else out[0]
 
     def forward(self, problem: FeaturemetricProblem, T_init: Pose,
-                num_iters: Optional[int] = None, record_trajectory: bool = False) -> LMResult:
-        """Refine T_init (B,) cam_from_world poses on ``problem`` (B problems)."""
+                num_iters: Optional[int] = None, record_trajectory: bool = False,
+                keypoints: Optional[KeypointTerm] = None) -> LMResult:
+        """Refine T_init (B,) cam_from_world poses on ``problem`` (B problems); with ``keypoints``, the
+        cost adds their reprojection error, each term normalised by its residual scale
+        (``pixloc.optim.keypoints``)."""
         B = problem.batch_size
         if tuple(T_init.shape) != (B,):
             raise ValueError(f"T_init must have batch shape ({B},), got {tuple(T_init.shape)}.")
@@ -187,16 +193,21 @@ class LevenbergMarquardt(nn.Module):
         if use_cell_products(problem, self.interpolator):  # built once for the batch; its chunks share them
             _ = problem.cell_products
         chunks, linearized = self._chunks(problem), active
+        scale_f = None  # with keypoints: the featuremetric residuals' scale at the start
+        if keypoints is not None:
+            keypoints = keypoints.to(problem.F_ref.device)
         for i in range(num_iters):
             if linearized is active:
-                g, H, num_valid, cost = self._normal_equations(T, chunks)
+                g, H, num_valid, cost, spread = self._normal_equations(T, chunks)
             else:  # only the problems still running are linearized; the others keep their last figures
                 rows = torch.cat([torch.arange(B, device=device)[sl] for sl, _ in chunks])
-                g_a, H_a, valid_a, cost_a = self._normal_equations(T, chunks)
+                g_a, H_a, valid_a, cost_a, spread_a = self._normal_equations(T, chunks)
                 g = torch.zeros_like(g).index_copy(0, rows, g_a)
                 H = torch.zeros_like(H).index_copy(0, rows, H_a)
                 num_valid = num_valid.index_copy(0, rows, valid_a)
                 cost = cost.index_copy(0, rows, cost_a)
+                spread = spread.index_copy(0, rows, spread_a)
+            g, H, scale_f = scaled_system(scale_f, g, H, keypoints, T, spread)
             failed = failed | (num_valid < self.min_points)
 
             step_mask = active & ~failed

@@ -70,7 +70,7 @@ def test_a_job_recorded_before_a_setting_existed_reads_as_the_same_job():
     from pipeline.mapping.features import FeatureConfig
     job = LocalizationJob("map.zarr", FeatureConfig(), "pixloc-lite0", LocalizerConfig(), GlobalDescriptors())
     recorded = job.to_dict()
-    assert recorded["schema"] == 2 and recorded["prior"] == {"name": "top1"}
+    assert recorded["schema"] == 3 and recorded["prior"] == {"name": "top1"}
     del recorded["localizer"]["network_precision"], recorded["localizer"]["verification"]["rivals"]
     assert LocalizationJob.from_dict(recorded) == job
     half = LocalizationJob("map.zarr", FeatureConfig(), "pixloc-lite0", LocalizerConfig(network_precision="bfloat16"),

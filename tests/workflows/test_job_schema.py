@@ -9,7 +9,9 @@ import sys
 from tests.workflows.test_build_map import KINECT_K, ROOT, build_kinect
 
 DATA = ROOT / "tests" / "workflows" / "data"
-FLAGS = {"top1": [], "sift": ["--prior", "sift", "--sift-min-inliers", "12"]}
+# an earlier sift run had no keypoint term nor its gate (schema 3): it is the run of these settings
+FLAGS = {"top1": [], "sift": ["--prior", "sift", "--sift-keypoint-weight", "0", "--max-keypoint-chi2", "0",
+                              "--sift-min-inliers", "12"]}
 
 
 def test_a_run_recorded_by_the_earlier_schema_reruns_as_a_no_op(shared, tmp_path):
@@ -23,7 +25,7 @@ def test_a_run_recorded_by_the_earlier_schema_reruns_as_a_no_op(shared, tmp_path
         first = subprocess.run(command, capture_output=True, text=True, cwd=ROOT)
         assert first.returncode == 0, first.stderr
         now = json.loads((out / "job.json").read_text())
-        assert now["job"]["schema"] == 2 and now["job"]["prior"]["name"] == name
+        assert now["job"]["schema"] == 3 and now["job"]["prior"]["name"] == name
         text = (DATA / f"job_schema1_{name}.json").read_text()
         earlier = json.loads(text.replace("{STORE}", str(tmp_path / "k.zarr")))
         assert "schema" not in earlier["job"] and earlier["job"]["prior"] == name
@@ -32,8 +34,12 @@ def test_a_run_recorded_by_the_earlier_schema_reruns_as_a_no_op(shared, tmp_path
         again = subprocess.run(command, capture_output=True, text=True, cwd=ROOT)
         assert again.returncode == 0, again.stderr
         assert "5 of 5 queries already done" in again.stdout and "nothing to do" in again.stdout, again.stdout
-        if name == "sift":  # a setting that differs is still another run, named
+        if name == "sift":  # a setting that differs is still another run, named; so is the new default
             (out / "job.json").write_text(json.dumps(earlier))
             other = subprocess.run(command[:-1] + ["13"], capture_output=True, text=True, cwd=ROOT)
             assert other.returncode != 0
             assert "prior.sift.min_inliers: 13 now, 12 there" in other.stderr, other.stderr
+            default = command[:-len(flags)] + ["--prior", "sift", "--sift-min-inliers", "12"]
+            other = subprocess.run(default, capture_output=True, text=True, cwd=ROOT)
+            assert other.returncode != 0
+            assert "prior.keypoint_weight: 1.0 now, 0.0 there" in other.stderr, other.stderr

@@ -53,6 +53,24 @@ def test_sift_brings_in_queries_that_top1_and_search_miss(temple):
     assert all(t < scale and R < 1.0 for t, R in errors["sift"])
 
 
+def test_the_pnp_inliers_hold_the_refinement_near_their_pose(temple):
+    """The refinement's cost holds the PnP inliers' reprojection error beside the features' (the default):
+    the refined pose raises their chi-square less than the features alone do, within what a pose's six
+    degrees of freedom give at 0.99, and stays right."""
+    from pipeline.localization.verify import CHI2_6DOF_99
+    job, queries, work = temple
+    rises = {}
+    for weight in (0.0, Sift.keypoint_weight):
+        sift = dataclasses.replace(job, prior=Sift(keypoint_weight=weight))
+        records = run_sync(plan_localization(sift, queries, work / f"keypoints-{weight:g}"))
+        assert all(r["success"] and r["evidence"]["keypoints"] >= 10 for r in records)
+        assert all(t < 0.01 and R < 1.0 for t, R in (pose_errors(record_pose(r), q.cam_from_world_gt)
+                                                    for r, q in zip(records, queries)))
+        rises[weight] = [r["evidence"]["keypoint_chi2"] for r in records]
+    assert all(a < b for a, b in zip(rises[Sift.keypoint_weight], rises[0.0])), rises
+    assert max(rises[Sift.keypoint_weight]) < CHI2_6DOF_99, rises
+
+
 def test_failed_txt_and_the_report_say_that_pnp_failed_and_the_search_took_over(temple):
     """Where PnP finds too few inliers, the sift prior hands the query to the search; a query
     without a verified pose then says, in failed.txt and the report, which stage failed first."""

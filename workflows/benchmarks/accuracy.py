@@ -45,7 +45,7 @@ from ..build_map import plan_build, run_sync as build_sync
 from ..evaluate_model import comparison_lines, sign_test
 from pipeline.mapping.readers.sources import MapSource, as_query, load_scene
 from .sacre_coeur import sacre_coeur
-from .search import SACRE_COEUR_FEATURES, localize_priors, virtual_gallery_map
+from .search import SACRE_COEUR_FEATURES, SIFT_VARIANTS, localize_priors, virtual_gallery_map
 from .verification import seven_scenes_map, store_complete
 
 RELATIVE = ((0.01, 1.0), (0.05, 2.0), (0.10, 5.0))  # (fraction of the scene's scale, degrees)
@@ -90,8 +90,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="the shared data folder (default: $PIXLOC_SHARED, else ../shared)")
     p.add_argument("--work", type=Path, default=Path("outputs/benchmark-accuracy"), help="maps and runs")
     p.add_argument("--scenes", nargs="+", default=list(SCENES), choices=SCENES, help="scenes to run")
-    p.add_argument("--priors", nargs="+", default=list(PRIORS), choices=PRIORS,
-                   help="priors (sift adds the peer row sift-pnp; top1 the row reference, its start unrefined)")
+    p.add_argument("--priors", nargs="+", default=list(PRIORS), choices=PRIORS + tuple(SIFT_VARIANTS),
+                   help="priors (sift adds the peer row sift-pnp; top1 the row reference, its start unrefined); "
+                        "sift-features, sift-gate, sift-joint-gate: sift without its refinement's keypoint term, "
+                        "with the gate (verification's --max-keypoint-chi2), or both")
     p.add_argument("--resize", type=int, default=512,
                    help="longer image side of the maps' and queries' features (7-Scenes: 320, Sacre Coeur: "
                         "1024 with image scales 4 1, as in the other benchmarks, whatever this says)")

@@ -28,6 +28,7 @@ from pipeline.localization.refine import LocalizerConfig
 from pipeline.localization.priors import PRIORS, Average, OtherPipeline, ReferenceHypotheses, Search, Sift, Top1
 from pipeline.localization.retrieval import GlobalDescriptors, RetrievalSettings
 from pipeline.localization.shard import LocalizationJob
+from pipeline.localization.verify import CHI2_6DOF_99
 from pipeline.localization.sift import pnp_pose_found
 
 from pixloc.nets.registry import DEFAULT_MODEL
@@ -38,6 +39,21 @@ from .sacre_coeur import sacre_coeur
 from .verification import demo_map, seven_scenes_map, strecha_maps, write_priors
 
 THRESHOLDS = ((0.05, 1.0), (0.25, 2.0), (1.0, 5.0))
+# rows that run the sift prior with parts of its refinement of PnP poses off or on: (the PnP inliers'
+# reprojection term's weight, verification's max_keypoint_chi2), against sift's defaults (the term, no gate)
+SIFT_VARIANTS = {
+    "sift-features": (0.0, 0.0),  # the features alone, nothing kept: the refinement before the keypoint term
+    "sift-gate": (0.0, CHI2_6DOF_99),  # the features alone, the PnP pose kept where they leave it
+    "sift-joint-gate": (Sift.keypoint_weight, CHI2_6DOF_99),  # both terms in the cost, and the gate
+}
+
+
+def sift_variant(job: LocalizationJob, name: str) -> LocalizationJob:
+    """``job`` with the sift prior run as the row ``name`` of ``SIFT_VARIANTS`` runs it."""
+    weight, gate = SIFT_VARIANTS[name]
+    verification = dataclasses.replace(job.localizer.verification, max_keypoint_chi2=gate)
+    return dataclasses.replace(job, prior=Sift(keypoint_weight=weight),
+                               localizer=dataclasses.replace(job.localizer, verification=verification))
 FROM_RETRIEVAL = [name for name, entry in PRIORS.items() if entry.retrieves and not entry.inputs]  # no file needed
 SCENES = ("fountain", "herzjesus", "demo", "7scenes", "sacre_coeur", "sacre_coeur_night", "virtual_gallery")
 # the official localization setting of the Sacre Coeur cases (oracle/localization_cases.json, avg)
@@ -115,6 +131,8 @@ def localize_priors(parts, priors: List[str], runs: Path, lconf: LocalizerConfig
             out = runs / name.replace("/", "-") / prior
             if prior == "truth":
                 job = dataclasses.replace(base, prior=OtherPipeline(prior_poses=str(_truth_file(queries, out))))
+            elif prior in SIFT_VARIANTS:
+                job = sift_variant(base, prior)
             else:
                 job = dataclasses.replace(base, prior=PRIORS.entry(prior)())
             plan = plan_localization(job, queries, out, shard_size=8)
