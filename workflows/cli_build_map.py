@@ -35,9 +35,8 @@ FLAGS = {
     "--pca": Flag("pca", "store the levels with more than D channels as their D principal components (a PCA of the "
                   "map's features, fitted on 8 of its images; 48 with int8 and two image scales: 257 to 283 bytes per "
                   "observation on the shared scenes); 0: every channel; default 48 with int8, else 0", metavar="D"),
-    "--sift": Flag("sift", "store a SIFT descriptor per observation, extracted at a longer side of N pixels, for "
-                   "localize's default prior sift (128 bytes per observation before compression); 0: none",
-                   metavar="N"),
+    "--sift": Flag("sift", "also store a SIFT descriptor per observation, extracted at a longer side of N pixels "
+                   "(e.g. 1600), for --prior sift: 128 bytes per observation; 0: none", metavar="N"),
 }
 
 

@@ -10,7 +10,7 @@ import logging
 import time
 from collections import Counter
 from pathlib import Path
-from dataclasses import asdict, fields
+from dataclasses import asdict
 from typing import Dict, Optional
 
 import numpy as np
@@ -20,7 +20,7 @@ from pipeline.evaluate import (DEFAULT_THRESHOLDS, INDOOR_THRESHOLDS, evaluate, 
 from pipeline.progress import count
 from pipeline.runtime import BFLOAT16_FLAGS, native_bfloat16
 from pipeline.localization.results import POSE_NAMES, REJECTED, outcome, pose_names_problem, read_records, reason_groups
-from pipeline.localization.priors import PRIORS, Sift
+from pipeline.localization.priors import PRIORS, Top1
 from pipeline.localization.retrieval import RETRIEVERS
 from pipeline.localization.shard import LocalizationJob
 from pipeline.mapping.readers.sources import SOURCES, load_queries, map_units, query_kinds
@@ -45,7 +45,7 @@ FLAGS = {
     "--retrieval-k": Flag("retrieval.k", "references retrieved"),
     "--same-tag": Flag("retrieval.same_tag", "restrict references to those sharing this tag with the query"),
     "--prior": Flag("prior", "pose prior: " + "; ".join(f"{name}: {entry.help}" for name, entry in PRIORS.items())
-                    + f" (default {Sift.name})", tuple(PRIORS)),
+                    + f" (default {Top1.name})", tuple(PRIORS)),
     "--min-points": Flag("localizer.min_points", "fewer 3D points fails a query (official; 100 in refinement mode)"),
     "--min-track-length": Flag("localizer.min_track_length", "leave out points seen by fewer map images (official; "
                                "2 keeps the points of two-view maps)"),
@@ -171,15 +171,15 @@ def add_job_flags(p: argparse.ArgumentParser) -> None:
             add_flags(p, entry, entry.flags, prefix=entry_prefix(registry, name))
 
 
-def chosen(registry, name: Optional[str], cli: Dict, preset: Dict, where: str, default: str):
+def chosen(registry, name: Optional[str], cli: Dict, preset: Dict, where: str):
     """The settings of the entry ``name`` of ``registry`` (None: the one whose own options the
-    command line gives, else the preset's, else ``default``, the job's: ``job_default``): its fields
-    from the preset's block of that name, then the command line. Options of another entry are refused."""
+    command line gives, else the preset's, else the default): its fields from the preset's block
+    of that name, then the command line. Options of another entry are refused."""
     own = {n: given(cli, e.flags, entry_prefix(registry, n)) for n, e in registry.items()}
     used = [n for n, values in own.items() if values]
     if name is None and len(used) == 1:
         name = used[0]
-    name = name or preset.get(registry.axis, {}).get("name") or default
+    name = name or preset.get(registry.axis, {}).get("name") or next(iter(registry))
     entry = registry.entry(name)
     other = [n for n in used if n != name]
     if other:
@@ -187,11 +187,6 @@ def chosen(registry, name: Optional[str], cli: Dict, preset: Dict, where: str, d
         raise ValueError(f"{', '.join(flags)}: an option of the {registry.axis} {other[0]}, not of {name}.")
     values = {**preset.get(registry.axis, {}).get(name, {}), **own[name]}
     return build(entry, {k: v for k, v in values.items() if k != "name"}, where=f"{where} ({registry.axis} {name})")
-
-
-def job_default(field: str) -> str:
-    """The name of the entry that a job's ``field`` (``prior``, ``retrieval``) has by default."""
-    return {f.name: f.default for f in fields(LocalizationJob)}[field].name
 
 
 def prior_options(args: argparse.Namespace, prior) -> Dict:
@@ -209,8 +204,8 @@ def job_settings(args: argparse.Namespace) -> Dict:
     prior_name = args.prior
     settings, blocks = presets.job_settings(preset, prior_name)
     settings.update(cli)
-    prior = chosen(PRIORS, prior_name, args, blocks, "localize options", job_default("prior"))
-    retrieval = chosen(RETRIEVERS, args.retrieval, args, blocks, "localize options", job_default("retrieval"))
+    prior = chosen(PRIORS, prior_name, args, blocks, "localize options")
+    retrieval = chosen(RETRIEVERS, args.retrieval, args, blocks, "localize options")
     shared = {k.split(".", 1)[1]: settings.pop(k) for k in list(settings) if k.startswith("retrieval.")}
     retrieval = build(type(retrieval), {**asdict(retrieval), **shared}, where="localize options")
     return {**settings, "retrieval": retrieval, "prior": prior}

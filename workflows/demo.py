@@ -148,8 +148,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--workers", type=at_least(1), default=2, help="Dask workers (processes)")
     p.add_argument("--sync", action="store_true", help="localize in this process, without Dask")
     p.add_argument("--prior", choices=OWN_INPUTS, default=Top1.name,
-                   help="pose prior of the localization (see pixloc localize --help; sift, localize's default: "
-                        "SIFT + PnP, refined). The demo keeps top1 to show PixLoc from retrieval alone")
+                   help="pose prior of the localization (see pixloc localize --help; sift: SIFT + PnP, refined)")
     p.set_defaults(func=main)
 
 

@@ -54,7 +54,7 @@ class LocalizationJob:
     model: str
     localizer: LocalizerConfig
     retrieval: RetrievalSettings = GlobalDescriptors()
-    prior: PriorSettings = Sift()
+    prior: PriorSettings = Top1()
     device: str = "cpu"
     levels: Optional[Tuple[int, ...]] = None
     scales: Optional[Tuple[int, ...]] = None

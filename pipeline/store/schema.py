@@ -39,11 +39,10 @@ class FeatureConfig:
         full channels. Default (None): 48 with int8, else 0, so ``--dtype float16`` alone gives
         the full float16 store. With int8, two image scales fit in about 300 bytes per
         observation (docs/map_store.md).
-    sift: N > 0 (default 1600) also stores, per observation, the SIFT descriptor (extracted at a
-        longer side of N pixels, 4,096 per image) of the keypoint within 2 pixels of it, for the
-        ``sift`` prior, the localization default (128 bytes per observation before compression;
-        zeros where no keypoint is near); 0 stores no local features (a store recorded without the
-        setting has none).
+    sift: 0 (default) stores no local features; N > 0 also stores, per observation, the SIFT
+        descriptor (extracted at a longer side of N pixels, 4,096 per image) of the keypoint
+        within 2 pixels of it, for the ``sift`` prior (128 bytes per observation; zeros where no
+        keypoint is near).
     """
 
     model: str = DEFAULT_MODEL
@@ -53,7 +52,7 @@ class FeatureConfig:
     dtype: str = "int8"
     descriptor: str = DEFAULT_DESCRIPTOR
     pca: Optional[int] = None  # 48 with int8, else 0
-    sift: int = 1600
+    sift: int = 0
 
     def __post_init__(self):
         if self.pca is None:

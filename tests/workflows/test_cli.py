@@ -65,8 +65,7 @@ def test_explicit_flags_win_even_at_the_builtin_default():
     assert (job.prior.name, job.localizer.num_iters) == ("average", 150)
     job = _localize_job()  # no preset: the dataclasses' defaults
     assert (job.prior.name, job.localizer.num_iters, job.localizer.num_dbs, job.localizer.min_track_length,
-            job.retrieval.method, job.localizer.verification.enabled) == ("sift", 100, 5, 3, "global", True)
-    assert job.prior.keypoint_weight == 1.0 and job.localizer.verification.max_keypoint_chi2 == 0.0
+            job.retrieval.method, job.localizer.verification.enabled) == ("top1", 100, 5, 3, "global", True)
     assert _localize_job("--max-turn", "20").localizer.verification.max_move_R == 20.0  # one Flag line
     job = _localize_job("--no-verify", "--min-confidence", "0.3", "--pairs", "p.txt")
     assert (job.localizer.verification.enabled, job.localizer.verification.min_confidence) == (False, 0.3)

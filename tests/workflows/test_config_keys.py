@@ -63,12 +63,12 @@ def test_a_job_recorded_before_a_setting_existed_reads_as_the_same_job():
     """Runs recorded before an option existed have no such key: they read back with its default, so a
     rerun of one is the same run (no hand-written deletion per new field); schema 1, the flat job of
     earlier versions, reads back too."""
-    from pipeline.localization.priors import Hloc, Sift, Top1
+    from pipeline.localization.priors import Hloc, Sift
     from pipeline.localization.refine import LocalizerConfig
     from pipeline.localization.retrieval import GlobalDescriptors, PairsFile
     from pipeline.localization.shard import LocalizationJob
     from pipeline.mapping.features import FeatureConfig
-    job = LocalizationJob("map.zarr", FeatureConfig(), "pixloc-lite0", LocalizerConfig(), GlobalDescriptors(), Top1())
+    job = LocalizationJob("map.zarr", FeatureConfig(), "pixloc-lite0", LocalizerConfig(), GlobalDescriptors())
     recorded = job.to_dict()
     assert recorded["schema"] == 3 and recorded["prior"] == {"name": "top1"}
     del recorded["localizer"]["network_precision"], recorded["localizer"]["verification"]["rivals"]
@@ -90,8 +90,6 @@ def test_a_job_recorded_before_a_setting_existed_reads_as_the_same_job():
     sift = LocalizationJob.from_dict({**flat, "prior": "sift", "sift": {"min_inliers": 20},
                                       "search": {"keep": 2}})
     assert sift.prior.sift.min_inliers == 20 and sift.prior.search.keep == 2 and isinstance(sift.prior, Sift)
-    # a sift job recorded before schema 3 ran without the PnP inliers' term: it reads as such, not at the default
-    assert sift.prior.keypoint_weight == 0.0 != Sift().keypoint_weight
     with pytest.raises(ValueError, match="unknown key 'localizer.num_iter'"):
         LocalizationJob.from_dict({**job.to_dict(), "localizer": {"num_iter": 3}})
 

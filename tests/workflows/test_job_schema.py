@@ -10,15 +10,13 @@ from tests.workflows.test_build_map import KINECT_K, ROOT, build_kinect
 
 DATA = ROOT / "tests" / "workflows" / "data"
 # an earlier sift run had no keypoint term nor its gate (schema 3): it is the run of these settings
-FLAGS = {"top1": ["--prior", "top1"],
-         "sift": ["--prior", "sift", "--sift-keypoint-weight", "0", "--max-keypoint-chi2", "0",
-                  "--sift-min-inliers", "12"]}
+FLAGS = {"top1": [], "sift": ["--prior", "sift", "--sift-keypoint-weight", "0", "--max-keypoint-chi2", "0",
+                              "--sift-min-inliers", "12"]}
 
 
 def test_a_run_recorded_by_the_earlier_schema_reruns_as_a_no_op(shared, tmp_path):
     kinect = shared / "data" / "rgbd_slambook" / "kinect_room"
-    # the earlier runs' map: no SIFT per observation (build-map's default since schema 3 of the job)
-    built = build_kinect(kinect, tmp_path / "k.zarr", "--rgbd-points", "frames", "--sift", "0")
+    built = build_kinect(kinect, tmp_path / "k.zarr", "--rgbd-points", "frames")
     assert built.returncode == 0, built.stderr
     for name, flags in FLAGS.items():
         out = tmp_path / name
