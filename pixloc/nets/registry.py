@@ -197,6 +197,7 @@ def _check_zip(path: Path) -> None:
     which ``torch.load`` does not check: a damaged byte in a tensor would load as other weights."""
     if not zipfile.is_zipfile(path):
         return
+    _check_zip_end(path)
     try:
         with zipfile.ZipFile(path) as archive:
             bad = archive.testzip()
@@ -205,6 +206,20 @@ def _check_zip(path: Path) -> None:
     if bad is not None:
         raise CheckpointError(f"{path} is corrupt: its record {bad} fails its checksum (the file was damaged "
                               "after it was written).")
+
+
+def _check_zip_end(path: Path) -> None:
+    """The zip's end record must end the file: its comment length, which no CRC covers, equals the bytes
+    after it (a damaged length or a truncated comment is a damaged file, which zipfile and torch read)."""
+    with open(path, "rb") as f:
+        f.seek(0, 2)
+        size = f.tell()
+        f.seek(max(0, size - 22 - 65535))
+        tail = f.read()
+    at = tail.rfind(b"PK\x05\x06")
+    if at < 0 or at + 22 > len(tail) or at + 22 + int.from_bytes(tail[at + 20:at + 22], "little") != len(tail):
+        raise CheckpointError(f"{path} is corrupt: the end of its zip directory does not match the file's length "
+                              "(the file was damaged after it was written).")
 
 
 def read_checkpoint(path) -> Dict[str, Any]:
