@@ -7,6 +7,7 @@ Importing this module imports no torch: a store's schema checks names and sizes 
 A new descriptor is one class here.
 """
 
+import functools
 from dataclasses import dataclass
 from typing import ClassVar, Tuple
 
@@ -51,9 +52,57 @@ class Grid:
         return normalize(cells.reshape(-1), dim=0)
 
 
-DEFAULT_DESCRIPTOR = GeM.name
+@DESCRIPTORS.register("gem-lw")
+@dataclass(frozen=True)
+class WhitenedGeM:
+    """``gem`` with a learned whitening (Radenovic et al. 2018): normalise(P (gem - mean)), P and
+    mean learned in closed form from posed images and their relit copies (``pixloc train-whitening``).
+    ``whitening``: its npz file (default: the shipped one, learned on pixloc-lite0's features; which
+    scenes trained it is in docs/model_card.md)."""
+
+    whitening: str = ""
+    help: ClassVar[str] = "gem with a whitening learned on posed images (pixloc-lite0's features)"
+
+    def dim(self, channels: int) -> int:
+        return channels
+
+    def __call__(self, features):
+        import torch
+        return torch.from_numpy(whiten(GeM()(features).cpu().numpy(), self.whitening)).to(features.device)
 
 
-def global_descriptor(features, kind: str = DEFAULT_DESCRIPTOR):
+def shipped_whitening() -> str:
+    from importlib import resources
+    return str(resources.files("pixloc.nets") / "weights" / "pixloc-lite0.gem-lw.npz")
+
+
+def whitening(path: str = ""):
+    """(mean, projection) of a whitening file (``WhitenedGeM``), read once per process."""
+    return _read_whitening(path or shipped_whitening())
+
+
+@functools.lru_cache(maxsize=4)
+def _read_whitening(path: str):
+    import numpy as np
+    with np.load(path, allow_pickle=False) as z:
+        return z["mean"].astype(np.float32), z["projection"].astype(np.float32)
+
+
+def whiten(gem, path: str = ""):
+    """``gem`` descriptors (..., C), L2-normalised, whitened and normalised again (numpy)."""
+    import numpy as np
+    mean, projection = whitening(path)
+    if gem.shape[-1] != len(mean):
+        raise ValueError(f"the whitening {path or shipped_whitening()} is for {len(mean)}-channel features, "
+                         f"not {gem.shape[-1]}: it was learned on another model's.")
+    out = (np.asarray(gem, np.float32) - mean) @ projection.T
+    return out / np.maximum(np.linalg.norm(out, axis=-1, keepdims=True), 1e-12)
+
+
+DEFAULT_DESCRIPTOR = WhitenedGeM.name  # chosen by ``pixloc benchmark retrieval`` (docs/benchmarks.md, "Retrieval")
+UNNAMED_DESCRIPTOR = GeM.name  # the one that a store's feature key and an old config record leave unnamed
+
+
+def global_descriptor(features, kind: str):
     """The global descriptor ``kind`` of a (C, H, W) feature map."""
     return DESCRIPTORS.entry(kind)()(features)

@@ -86,6 +86,13 @@ def build_parser() -> argparse.ArgumentParser:
         description="End-to-end training from a YAML config (--config: a file, or a packaged config's name), "
                     "resumable; the model card (docs/model_card.md) says how the shipped model was trained."))
 
+    from . import train_whitening
+    train_whitening.add_arguments(whitening := sub.add_parser(
+        "train-whitening", help="learn the gem-lw descriptor's whitening from posed map images (closed form)",
+        description="The learned whitening of the gem-lw global descriptor, from map stores of training scenes "
+                    "(their images, relit copies, co-visibility)."))
+    whitening.set_defaults(func=train_whitening.main)
+
     from .evaluate_model import add_arguments as evaluate_model_arguments
     evaluate_model_arguments(sub.add_parser(
         "evaluate-model", help="compare feature models on held-out pairs (same initial poses)",
@@ -102,6 +109,7 @@ def build_parser() -> argparse.ArgumentParser:
     from .benchmarks import train_step as bench_train_step
     from .benchmarks import rgbd as bench_rgbd
     from .benchmarks import scale as bench_scale
+    from .benchmarks import retrieval as bench_retrieval
     from .benchmarks import search as bench_search
     from .benchmarks import storage as bench_storage
     from .benchmarks import store_latency as bench_store_latency
@@ -124,7 +132,9 @@ def build_parser() -> argparse.ArgumentParser:
             ("store-latency", bench_store_latency,
              "a query's reads of a store in an S3 bucket at 0-50 ms per request, concurrent vs one at a time"),
             ("accuracy", bench_accuracy,
-             "recall, precision and time per prior on every posed real scene, against SIFT + PnP")]:
+             "recall, precision and time per prior on every posed real scene, against SIFT + PnP"),
+            ("retrieval", bench_retrieval,
+             "recall@1/5/10 of each retrieval method per scene and condition, against the co-visibility oracle")]:
         p = bench_sub.add_parser(name, help=text)
         module.add_arguments(p)
         p.set_defaults(func=module.main)

@@ -238,3 +238,59 @@ class Covisible(RetrievalSettings):
         counts = np.array([np.count_nonzero(seen[reader.image_points(i)]) for i in ids], dtype=np.float64)
         order = [j for j in np.argsort(-counts, kind="stable") if counts[j] > 0][:self.k]
         return Retrieved([ids[j] for j in order], counts[order] / max(counts.max(initial=0.0), 1.0))
+
+
+@RETRIEVERS.register("bow")
+@dataclass(frozen=True)
+class SiftWords(RetrievalSettings):
+    """A bag of visual words of the map's SIFT (``pipeline.localization.bow``): the query's SIFT at
+    ``sift_size`` px against a tf-idf inverted file, its vocabulary trained on the map's own descriptors
+    (the store's where built with ``--sift``, else extracted from the map's images when first needed)."""
+
+    sift_size: int = 1024
+    help: ClassVar[str] = "a bag of visual words of the map's SIFT (tf-idf, a vocabulary trained on the map)"
+
+    def rank(self, reader, query, describe, candidates) -> Retrieved:
+        return top_k(reader, words_scores(reader, query, self.sift_size), self.k, candidates)
+
+
+@RETRIEVERS.register("fusion")
+@dataclass(frozen=True)
+class Fusion(RetrievalSettings):
+    """Reciprocal rank fusion (Cormack et al. 2009) of ``global`` and ``bow``: each reference scores
+    sum 1 / (``rrf_k`` + its rank) over the two rankings of every map image."""
+
+    sift_size: int = 1024
+    rrf_k: int = 10
+    help: ClassVar[str] = "global and bow rankings fused by their reciprocal ranks"
+    needs_image: ClassVar[bool] = True
+
+    def rank(self, reader, query, describe, candidates) -> Retrieved:
+        fused = np.zeros(len(reader.names))
+        for scores in (words_scores(reader, query, self.sift_size), reader.global_descriptors @ describe()):
+            rank = np.empty(len(scores), np.int64)
+            rank[np.argsort(-scores, kind="stable")] = np.arange(len(scores))
+            fused += 1.0 / (self.rrf_k + 1 + rank)
+        return top_k(reader, fused, self.k, candidates)
+
+
+def words_scores(reader: MapReader, query: QueryRecord, sift_size: int) -> np.ndarray:
+    """Per map image, the bag-of-words similarity with the query (0 for images not indexed)."""
+    from pipeline.images import read_image
+    from pipeline.keypoints import MAX_FEATURES
+    from pipeline.localization.bow import index_for, query_descriptors
+
+    index = index_for(reader)
+    out = np.zeros(len(reader.names))
+    out[index.images] = index.scores(query_descriptors(read_image(query.path), sift_size, MAX_FEATURES))
+    return out
+
+
+def top_k(reader: MapReader, scores: np.ndarray, k: int, candidates: Optional[List[int]]) -> Retrieved:
+    """The ``k`` usable candidates of highest score, with their scores."""
+    ids = np.array([i for i in (candidates if candidates is not None else range(len(reader.names)))
+                    if reader.usable(i)], np.int64)
+    if len(ids) == 0:
+        return Retrieved([])
+    order = ids[np.argsort(-scores[ids], kind="stable")[:k]]
+    return Retrieved([int(i) for i in order], scores[order])

@@ -9,7 +9,7 @@ Above ``exhaustive_below`` images the ``auto`` method picks a scalable one:
 - ``sequential`` (ordered frames): pycolmap's ``match_sequential``, ``overlap`` neighbours
   in name order.
 - ``retrieval`` (unposed, unordered): the top ``num_neighbors`` of each image by cosine
-  similarity of global descriptors (GeM of the network's coarsest features).
+  similarity of global descriptors (of the network's coarsest features, as build-map's default).
 - ``file``: an hloc pairs file (``name0 name1`` per line), as given.
 
 Pairs are written to ``pairs.txt`` in the work folder, so a user can see what was matched
@@ -138,18 +138,20 @@ def write_pairs(pairs: Sequence[Pair], path) -> Path:
 
 
 def image_descriptors(paths: Sequence[Path], model: str, resize: int = 320) -> np.ndarray:
-    """GeM global descriptors of the network's coarsest features at a small size (for ``retrieval``)."""
+    """Global descriptors of the network's coarsest features at a small size (for ``retrieval``): the
+    descriptor that build-map gives this model's maps (``gem-lw`` for the shipped model, else ``gem``)."""
     import torch
 
     from pipeline.models import network
-    from pipeline.mapping.features import global_descriptor
+    from pipeline.mapping.features import FeatureConfig, global_descriptor
     from pipeline.images import read_image, resize_max, to_tensor
     net, _ = network(model)
+    kind = FeatureConfig(model=model).descriptor
     out = []
     with torch.inference_mode():
         for p in paths:
             image, _ = resize_max(read_image(p), resize)
-            out.append(global_descriptor(net(to_tensor(image)[None])["features"][-1][0]).numpy())
+            out.append(global_descriptor(net(to_tensor(image)[None])["features"][-1][0], kind).numpy())
     return np.stack(out)
 
 

@@ -12,7 +12,7 @@ import numpy as np
 import zarr
 
 from pipeline.store.compression import project, quantize_int8
-from pipeline.descriptors import DEFAULT_DESCRIPTOR, DESCRIPTORS
+from pipeline.descriptors import DESCRIPTORS, UNNAMED_DESCRIPTOR
 from pipeline.store.schema import FeatureConfig, ImageFeatures
 from pipeline.images import file_sha256
 from pipeline.keypoints import DESCRIPTOR_DIM
@@ -44,7 +44,7 @@ def feature_key(conf: FeatureConfig) -> str:
             name = f"{name}-{_file_digest(str(path.resolve()), st.st_size, st.st_mtime_ns)}"
     scales = "-".join(str(s) for s in conf.image_scales)
     dtype = "" if conf.dtype == "float16" else f"_{conf.dtype}"
-    descriptor = "" if conf.descriptor == DEFAULT_DESCRIPTOR else f"_{conf.descriptor}"
+    descriptor = "" if conf.descriptor == UNNAMED_DESCRIPTOR else f"_{conf.descriptor}"
     pca = f"_pca{conf.pca}" if conf.pca else ""
     sift = f"_sift{conf.sift}" if conf.sift else ""
     later = "".join(f"_{f.name}{getattr(conf, f.name)}" for f in fields(conf)

@@ -9,7 +9,7 @@ from typing import Dict, List, Optional, Tuple
 import numpy as np
 
 from pixloc import DEFAULT_MODEL
-from pipeline.descriptors import DEFAULT_DESCRIPTOR, DESCRIPTORS
+from pipeline.descriptors import DEFAULT_DESCRIPTOR, DESCRIPTORS, UNNAMED_DESCRIPTOR
 from pipeline.settings import parse
 
 DTYPES = ("float16", "int8", "float32")
@@ -30,9 +30,11 @@ class FeatureConfig:
         docs/benchmarks.md compares with float16 on every real scene), ``float16`` (every
         channel in half precision: ``--dtype float16``) or ``float32`` (bit-exact with
         extraction, for parity studies). Confidences are float16 unless ``float32``.
-    descriptor: global descriptor for retrieval, from the coarsest feature map: ``gem``
-        (generalised mean) or ``grid`` (mean-centred features averaged over a 2 x 3 grid:
-        keeps the layout, more robust to changes of light in our synthetic tests).
+    descriptor: global descriptor for retrieval, from the coarsest feature map: ``gem-lw``
+        (default with the shipped model: generalised mean with a whitening learned on posed images
+        and their relit copies, ``pixloc train-whitening``), ``gem`` (generalised mean; the default
+        with another model, whose features the shipped whitening was not learned on) or ``grid``
+        (mean-centred features averaged over a 2 x 3 grid: keeps the layout).
     pca: 0 stores every channel; D > 0 stores the levels with more than D channels as their D
         leading principal components (a PCA of the map's own features, fitted on a sample of
         its images when the feature group is created, stored with it); readers reconstruct the
@@ -50,13 +52,16 @@ class FeatureConfig:
     image_scales: Tuple[int, ...] = (4, 1)
     pad: int = 2
     dtype: str = "int8"
-    descriptor: str = DEFAULT_DESCRIPTOR
+    descriptor: Optional[str] = None  # gem-lw with the shipped model, else gem
     pca: Optional[int] = None  # 48 with int8, else 0
     sift: int = 0
 
     def __post_init__(self):
         if self.pca is None:
             object.__setattr__(self, "pca", COMPACT_PCA if self.dtype == "int8" else 0)
+        if self.descriptor is None:  # the shipped whitening was learned on the shipped model's features
+            object.__setattr__(self, "descriptor", DEFAULT_DESCRIPTOR if self.model == DEFAULT_MODEL
+                               else UNNAMED_DESCRIPTOR)
         if self.dtype not in DTYPES:
             raise ValueError(f"Unknown feature storage type {self.dtype!r}; known: {', '.join(DTYPES)}.")
         DESCRIPTORS.entry(self.descriptor)  # an unknown one is refused with the known ones
@@ -74,8 +79,9 @@ class FeatureConfig:
     @classmethod
     def from_dict(cls, d: Dict) -> "FeatureConfig":
         """The config a store recorded (``to_dict``): an absent ``pca`` or ``sift`` is 0 (stores
-        made before them, or without them), not the default."""
-        return parse(cls, {"pca": 0, "sift": 0, **d}, "feature config")
+        made before them, or without them), an absent ``descriptor`` is ``gem`` (before ``gem-lw``
+        became the default), not the default."""
+        return parse(cls, {"pca": 0, "sift": 0, "descriptor": UNNAMED_DESCRIPTOR, **d}, "feature config")
 
     def to_dict(self) -> Dict:
         d = asdict(self)

@@ -77,3 +77,37 @@ def test_a_run_paired_with_itself_has_no_difference(run, shared, capsys):
           "--priors", "top1", "sift", "--limit", "1", "--paired", str(work)])
     out = capsys.readouterr().out
     assert "| all | sift | 3 | 0 | 0 | 1.000 | 0 / 0 | 0 / 0 | 0 / 0 |" in out
+
+
+def test_the_retrieval_benchmark_on_the_same_maps(run, shared):
+    """``pixloc benchmark retrieval`` reuses the accuracy benchmark's maps: per scene, condition and
+    method, recall against the co-visibility oracle; the relit queries are darker copies, written once."""
+    import numpy as np
+    from pipeline.images import read_image
+
+    _, _, work = run
+    rc = main(["benchmark", "retrieval", "--shared", str(shared), "--work", str(work), "--scenes", "kermit",
+               "templeRing", "--limit", "1"])
+    assert rc == 0
+    rows = json.loads((work / "retrieval-rows.json").read_text())
+    get = {(r["scene"], r["condition"], r["method"]): r for r in rows}
+    # maps of build-map's descriptor, gem-lw: the row that whitens gem descriptors has nothing to do
+    assert {r["method"] for r in rows} == {"global", "bow", "fusion", "oracle"}
+    for scene in ("kermit", "templeRing", "all"):
+        for condition in ("as-taken", "relit"):
+            oracle = get[scene, condition, "oracle"]
+            assert oracle["queries"] == {"kermit": 1, "templeRing": 2, "all": 3}[scene] and oracle["no_right"] == 0
+            assert oracle["r@1"] == 1.0 and (scene == "all" or oracle["top1_rank"] == 1)
+            for method in ("global", "bow", "fusion"):
+                r = get[scene, condition, method]
+                assert r["r@1"] <= r["r@5"] <= r["r@10"] <= 1.0 and r["ms"] > 0
+                assert scene == "all" or r["top1_rank"] >= 1
+    assert get["all", "as-taken", "bow"]["r@5"] == 1.0  # measured: every query has a right reference in its top 5
+    assert get["kermit", "as-taken", "global"]["bytes"] == 128 * 4  # a float32 GeM of 128 channels
+    assert get["kermit", "as-taken", "bow"]["bytes"] > 128 * 4
+    relit = sorted((work / "relit").rglob("*.jpg"))
+    assert len(relit) == 3  # a relit copy per query, written once
+    for p in relit:
+        folder = shared / "data" / ("middlebury/templeRing" if "temple" in p.name else "bundler_kermit")
+        original = read_image(folder / p.name[:-4]).astype(float)
+        assert read_image(p).shape == original.shape and np.abs(read_image(p) - original).mean() > 10

@@ -17,6 +17,7 @@ from pipeline.localization.retrieval import GlobalDescriptors
 from pipeline.localization.search import check_rivals, rival_starts
 from pipeline.localization.verify import VerificationConfig
 from pipeline.evaluate import record_errors
+from pipeline.descriptors import GeM
 from pipeline.mapping.features import FeatureConfig
 from workflows.benchmarks.accuracy import RELATIVE, SPLITS, scene_scale, split_parts
 from workflows.benchmarks.search import localize_priors
@@ -84,7 +85,8 @@ def test_on_the_temple_ring_no_neighbouring_view_is_accepted(shared, tmp_path, m
     solve = Localizer._solve_level
     monkeypatch.setattr(Localizer, "_solve_level", lambda self, group, *a: batches.append(
         {st.own is not None for st in group}) or solve(self, group, *a))
-    fconf = FeatureConfig(resize=512, image_scales=(1,))
+    # the maps on which the faults were found: retrieval by gem (build-map's default then), whose top-1 starts these are
+    fconf = FeatureConfig(resize=512, image_scales=(1,), descriptor=GeM.name)
     parts = list(split_parts("templeRing", SPLITS["templeRing"], shared, tmp_path, fconf, limit=5))[:1]
     scale = scene_scale(parts[0][1])
     (t_max, R_max), runs = RELATIVE[2], {}

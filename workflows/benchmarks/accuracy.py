@@ -31,11 +31,12 @@ from typing import Dict, Iterator, List, Optional, Tuple
 
 import numpy as np
 
+from pipeline.descriptors import DESCRIPTORS
 from pipeline.runtime import shared_folder
 from pipeline.evaluate import fmt, record_errors, usable_ground_truth
 from pipeline.localization.refine import LocalizerConfig
 from pipeline.localization.priors import Search, Sift, Top1
-from pipeline.localization.retrieval import GlobalDescriptors
+from pipeline.localization.retrieval import RETRIEVERS, Fusion, GlobalDescriptors, SiftWords
 from pipeline.mapping.features import COMPACT_PCA, DTYPES, FeatureConfig
 from pipeline.mapping.readers.colmap import run_sfm
 from pipeline.store.reader import MapReader
@@ -100,6 +101,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--sift", type=int, default=0, metavar="N",
                    help="maps that store SIFT descriptors extracted at N px (build-map --sift), which the sift "
                         "prior then matches instead of extracting the references' (default 0: none)")
+    p.add_argument("--descriptor", choices=tuple(DESCRIPTORS), default=FeatureConfig().descriptor,
+                   help="the maps' global descriptor for retrieval (default: build-map's)")
+    p.add_argument("--retrieval", choices=(GlobalDescriptors.name, SiftWords.name, Fusion.name),
+                   default=GlobalDescriptors.name, help="the retrieval method of every run (its runs kept apart)")
     p.add_argument("--dtype", choices=DTYPES, default=FeatureConfig.dtype,
                    help="feature storage of the maps (the build-map default: the compact store)")
     p.add_argument("--pca", type=int, metavar="D", help="principal components per level (build-map's default: "
@@ -153,7 +158,8 @@ def scene_parts(key: str, args, fconf: FeatureConfig) -> List[Tuple[str, Path, L
     if key == "7scenes":
         parts = list(seven_scenes_map(args.shared, args.work, fconf))
     elif key == "sacre_coeur":
-        features = dataclasses.replace(SACRE_COEUR_FEATURES, model=fconf.model, dtype=fconf.dtype, pca=fconf.pca)
+        features = dataclasses.replace(SACRE_COEUR_FEATURES, model=fconf.model, dtype=fconf.dtype, pca=fconf.pca,
+                                       descriptor=fconf.descriptor)
         parts = sacre_coeur(args.shared, args.work, features)
     elif key == "virtual_gallery":
         parts = list(virtual_gallery_map(args.shared, args.work, fconf))
@@ -164,8 +170,8 @@ def scene_parts(key: str, args, fconf: FeatureConfig) -> List[Tuple[str, Path, L
 
 def scene_scale(store: Path) -> float:
     """The map's median camera-to-point distance over its observations."""
-    from pipeline.store.info import feature_config as store_feature_config
-    reader = MapReader(store, store_feature_config(store))
+    from pipeline.store.info import feature_configs
+    reader = MapReader(store, feature_configs(store)[0])  # poses and points: any feature group opens them
     distances = []
     for i in range(len(reader.names)):
         R, t = reader.cam_from_world[i][:, :3], reader.cam_from_world[i][:, 3]
@@ -319,15 +325,17 @@ def goals(rows: List[Dict]) -> List[str]:
 
 def main(args: argparse.Namespace) -> int:
     fconf = FeatureConfig(model=args.model, resize=args.resize, image_scales=(1,), sift=args.sift,
-                          dtype=args.dtype, pca=args.pca)
+                          dtype=args.dtype, pca=args.pca, descriptor=args.descriptor)
     lconf = LocalizerConfig(num_dbs=3, num_iters=50)
     args.work.mkdir(parents=True, exist_ok=True)
     settings = args.work / "features.json"  # one work folder, one feature setting: its maps hold one group
     if settings.exists() and not fconf.made(json.loads(settings.read_text())):  # as recorded by any version
         raise SystemExit(f"pixloc: error: {args.work} holds maps of features {settings.read_text().strip()}, "
-                         f"not {json.dumps(fconf.to_dict())} (--resize, --sift, --dtype, --pca): give another --work")
+                         f"not {json.dumps(fconf.to_dict())} (--resize, --sift, --dtype, --pca, --descriptor): "
+                         "give another --work")
     settings.write_text(json.dumps(fconf.to_dict()) + "\n")
-    runs = args.work / ("runs" if not args.limit else f"runs-limit{args.limit}")
+    runs = args.work / ("runs" + (f"-{args.retrieval}" if args.retrieval != GlobalDescriptors.name else "")
+                        + (f"-limit{args.limit}" if args.limit else ""))
     rows: List[Dict] = []
     remarks = []  # scenes whose map could not be built (with the reason), the night photo's outcome
     for key in args.scenes:
@@ -339,7 +347,8 @@ def main(args: argparse.Namespace) -> int:
             continue
         scale = scene_scale(parts[0][1])
         metric = OWN_SPLITS[key] if key in OWN_SPLITS else SPLITS[key].metric
-        per_prior, gt = localize_priors(parts, list(args.priors), runs, lconf, GlobalDescriptors(k=5))
+        per_prior, gt = localize_priors(parts, list(args.priors), runs, lconf, RETRIEVERS.entry(args.retrieval)(k=5),
+                                        fconf.descriptor)
         if Top1.name in per_prior:  # the prior itself: the top-1 reference's pose, unrefined
             per_prior["reference"] = {"records": [dict(r, success=False) for r in per_prior[Top1.name]["records"]],
                                       "time": None}

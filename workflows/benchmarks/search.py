@@ -17,7 +17,7 @@ import argparse
 import dataclasses
 import time
 from pathlib import Path
-from typing import Dict, List, Tuple
+from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
@@ -114,17 +114,19 @@ def _truth_file(queries, out: Path) -> Path:
     return path
 
 
-def localize_priors(parts, priors: List[str], runs: Path, lconf: LocalizerConfig, retrieval: RetrievalSettings
-                    ) -> Tuple[Dict[str, Dict], Dict[str, np.ndarray]]:
+def localize_priors(parts, priors: List[str], runs: Path, lconf: LocalizerConfig, retrieval: RetrievalSettings,
+                    descriptor: Optional[str] = None) -> Tuple[Dict[str, Dict], Dict[str, np.ndarray]]:
     """Every (name, store, queries) part of a scene localized with each prior (runs kept in
     ``runs/NAME/PRIOR``: a rerun reads them back). Returns {prior: {"records", "time"}} (``time``:
     the runs' wall seconds; with ``sift`` also the peer ``sift-pnp``, its time that of the sift
-    runs' stages before the LM) and the queries' ground truth."""
-    from pipeline.store.info import feature_config as store_feature_config
+    runs' stages before the LM) and the queries' ground truth. ``descriptor``: the feature group of
+    that global descriptor, where a store has several."""
+    from pipeline.store.info import feature_configs
     per_prior: Dict[str, Dict] = {p: {"records": [], "time": 0.0} for p in priors}
     gt = {}
     for name, store, queries in parts:
-        conf = store_feature_config(store)
+        configs = feature_configs(store)
+        conf = next((c for c in configs if c.descriptor == descriptor), configs[0])
         gt.update({q.name: q.cam_from_world_gt for q in queries})
         base = LocalizationJob(str(store), conf, conf.model, lconf, retrieval)
         for prior in priors:
