@@ -87,7 +87,7 @@ def test_the_retrieval_benchmark_on_the_same_maps(run, shared):
 
     _, _, work = run
     rc = main(["benchmark", "retrieval", "--shared", str(shared), "--work", str(work), "--scenes", "kermit",
-               "templeRing", "--limit", "1"])
+               "templeRing", "--limit", "1", "--rank-references", "500"])
     assert rc == 0
     rows = json.loads((work / "retrieval-rows.json").read_text())
     get = {(r["scene"], r["condition"], r["method"]): r for r in rows}

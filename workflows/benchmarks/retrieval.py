@@ -59,6 +59,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "descriptors and the query's (default: build-map's)")
     p.add_argument("--whitening", default="",
                    help="gem-lw: the whitening file (pixloc train-whitening; default: the shipped one)")
+    p.add_argument("--rank-references", type=int, default=10_000, metavar="N",
+                   help="also time the global ranking of a query against N random references (0: not)")
     p.add_argument("--limit", type=int, default=0, help="at most this many queries per map (a quick look)")
 
 
@@ -256,7 +258,25 @@ def main(args: argparse.Namespace) -> int:
     rows += pooled([r for r in rows if r["scene"] != "demo"])
     print("\n" + table(rows))
     (args.work / "retrieval-rows.json").write_text(json.dumps(rows, indent=1))
+    if args.rank_references:
+        print(f"\nglobal ranking of one query against {args.rank_references} references (gem-lw, 128 float32 each, "
+              f"one core, the network pass not counted): {ranking_ms(args.rank_references):.1f} ms")
     return 0
+
+
+def ranking_ms(n: int, repeats: int = 20) -> float:
+    """Milliseconds to rank n random unit descriptors for one query (``global_ranking``, as ``global`` does)."""
+    from types import SimpleNamespace
+
+    from pipeline.descriptors import whiten
+    from pipeline.localization.retrieval import global_ranking
+    rng = np.random.default_rng(0)
+    d = whiten(rng.normal(size=(n, 128)).astype(np.float32))
+    reader = SimpleNamespace(names=[str(i) for i in range(n)], global_descriptors=d, usable=lambda i: True)
+    t0 = time.perf_counter()
+    for k in range(repeats):
+        global_ranking(reader, d[k], 10)
+    return 1000 * (time.perf_counter() - t0) / repeats
 
 
 def merge(into: Dict, found: Dict) -> None:
