@@ -13,9 +13,10 @@ fills a copied list), hence this equivalent.
 """
 
 import logging
+import time
 from collections import OrderedDict
-from dataclasses import dataclass
-from typing import List, Optional, Tuple
+from dataclasses import dataclass, field
+from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
@@ -72,6 +73,7 @@ class BagOfWords:
     image: np.ndarray
     weight: np.ndarray
     images: np.ndarray
+    seconds: Dict[str, float] = field(default_factory=dict)  # what building it took: descriptors, index
 
     @classmethod
     def build(cls, per_image: List[Tuple[int, np.ndarray]], size: Optional[int] = None) -> "BagOfWords":
@@ -145,6 +147,7 @@ def _index(reader, max_size: int) -> BagOfWords:
 
     names = reader.names
     per_image = []
+    t0 = time.perf_counter()
     for i in range(len(names)):
         if not reader.usable(i):
             continue
@@ -152,7 +155,9 @@ def _index(reader, max_size: int) -> BagOfWords:
             per_image.append((i, map_descriptors(reader, i, max_size)))
         except ImageReadError as e:  # an image moved away: the others are indexed
             logger.warning("%s: left out of the SIFT index: %s", names[i], e)
+    t1 = time.perf_counter()
     index = BagOfWords.build(per_image)
+    index.seconds = {"descriptors": t1 - t0, "index": time.perf_counter() - t1}
     logger.info("SIFT index of %s: %d images, %d words, %.1f KB per image", reader.path, len(index.images),
                 len(index.words), index.nbytes() / 1024 / max(len(index.images), 1))
     return index

@@ -59,6 +59,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "descriptors and the query's (default: build-map's)")
     p.add_argument("--whitening", default="",
                    help="gem-lw: the whitening file (pixloc train-whitening; default: the shipped one)")
+    p.add_argument("--sift", type=int, default=0, metavar="N",
+                   help="maps that store SIFT extracted at N px (build-map --sift), which bow indexes "
+                        "(default 0: none; their SIFT is then extracted from the map images)")
     p.add_argument("--rank-references", type=int, default=10_000, metavar="N",
                    help="also time the global ranking of a query against N random references (0: not)")
     p.add_argument("--limit", type=int, default=0, help="at most this many queries per map (a quick look)")
@@ -114,16 +117,34 @@ def relit(queries: List[QueryRecord], folder: Path) -> List[QueryRecord]:
     return out
 
 
-def maps(args, fconf) -> List:
-    """(scene, map name, store, queries) of every chosen scene."""
+def maps(args, fconf, built_s: Dict[str, float]) -> List:
+    """(scene, map name, store, queries) of every chosen scene; ``built_s``: the seconds that building
+    each scene's maps took, where this call built them (split evenly between a scene's maps)."""
     from .accuracy import scene_parts
     from .verification import demo_map
     out = []
     for key in args.scenes:
+        new = not any(args.work.glob(f"{key}*.zarr"))
+        t0 = time.perf_counter()
         parts = list(demo_map(args.work, fconf)) if key == "demo" else scene_parts(key, args, fconf)
+        if new:
+            built_s.update({name: (time.perf_counter() - t0) / len(parts) for name, _, _ in parts})
         out += [(key, name, store, [q for q in queries if q.cam_from_world_gt is not None][:args.limit or None])
                 for name, store, queries in parts]
     return out
+
+
+def index_line(name: str, reader, build_s) -> str:
+    """What the map's bow index took to build (its SIFT, then vocabulary and inverted file), beside the map's
+    build where this run built it."""
+    from pipeline.localization.bow import index_for
+    index = index_for(reader)
+    stored = reader.sift_descriptors(int(index.images[0])) is not None
+    total = index.seconds["descriptors"] + index.seconds["index"]
+    return (f"{name}: bow index of {len(index.images)} map images: {index.seconds['descriptors']:.1f} s of SIFT "
+            f"({'stored' if stored else 'extracted'}), {index.seconds['index']:.1f} s of vocabulary and inverted "
+            f"file ({len(index.words)} words)" + (f"; the map's build: {build_s:.1f} s ({100 * total / build_s:.0f} %)"
+                                                    if build_s else ""))
 
 
 def index_bytes(reader, method: str) -> float:
@@ -228,19 +249,23 @@ def main(args: argparse.Namespace) -> int:
     from pixloc.nets.registry import DEFAULT_MODEL
 
     from .accuracy import SPLITS  # noqa: F401  (the scenes' splits, as the accuracy benchmark has them)
-    args.resize, args.sift, args.dtype, args.pca, args.model = 512, 0, "int8", None, DEFAULT_MODEL
-    fconf = FeatureConfig(model=DEFAULT_MODEL, resize=512, image_scales=(1,), dtype="int8", descriptor=args.descriptor)
+    args.resize, args.dtype, args.pca, args.model = 512, "int8", None, DEFAULT_MODEL
+    fconf = FeatureConfig(model=DEFAULT_MODEL, resize=512, image_scales=(1,), dtype="int8", descriptor=args.descriptor,
+                          sift=args.sift)
     args.work.mkdir(parents=True, exist_ok=True)
     found: Dict = {}  # (scene, condition) -> per method, over the scene's maps
     sizes: Dict = {}
     with torch_threads(1):
         refiner, digest = localization_model(DEFAULT_MODEL, "cpu")
-        for scene, name, store, queries in maps(args, fconf):
+        built_s: Dict[str, float] = {}  # seconds of each map's build, where this run built it
+        for scene, name, store, queries in maps(args, fconf, built_s):
             configs = feature_configs(store)  # the benchmark's descriptor where the store has several groups
             conf = next((c for c in configs if c.descriptor == fconf.descriptor), configs[0])
             reader = MapReader(store, conf, digest)
             localizer = Localizer(refiner.extractor, refiner.solvers, reader, LocalizerConfig(), "cpu")
             sizes[scene] = {m: index_bytes(reader, m) for m in args.methods}
+            if SiftWords.name in args.methods or Fusion.name in args.methods:
+                print(index_line(name, reader, built_s.get(name)), flush=True)
             for condition in args.conditions:
                 if condition == "relit":
                     groups = {"relit": relit(queries, args.work / "relit" / name)}
