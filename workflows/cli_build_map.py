@@ -168,6 +168,15 @@ def check_store_main(args: argparse.Namespace) -> int:
     from pipeline.store.check import check_store
     report = check_store(args.store, progress=lambda name: logger.debug("checking %s", name))
     print(report.summary())
+    from pipeline.store.info import feature_configs
+    from pipeline.store.layout import StoreError
+    try:  # what each feature group holds, its global descriptor among it (a store keeps the one it was built by)
+        for conf in feature_configs(args.store):
+            print(f"  features of {conf.model} at {conf.resize} px, image scales {list(conf.image_scales)}, "
+                  f"{conf.dtype}{f' + PCA {conf.pca}' if conf.pca else ''}; global descriptor {conf.descriptor}"
+                  f"{f'; SIFT at {conf.sift} px' if conf.sift else ''}")
+    except (StoreError, OSError, KeyError, ValueError, TypeError) as e:  # damaged: the summary above names it
+        logger.debug("feature groups not listed: %s", e)
     if args.repair and report.bad_images():
         from pipeline.store.check import mark_pending
         n = mark_pending(args.store, report.bad_images())

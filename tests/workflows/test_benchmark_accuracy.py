@@ -111,3 +111,12 @@ def test_the_retrieval_benchmark_on_the_same_maps(run, shared):
         folder = shared / "data" / ("middlebury/templeRing" if "temple" in p.name else "bundler_kermit")
         original = read_image(folder / p.name[:-4]).astype(float)
         assert read_image(p).shape == original.shape and np.abs(read_image(p) - original).mean() > 10
+
+
+def test_check_store_names_each_feature_groups_global_descriptor(run, capsys):
+    """A store keeps the descriptor it was built with; check-store says which (build-map's default: gem-lw)."""
+    _, _, work = run
+    assert main(["check-store", str(work / "kermit-1of2.zarr")]) == 0
+    out = capsys.readouterr().out
+    assert "all chunks verified" in out
+    assert "at 512 px, image scales [1], int8 + PCA 48; global descriptor gem-lw" in out
