@@ -13,6 +13,7 @@ fills a copied list), hence this equivalent.
 """
 
 import logging
+import threading
 import time
 from collections import OrderedDict
 from dataclasses import dataclass, field
@@ -140,6 +141,7 @@ def map_descriptors(reader, i: int, max_size: int) -> np.ndarray:
 
 
 _INDEXES: "OrderedDict[Tuple[str, Tuple[str, ...], int], BagOfWords]" = OrderedDict()
+_BUILDING = threading.Lock()
 
 
 def _index(reader, max_size: int) -> BagOfWords:
@@ -166,11 +168,12 @@ def _index(reader, max_size: int) -> BagOfWords:
 def index_for(reader, max_size: int = 1600) -> BagOfWords:
     """The map's bag-of-words index, built on first use and kept for the process."""
     key = (str(reader.path), tuple(reader.names), max_size)
-    if key not in _INDEXES:
-        _INDEXES[key] = _index(reader, max_size)
-        while len(_INDEXES) > 4:
-            _INDEXES.popitem(last=False)
-    return _INDEXES[key]
+    with _BUILDING:  # threads of one worker that rank against the same map build its index once
+        if key not in _INDEXES:
+            _INDEXES[key] = _index(reader, max_size)
+            while len(_INDEXES) > 4:
+                _INDEXES.popitem(last=False)
+        return _INDEXES[key]
 
 
 def query_descriptors(rgb: np.ndarray, max_size: int, max_features: int) -> np.ndarray:

@@ -120,3 +120,31 @@ def test_check_store_names_each_feature_groups_global_descriptor(run, capsys):
     out = capsys.readouterr().out
     assert "all chunks verified" in out
     assert "at 512 px, image scales [1], int8 + PCA 48; global descriptor gem-lw" in out
+
+
+def test_localize_with_fusion_retrieval(run, shared):
+    """``--retrieval fusion`` through the localization jobs (the accuracy benchmark's runs, kept apart from
+    global's): the query starts from fusion's top references, the ones fusion ranks first."""
+    from pipeline.localization.refine import Localizer, LocalizerConfig, QueryCache
+    from pipeline.localization.retrieval import Fusion, retrieve
+    from pipeline.localization.shard import describer, fit_query
+    from pipeline.models import localization_model
+    from pipeline.store.info import feature_config
+    from pipeline.store.reader import MapReader
+    from workflows.benchmarks.accuracy import SPLITS, split_parts
+
+    _, _, work = run
+    assert main(["benchmark", "accuracy", "--shared", str(shared), "--work", str(work), "--scenes", "kermit",
+                 "--priors", "top1", "--limit", "1", "--retrieval", "fusion"]) == 0
+    (record,) = [json.loads(line) for line in (work / "runs-fusion-limit1" / "kermit-1of2" / "top1" /
+                                                "records.jsonl").read_text().splitlines()]
+    assert record["prior"] is not None and len(record["references"]) == 3  # a start from the top-1, 3 used
+    store = work / "kermit-1of2.zarr"
+    conf = feature_config(store)
+    ((_, _, queries),) = split_parts("kermit", SPLITS["kermit"], shared, work, conf, limit=1)
+    reader = MapReader(store, conf)
+    refiner, _ = localization_model(conf.model, "cpu")
+    query, rgb = fit_query(queries[0])
+    localizer = Localizer(refiner.extractor, refiner.solvers, reader, LocalizerConfig(), "cpu")
+    ranked = retrieve(Fusion(k=5), reader, query, describer(reader, localizer, rgb, QueryCache())).dbs
+    assert record["references"] == [reader.names[i] for i in ranked[:len(record["references"])]]
