@@ -167,6 +167,8 @@ def evaluate_map(reader, localizer, queries: List[QueryRecord], methods, min_sha
     if WhitenedGeM.name in methods and reader.conf.descriptor != GeM.name:
         methods = [m for m in methods if m != WhitenedGeM.name]  # a store of another descriptor: nothing to whiten
     out = {m: {"hits": [], "top1_rank": [], "seconds": 0.0, "no_right": 0} for m in methods}
+    from pipeline.descriptors import whiten
+    whitened = whiten(reader.global_descriptors, whitening) if WhitenedGeM.name in methods else None  # once per map
     for q in queries:
         counts = covisible(reader, q)
         best = counts.max(initial=0)
@@ -179,10 +181,8 @@ def evaluate_map(reader, localizer, queries: List[QueryRecord], methods, min_sha
             if m == "oracle":
                 dbs = [int(i) for i in order[:max(KS)] if reader.usable(i)]
             elif m == WhitenedGeM.name:  # the store's gem descriptors and the query's, whitened here
-                from pipeline.descriptors import whiten
                 q_fit, rgb = fit_query(q)
-                d = whiten(describer(reader, localizer, rgb, QueryCache())(), whitening)
-                sim = whiten(reader.global_descriptors, whitening) @ d
+                sim = whitened @ whiten(describer(reader, localizer, rgb, QueryCache())(), whitening)
                 dbs = [int(i) for i in np.argsort(-sim, kind="stable") if reader.usable(i)][:max(KS)]
             else:
                 q_fit, rgb = fit_query(q)
