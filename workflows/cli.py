@@ -103,6 +103,7 @@ def build_parser() -> argparse.ArgumentParser:
     from .benchmarks import accuracy as bench_accuracy
     from .benchmarks import build_map as bench_build_map
     from .benchmarks import lm as bench_lm
+    from .benchmarks import mapping as bench_mapping
     from .benchmarks import localize as bench_localize
     from .benchmarks import query_cpu as bench_query_cpu
     from .benchmarks import query_rate as bench_query_rate
@@ -134,7 +135,10 @@ def build_parser() -> argparse.ArgumentParser:
             ("accuracy", bench_accuracy,
              "recall, precision and time per prior on every posed real scene, against SIFT + PnP"),
             ("retrieval", bench_retrieval,
-             "recall@1/5/10 of each retrieval method per scene and condition, against the co-visibility oracle")]:
+             "recall@1/5/10 of each retrieval method per scene and condition, against the co-visibility oracle"),
+            ("mapping", bench_mapping,
+             "the structure stage: SIFT and matching on 1 vs 2 Dask workers; incremental vs global SfM against "
+             "known poses")]:
         p = bench_sub.add_parser(name, help=text)
         module.add_arguments(p)
         p.set_defaults(func=module.main)

@@ -10,6 +10,7 @@ from pathlib import Path
 from pipeline.descriptors import DESCRIPTORS
 from pipeline.mapping.features import DTYPES, FeatureConfig
 from pipeline.mapping.image_pairs import METHODS as PAIR_METHODS, PairsConfig
+from pipeline.mapping.readers.colmap import MAPPERS
 from pipeline.mapping.readers.sources import SOURCES, MapSource, describe_source, load_scene, map_kinds
 from pipeline.store import location
 from pipeline.store.layout import AnotherMap
@@ -69,6 +70,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--pairs-file", type=Path, help="an hloc pairs file (name0 name1 per line): --pairs file")
     p.add_argument("--pairs-neighbors", type=int, default=PairsConfig().num_neighbors,
                    help="spatial/retrieval: neighbours per image")
+    p.add_argument("--mapper", choices=list(MAPPERS), default="incremental",
+                   help="sfm sources: incremental (COLMAP's), global (GLOMAP's rotation averaging and global "
+                        "positioning; focal lengths calibrated from the view graph where no image has one) or "
+                        "hierarchical (incremental per cluster of images, merged); docs/benchmarks.md, Mapping")
     p.add_argument("--batch-size", type=int, default=1, help="images per task")
     p.add_argument("--device", default="cpu", help="torch device of the feature network (cpu, cuda, cuda:1)")
     p.add_argument("--work-dir", type=Path, help="SfM/triangulation files and the log (default: the store's path "
@@ -100,7 +105,7 @@ def main(args: argparse.Namespace) -> int:
         check_store(store)  # something else than a store there is refused now, not after the reconstruction
     source = MapSource(args.kind, absolute(args.path), absolute(args.images), tuple(args.sequences),
                        args.rgbd_points, args.densify, tuple(args.intrinsics), args.depth_scale, args.depth_ext,
-                       tuple(args.hold_out))
+                       tuple(args.hold_out), args.mapper)
     pairs = PairsConfig("file" if args.pairs_file and args.pairs == "auto" else args.pairs,
                         args.pairs_neighbors, path=str(absolute(args.pairs_file)) if args.pairs_file else None)
     work_dir = absolute(args.work_dir) or location.work_dir(store)
@@ -113,13 +118,21 @@ def main(args: argparse.Namespace) -> int:
               "  1 structure, 2 features: counted once the reconstruction exists\n(dry run: nothing computed or "
               "written)")
         return 0
-    with store_lock(store, work_dir), work_dir_lock(work_dir):
+    session = executor.Session(sync=args.sync, scheduler=args.scheduler, workers=args.workers, device=args.device)
+    with store_lock(store, work_dir), work_dir_lock(work_dir), session:
         from .logs import colmap_to_file, to_file
         log = to_file(work_dir / "build-map.log")
         colmap_to_file(work_dir)
         print(f"log            {log} (COLMAP's in {work_dir}/colmap.INFO.*)")
+        from pipeline.mapping.structure import Tasks, in_process
         from pipeline.progress import Progress
-        scene = load_scene(source, work_dir, pairs, progress=Progress)
+        # SIFT and matching in shards on the session's workers (one pycolmap thread each), or here on every core:
+        # with --sync, and for a store in a bucket, whose workers may share no folder with this process
+        here = args.sync or location.is_url(store)
+        tasks = Tasks(run=in_process if here else session.run, threads=0 if here else 1, progress=Progress)
+        scene = load_scene(source, work_dir, pairs, tasks=tasks)
+        if tasks.seconds:
+            logger.info("structure stage: %s", ", ".join(f"{k} {v:.1f} s" for k, v in tasks.seconds.items()))
         try:
             plan = plan_build(scene, store, conf, batch_size=args.batch_size, device=args.device,
                               chunk_rows=args.chunk_rows, shard_rows=args.shard_rows, source=source.to_dict(),
@@ -140,8 +153,7 @@ def main(args: argparse.Namespace) -> int:
                              f"folder, here {work_dir}. If that is not the folder that built this store, give "
                              "that one with --work-dir (a store copied or moved without its work folder cannot "
                              "be resumed or repaired: rebuild it with --overwrite).") from None
-        results = executor.run_plan(plan, run_sync, run_dask, sync=args.sync, scheduler=args.scheduler,
-                                    workers=args.workers, device=args.device)
+        results = session.run_plan(plan, run_sync, run_dask)
     counts = Counter(r.status for r in results)
     already = len(scene.images) - sum(len(b) for b in plan.batches) + counts.get("skipped", 0)
     print(f"\n{counts.get('done', 0)} images extracted, {already} already done or refused, "

@@ -183,18 +183,56 @@ def _not_cancelled(record: logging.LogRecord) -> bool:
     return "ended with CancelledError" not in record.getMessage()
 
 
+class Session:
+    """Where one command's tasks run: in this process (``sync``), or on a Dask client of
+    ``scheduler`` (or of a local cluster of ``workers``) started on first use and closed with the
+    session, so that every stage of a command (a build's SIFT, matching and features) shares one
+    cluster, and a command with nothing to do starts none."""
+
+    def __init__(self, *, sync: bool, scheduler: Optional[str] = None, workers: int = 2, device: str = "cpu"):
+        # on this machine the device must be here; a cluster of yours may have devices that this one has not
+        check_device(device, "; use --device cpu, or run on a cluster whose workers have the GPU (--scheduler)",
+                     here=not scheduler)
+        self.sync, self.scheduler, self.workers, self.device = sync, scheduler, workers, device
+        self._stack = contextlib.ExitStack()
+        self._client = None
+
+    def __enter__(self) -> "Session":
+        return self
+
+    def __exit__(self, *exc):
+        return self._stack.__exit__(*exc)
+
+    @property
+    def client(self):
+        """The Dask client (None when ``sync``), started on first use."""
+        if self.sync:
+            return None
+        if self._client is None:
+            self._client = self._stack.enter_context(dask_client(self.scheduler, self.workers, self.device))
+            logger.info("Dask dashboard: %s", self._client.dashboard_link)
+        return self._client
+
+    def run(self, fn: Callable, calls: Sequence[tuple], name: str, on_done: Optional[Callable] = None) -> List:
+        """``fn(*args)`` per argument tuple (``run_sync`` or ``run_dask``); CPU tasks (the device's
+        resources are for the plan's own tasks)."""
+        if self.sync or not calls:
+            return run_sync(fn, calls, on_done)
+        return run_dask(self.client, fn, calls, name, "cpu", on_done)
+
+    def run_plan(self, plan, run_sync: Callable, run_dask: Callable):
+        """``run_sync(plan, progress=True)``, or ``run_dask(plan, client, progress=True)``."""
+        if self.sync:
+            return run_sync(plan, progress=True)
+        return run_dask(plan, self.client, progress=True)
+
+
 def run_plan(plan, run_sync: Callable, run_dask: Callable, *, sync: bool, scheduler: Optional[str] = None,
              workers: int = 2, device: str = "cpu"):
     """``run_sync(plan, progress=True)``, or ``run_dask(plan, client, progress=True)`` on a client of
     ``scheduler`` (or of a local cluster of ``workers``): what the commands do with a plan."""
-    # on this machine the device must be here; a cluster of yours may have devices that this one has not
-    check_device(device, "; use --device cpu, or run on a cluster whose workers have the GPU (--scheduler)",
-                 here=not scheduler)
-    if sync:
-        return run_sync(plan, progress=True)
-    with dask_client(scheduler, workers, device) as client:
-        logger.info("Dask dashboard: %s", client.dashboard_link)
-        return run_dask(plan, client, progress=True)
+    with Session(sync=sync, scheduler=scheduler, workers=workers, device=device) as session:
+        return session.run_plan(plan, run_sync, run_dask)
 
 
 def check_device(device: str, fix: str = "", here: bool = True) -> None:

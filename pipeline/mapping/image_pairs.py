@@ -6,24 +6,23 @@ Above ``exhaustive_below`` images the ``auto`` method picks a scalable one:
 - ``spatial`` (known poses): each image with its ``num_neighbors`` nearest camera centres
   among those whose optical axes differ by less than ``max_angle`` degrees (frusta that can
   overlap); matched with pycolmap's ``match_image_pairs``.
-- ``sequential`` (ordered frames): pycolmap's ``match_sequential``, ``overlap`` neighbours
-  in name order.
+- ``sequential`` (ordered frames): the next ``overlap`` images in name order and those 2**k
+  ahead (COLMAP's sequential pairing).
 - ``retrieval`` (unposed, unordered): the top ``num_neighbors`` of each image by cosine
   similarity of global descriptors (of the network's coarsest features, as build-map's default).
 - ``file``: an hloc pairs file (``name0 name1`` per line), as given.
 
-Pairs are written to ``pairs.txt`` in the work folder, so a user can see what was matched
-(all of them but ``sequential``'s, which COLMAP chooses).
+Pairs are written to ``pairs.txt`` in the work folder, so a user can see what was matched;
+``pipeline.mapping.structure`` matches them in chunks.
 """
 
 import logging
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, List, Optional, Sequence, Tuple
+from typing import List, Optional, Sequence, Tuple
 
 import numpy as np
 
-from pipeline.progress import Silent, database_rows, watching
 from pipeline.regions import camera_centres
 from pipeline.textfiles import read_text
 
@@ -155,42 +154,33 @@ def image_descriptors(paths: Sequence[Path], model: str, resize: int = 320) -> n
     return np.stack(out)
 
 
-def match(database: Path, names: Sequence[str], conf: PairsConfig, work_dir: Path, *,
-          cam_from_world: Optional[Sequence[np.ndarray]] = None, image_dir: Optional[Path] = None,
-          model: Optional[str] = None, progress: Callable = Silent) -> str:
-    """Match the features in ``database`` over the pairs of ``conf``; returns the method used.
-    ``progress(total, desc, unit)`` counts the pairs matched (``pipeline.progress.Progress`` on
-    a terminal)."""
-    import pycolmap
+def sequential_pairs(names: Sequence[str], overlap: int = 10) -> List[Pair]:
+    """Each image with the next ``overlap`` ones in name order and those ``2**k`` ahead for
+    ``k < overlap``: COLMAP's sequential pairing with its quadratic overlap (loop detection off)."""
+    ordered = sorted(names)
+    pairs = []
+    for i, a in enumerate(ordered):
+        ahead = {i + k + 1 for k in range(overlap)} | {i + (1 << k) for k in range(overlap)}
+        pairs += [(a, ordered[j]) for j in sorted(ahead) if j < len(ordered)]
+    return _unique(pairs)
+
+
+def select_pairs(names: Sequence[str], conf: PairsConfig, *, cam_from_world: Optional[Sequence[np.ndarray]] = None,
+                 image_dir: Optional[Path] = None, model: Optional[str] = None) -> List[Pair]:
+    """The image pairs that ``conf`` matches among ``names`` (``cam_from_world``: known poses, if any;
+    ``image_dir`` and ``model`` for ``retrieval``)."""
     method = conf.resolve(len(names), cam_from_world is not None)
-    cpu = pycolmap.Device.cpu
-    if method == "sequential":  # COLMAP's choice: the next ``overlap`` and those 2**k ahead
-        total = sum(min(conf.overlap, len(names) - 1 - i) for i in range(len(names)))
-        with progress(total, "SIFT matching", "pair") as counter, \
-                watching(database_rows(database, "two_view_geometries"), counter):
-            options = pycolmap.SequentialPairingOptions()
-            options.overlap = conf.overlap
-            pycolmap.match_sequential(database, pairing_options=options, device=cpu)
-        logger.info("Matched %d images sequentially (overlap %d).", len(names), conf.overlap)
-        return method
     if method == "exhaustive":
-        pairs = exhaustive_pairs(names)
-    elif method == "spatial":
+        return exhaustive_pairs(names)
+    if method == "sequential":
+        return sequential_pairs(names, conf.overlap)
+    if method == "spatial":
         if cam_from_world is None:
             raise ValueError("Pairs method 'spatial' needs known poses; use 'retrieval' or 'sequential'.")
-        pairs = spatial_pairs(names, cam_from_world, conf.num_neighbors, conf.max_angle)
-    elif method == "retrieval":
+        return spatial_pairs(names, cam_from_world, conf.num_neighbors, conf.max_angle)
+    if method == "retrieval":
         if image_dir is None or model is None:
             raise ValueError("Pairs method 'retrieval' needs the images and a network.")
-        pairs = retrieval_pairs(names, image_descriptors([Path(image_dir) / n for n in names], model),
-                                conf.num_neighbors)
-    else:
-        pairs = read_pairs(conf.path, names)
-    path = write_pairs(pairs, Path(work_dir) / "pairs.txt")
-    options = pycolmap.ImportedPairingOptions()
-    options.match_list_path = str(path)
-    with progress(len(pairs), "SIFT matching", "pair") as counter, \
-            watching(database_rows(database, "two_view_geometries"), counter):
-        pycolmap.match_image_pairs(database, pairing_options=options, device=cpu)
-    logger.info("Matched %d pairs of %d images (%s, listed in %s).", len(pairs), len(names), method, path)
-    return method
+        return retrieval_pairs(names, image_descriptors([Path(image_dir) / n for n in names], model),
+                               conf.num_neighbors)
+    return read_pairs(conf.path, names)

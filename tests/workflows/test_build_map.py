@@ -192,13 +192,35 @@ def _done(store: Path) -> int:
     ("sfm", "sacre_coeur/mapping", 10)])
 def test_killed_build_resumes_and_a_finished_build_reruns_as_a_noop(shared, tmp_path, kind, folder, images):
     """Before: pycolmap's SfM and triangulation gave another map on each run, so any rerun failed with
-    'holds another map ... pass overwrite'. The work folder's finished reconstruction is now reused."""
+    'holds another map ... pass overwrite'. The work folder's finished reconstruction is now reused. SfM
+    is also killed during SIFT and during the mapping first: the reruns redo no finished shard."""
     store = tmp_path / "map.zarr"
     cmd = [sys.executable, "-m", "workflows.cli", "build-map", kind, str(shared / "data" / folder),
            "--store", str(store), "--sync", "--resize", "512", "--image-scales", "1"]
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    work = tmp_path / "map.work" / ("sfm" if kind == "sfm" else "triangulation")
+    shards, log = work / "shards", tmp_path / "map.work" / "build-map.log"
+    if kind == "sfm":  # killed during SIFT (one shard of two made), then during the mapping: no shard redone
+        proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        wait_for(lambda: len(list(shards.glob("sift-*.npz"))) >= 1, timeout=400)
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+        (first,) = shards.glob("sift-*.npz")
+        made = first.stat().st_mtime_ns
+        proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        wait_for(lambda: (work / "database.db").exists(), timeout=400)
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+        assert not (work / "sfm.json").exists() and len(list(shards.glob("matches-*.npz"))) == 1
+        assert "SIFT features: 1 of 2 shards already made" in log.read_text()
+        assert first.stat().st_mtime_ns == made
+        shard_times = {f: f.stat().st_mtime_ns for f in shards.iterdir()}
     proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     wait_for(lambda: _done(store) >= 1, timeout=400)
+    if kind == "sfm":
+        said = log.read_text()
+        assert "SIFT features: 2 of 2 shards already made" in said and "SIFT matching: 1 of 1 shards" in said
+        assert {f: f.stat().st_mtime_ns for f in shards.iterdir()} == shard_times
     proc.send_signal(signal.SIGKILL)
     proc.wait()
     before = _done(store)

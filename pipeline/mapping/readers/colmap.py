@@ -5,17 +5,18 @@ import logging
 import time
 from dataclasses import asdict
 from pathlib import Path
-from typing import Callable, Dict, List, Optional, Sequence, Tuple
+from typing import Callable, Dict, List, Optional, Sequence
 
 import numpy as np
 import pycolmap
 
 from pixloc.nets.registry import DEFAULT_MODEL
 
-from pipeline.images import ImageReadError, file_sha256, image_files, read_image
-from pipeline.mapping.image_pairs import PairsConfig, match
+from pipeline.images import file_sha256, image_files
+from pipeline.mapping.image_pairs import PairsConfig
 from pipeline.mapping.readers.colmap_files import read_reconstruction
-from pipeline.progress import Silent, database_rows, watching
+from pipeline.mapping.structure import Tasks, build_database
+from pipeline.progress import Silent
 from pipeline.scene import CameraRecord, ImageRecord, Scene, SceneError
 
 logger = logging.getLogger(__name__)
@@ -59,62 +60,14 @@ def read_colmap(model_dir, image_dir, tags=None) -> Scene:
 
 
 def _extract_and_match(database: Path, image_dir: Path, names: Sequence[str], pairs: PairsConfig,
-                       cameras: Optional[Sequence[CameraRecord]] = None,
-                       cam_from_world: Optional[Sequence[np.ndarray]] = None,
-                       timings: Optional[Dict[str, float]] = None, progress: Callable = Silent) -> List[str]:
-    """SIFT features, and matches over the pairs of ``pairs``, into ``database``; known
-    intrinsics if given; the seconds of each (``sift``, ``matching``) into ``timings``; images
-    and pairs counted by ``progress(total, desc, unit)``. Returns the names of the images used:
-    those the image reader refuses are left out (``readable_images``)."""
-    timings = {} if timings is None else timings
-    t0 = time.perf_counter()
-    names, cameras, cam_from_world = readable_images(image_dir, names, cameras, cam_from_world)
-    options = pycolmap.ImageReaderOptions()
-    if cameras is not None:
-        options.camera_model = "PINHOLE"
-    with progress(len(names), "SIFT features", "image") as counter, \
-            watching(database_rows(database, "keypoints"), counter):
-        pycolmap.extract_features(database, image_dir, image_names=list(names),
-                                  camera_mode=pycolmap.CameraMode.PER_IMAGE, reader_options=options,
-                                  device=pycolmap.Device.cpu)
-    if cameras is not None:
-        by_name = dict(zip(names, cameras))
-        with pycolmap.Database.open(database) as db:
-            for image in db.read_all_images():
-                cam = db.read_camera(image.camera_id)
-                rec = by_name[image.name]
-                known = pycolmap.Camera.create_from_model_name(
-                    cam.camera_id, rec.model, float(rec.params[0]), rec.width, rec.height)
-                known.params = list(rec.params)
-                known.has_prior_focal_length = True
-                db.update_camera(known)
-    timings["sift"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    match(database, names, pairs, database.parent, cam_from_world=cam_from_world, image_dir=image_dir,
-          model=DEFAULT_MODEL, progress=progress)
-    timings["matching"] = time.perf_counter() - t0
-    return list(names)
-
-
-def readable_images(image_dir: Path, names: Sequence[str], *aligned: Optional[Sequence]) -> Tuple:
-    """``names`` (and the lists ``aligned`` with them) less the images that the one image reader
-    refuses (missing, empty, truncated, corrupt, not an image), each named with its reason in a
-    warning: COLMAP would read a truncated JPEG in part, and log one error per pair for an image
-    it could not read."""
-    keep, refused = [], []
-    for k, name in enumerate(names):
-        try:
-            read_image(image_dir / name)
-            keep.append(k)
-        except ImageReadError as e:
-            refused.append(f"{name}: {e}")
-    if refused:
-        more = f"\n  ... and {len(refused) - 20} more" if len(refused) > 20 else ""
-        logger.warning("%d of %d images left out of SIFT and matching:\n  %s", len(refused), len(names),
-                       "\n  ".join(refused[:20]) + more)
-    if not keep:
-        raise SceneError(f"None of the {len(names)} images in {image_dir} can be read (first: {refused[0]}).")
-    return ([names[k] for k in keep], *(None if a is None else [a[k] for k in keep] for a in aligned))
+                       fingerprint: dict, tasks: Tasks, cameras: Optional[Sequence[CameraRecord]] = None,
+                       cam_from_world: Optional[Sequence[np.ndarray]] = None) -> List[str]:
+    """SIFT features, and matches over the pairs of ``pairs``, into ``database``, as the shards of
+    ``pipeline.mapping.structure`` made by ``tasks``; known intrinsics if given. Returns the names of
+    the images used: those the image reader refuses are left out."""
+    files = {f[0]: f for f in fingerprint["images"]}
+    return build_database(database, image_dir, names, files, pairs, tasks, cameras=cameras,
+                          cam_from_world=cam_from_world, model=DEFAULT_MODEL)
 
 
 def _pairs_fingerprint(pairs: PairsConfig, num_images: int, posed: bool) -> dict:
@@ -193,14 +146,26 @@ def _finish(rec: pycolmap.Reconstruction, work_dir: Path, marker: str, model: st
     return pycolmap.Reconstruction(str(work_dir / model))
 
 
+MAPPERS = ("incremental", "global", "hierarchical")
+MAX_TRACKS = 2_000_000  # global SfM keeps at most this many tracks (its memory grows with them)
+
+
 def run_sfm(image_dir, work_dir, names: Optional[Sequence[str]] = None, tags=None,
-            pairs: PairsConfig = PairsConfig(), progress: Callable = Silent) -> Scene:
-    """Structure-from-motion with pycolmap (SIFT, matching of ``pairs``, incremental mapping);
-    images, pairs and the mapping counted by ``progress(total, desc, unit)``.
+            pairs: PairsConfig = PairsConfig(), progress: Callable = Silent, *, tasks: Optional[Tasks] = None,
+            mapper: str = "incremental", max_tracks: int = MAX_TRACKS) -> Scene:
+    """Structure-from-motion with pycolmap: SIFT and matching of ``pairs`` in shards run by
+    ``tasks`` (``pipeline.mapping.structure``; in this process by default), then ``mapper``:
+    ``incremental`` (COLMAP's), ``global`` (GLOMAP's rotation averaging and global positioning,
+    with the focal lengths calibrated from the view graph first where no image has a prior
+    focal length, and at most ``max_tracks`` tracks) or ``hierarchical`` (incremental per
+    cluster of images, merged); images, pairs and the registration counted by ``progress``.
 
     Keeps the largest model; images it could not register are left out and logged. A model
     finished in ``work_dir`` from the same images is reused.
     """
+    if mapper not in MAPPERS:
+        raise ValueError(f"Unknown mapper {mapper!r}; known: {', '.join(MAPPERS)}.")
+    tasks = tasks or Tasks(progress=progress)
     image_dir, work_dir = Path(image_dir), Path(work_dir)
     work_dir.mkdir(parents=True, exist_ok=True)
     names = image_files(image_dir) if names is None else list(names)
@@ -208,21 +173,17 @@ def run_sfm(image_dir, work_dir, names: Optional[Sequence[str]] = None, tags=Non
         raise SceneError(f"{image_dir}: {len(names)} images (JPEG or PNG files directly in the folder"
                          f"{', after --hold-out' if image_files(image_dir) else ''}) to reconstruct: SfM needs at "
                          "least 2.")
-    fingerprint = images_fingerprint(image_dir, names, kind=SFM, **_pairs_fingerprint(pairs, len(names), False))
+    extra = {} if mapper == "incremental" else {"mapper": mapper, "max_tracks": max_tracks}
+    fingerprint = images_fingerprint(image_dir, names, kind=SFM, **_pairs_fingerprint(pairs, len(names), False),
+                                     **extra)
     rec = cached_model(work_dir, "sfm.json", "model", fingerprint, image_dir)
     if rec is not None:
         return scene_from_reconstruction(rec, image_dir, tags)
     database = fresh_database(work_dir, "sfm.json")
-    used = _extract_and_match(database, image_dir, names, pairs, progress=progress)
-    options = pycolmap.IncrementalPipelineOptions()
-    options.random_seed = 0
-    options.num_threads = 2
-    with progress(len(used), "SfM registration", "image") as counter:
-        def registered(n: int) -> None:  # the initial pair, then one image at a time (any model)
-            counter.update(max(0, min(n, counter.total - counter.done)))
-        models = pycolmap.incremental_mapping(database, image_dir, work_dir / "sparse", options=options,
-                                              initial_image_pair_callback=lambda: registered(2),
-                                              next_image_callback=lambda: registered(1))
+    used = _extract_and_match(database, image_dir, names, pairs, fingerprint, tasks)
+    t0 = time.perf_counter()
+    models = _map(database, image_dir, work_dir / "sparse", mapper, max_tracks, len(used), tasks.progress)
+    tasks.seconds["mapping"] = time.perf_counter() - t0
     if not models:
         raise SceneError(
             f"SfM could not reconstruct any model from {len(used)} images in {image_dir}"
@@ -239,17 +200,54 @@ def run_sfm(image_dir, work_dir, names: Optional[Sequence[str]] = None, tags=Non
     return scene_from_reconstruction(rec, image_dir, tags)
 
 
+def _map(database: Path, image_dir: Path, output: Path, mapper: str, max_tracks: int, num_images: int,
+         progress: Callable) -> Dict[int, pycolmap.Reconstruction]:
+    """The models that ``mapper`` reconstructs from ``database`` (seeded, two threads)."""
+    output.mkdir(parents=True, exist_ok=True)
+    if mapper == "global":
+        with pycolmap.Database.open(database) as db:
+            calibrated = all(c.has_prior_focal_length for c in db.read_all_cameras())
+        if not calibrated:  # GLOMAP needs calibrated two-view geometries: focal lengths from the view graph
+            pycolmap.calibrate_view_graph(database)
+        options = pycolmap.GlobalPipelineOptions()
+        options.random_seed = 0
+        options.num_threads = 2
+        options.mapper.keep_max_num_tracks = max_tracks
+        with progress(1, "global SfM", "model") as counter:
+            models = pycolmap.global_mapping(database, image_dir, output, options=options)
+            counter.update()
+        return models
+    if mapper == "hierarchical":
+        options = pycolmap.HierarchicalPipelineOptions()
+        options.num_workers = 1
+        with progress(1, "hierarchical SfM", "model") as counter:
+            models = pycolmap.hierarchical_mapping(database, image_dir, output, options=options)
+            counter.update()
+        return models
+    options = pycolmap.IncrementalPipelineOptions()
+    options.random_seed = 0
+    options.num_threads = 2
+    with progress(num_images, "SfM registration", "image") as counter:
+        def registered(n: int) -> None:  # the initial pair, then one image at a time (any model)
+            counter.update(max(0, min(n, counter.total - counter.done)))
+        return pycolmap.incremental_mapping(database, image_dir, output, options=options,
+                                            initial_image_pair_callback=lambda: registered(2),
+                                            next_image_callback=lambda: registered(1))
+
+
 def triangulate_known_poses(images: List[ImageRecord], image_root, work_dir, *,
                             min_track_length: int = 2, max_reprojection_error: float = 2.0,
                             pairs: PairsConfig = PairsConfig(), timings: Optional[Dict[str, float]] = None,
-                            progress: Callable = Silent) -> Scene:
+                            progress: Callable = Silent, tasks: Optional[Tasks] = None) -> Scene:
     """Extract and match SIFT (over ``pairs``: exhaustive for small maps, nearby cameras with
     overlapping views above that), then triangulate with the given poses and intrinsics held fixed.
 
     image names must be paths relative to ``image_root``. Tracks shorter than
     ``min_track_length`` or with a mean reprojection error above
     ``max_reprojection_error`` pixels are removed. ``timings``, if given, receives the seconds of
-    each stage (``sift``, ``matching``, ``triangulation``; nothing when a finished model is reused).
+    each stage (``sift``, ``matching``, ``assembly``, ``triangulation``; nothing when a finished
+    model is reused). SIFT and matching run as the shards of ``pipeline.mapping.structure``, by
+    ``tasks`` (in this process by default).
     """
     image_root, work_dir = Path(image_root), Path(work_dir)
     work_dir.mkdir(parents=True, exist_ok=True)
@@ -265,9 +263,11 @@ def triangulate_known_poses(images: List[ImageRecord], image_root, work_dir, *,
     if rec is not None:
         return _known_pose_scene(rec, image_root, by_name)
     database = fresh_database(work_dir, "triangulation.json")
-    stages = {} if timings is None else timings
-    _extract_and_match(database, image_root, names, pairs, [im.camera for im in images],
-                       [im.cam_from_world for im in images], stages, progress)
+    tasks = tasks or Tasks(progress=progress)
+    stages = tasks.seconds if timings is None else timings
+    tasks.seconds = stages
+    _extract_and_match(database, image_root, names, pairs, fingerprint, tasks, [im.camera for im in images],
+                       [im.cam_from_world for im in images])
     t0 = time.perf_counter()
     rec = pycolmap.Reconstruction()
     with pycolmap.Database.open(database) as db:
@@ -275,7 +275,7 @@ def triangulate_known_poses(images: List[ImageRecord], image_root, work_dir, *,
             rec.add_camera_with_trivial_rig(db.read_camera(image.camera_id))
             new = pycolmap.Image(name=image.name, camera_id=image.camera_id, image_id=image.image_id)
             rec.add_image_with_trivial_frame(new, pycolmap.Rigid3d(by_name[image.name].cam_from_world))
-    with progress(1, "triangulation", "model") as counter:
+    with tasks.progress(1, "triangulation", "model") as counter:
         options = pycolmap.IncrementalPipelineOptions()
         # COLMAP leaves out tracks seen by two images only; a map of two images has no others
         options.triangulation.ignore_two_view_tracks = len(images) > 2

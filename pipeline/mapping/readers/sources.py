@@ -8,7 +8,7 @@ the queries' source; ``reconstructs``: the reconstruction stage a map from it ru
 and whose methods read it:
 
 - ``images(source)``: its posed images (their poses the ground truth of queries);
-- ``scene(source, work_dir, pairs, progress)``: the Scene a map is built from;
+- ``scene(source, work_dir, pairs, tasks)``: the Scene a map is built from;
 - ``query_records(source)``: its images as queries.
 
 A format of posed images (``PosedFormat``) only reads its files (``read``): the map is triangulated
@@ -25,6 +25,7 @@ import numpy as np
 
 from pipeline.images import image_files, read_image
 from pipeline.mapping.image_pairs import PairsConfig
+from pipeline.mapping.structure import Tasks
 from pipeline.progress import Silent
 from pipeline.queries import QueryRecord, read_queries_with_intrinsics
 from pipeline.registry import Registry
@@ -40,7 +41,8 @@ class MapSource:
     rgbd_points: ``tsdf`` or ``frames``; densify: move SfM points onto depth; intrinsics (fx, fy,
     cx, cy, COLMAP convention), depth_scale and depth_ext: a ``posetxt`` folder's; hold_out: image
     names left out of the map (queries of a held-out split): SfM and triangulation never see them;
-    a COLMAP model or RGB-D map drops their observations.
+    a COLMAP model or RGB-D map drops their observations; mapper: an ``sfm`` source's SfM
+    (``pipeline.mapping.readers.colmap.MAPPERS``).
     """
 
     kind: str
@@ -53,12 +55,14 @@ class MapSource:
     depth_scale: float = 1e-3
     depth_ext: str = ".png"
     hold_out: Tuple[str, ...] = field(default_factory=tuple)
+    mapper: str = "incremental"
 
     def to_dict(self):
         out = {"kind": self.kind, "path": str(self.path), "images": str(self.images) if self.images else None,
                "sequences": list(self.sequences), "rgbd_points": self.rgbd_points, "densify": self.densify,
                "intrinsics": list(self.intrinsics), "depth_scale": self.depth_scale, "depth_ext": self.depth_ext}
-        return {**out, "hold_out": list(self.hold_out)} if self.hold_out else out  # as stores without it recorded
+        out = {**out, "hold_out": list(self.hold_out)} if self.hold_out else out  # as stores without it recorded
+        return {**out, "mapper": self.mapper} if self.mapper != "incremental" else out
 
     @property
     def format(self) -> "SourceFormat":
@@ -84,7 +88,7 @@ class SourceFormat:
     def images(self, source: MapSource) -> List[ImageRecord]:
         raise ValueError(f"A {self.name} source has no posed images to read.")
 
-    def scene(self, source: MapSource, work_dir: Path, pairs: PairsConfig, progress: Callable) -> Scene:
+    def scene(self, source: MapSource, work_dir: Path, pairs: PairsConfig, tasks: Tasks) -> Scene:
         raise ValueError(f"A {self.name} source cannot be a map's: use one of {', '.join(map_kinds())}.")
 
     def query_records(self, source: MapSource) -> List[QueryRecord]:
@@ -145,7 +149,7 @@ class Colmap(SourceFormat):
     def images(self, source):
         return self.model(source).images
 
-    def scene(self, source, work_dir, pairs, progress):
+    def scene(self, source, work_dir, pairs, tasks):
         scene = self.model(source)
         if source.hold_out:
             keep = kept([im.name for im in scene.images], source.hold_out)
@@ -158,15 +162,15 @@ class Colmap(SourceFormat):
 class StructureFromMotion(SourceFormat):
     help: ClassVar[str] = "an image folder, reconstructed by SfM (pycolmap)"
     units: ClassVar[str] = "SfM units"
-    reads: ClassVar[Tuple[str, ...]] = ("path", "densify", "hold_out")
+    reads: ClassVar[Tuple[str, ...]] = ("path", "densify", "hold_out", "mapper")
     queries: ClassVar[bool] = False
     reconstructs: ClassVar[Optional[str]] = "SIFT, matching and SfM"
 
-    def scene(self, source, work_dir, pairs, progress):
+    def scene(self, source, work_dir, pairs, tasks):
         from pipeline.mapping.readers.colmap import run_sfm
         names = image_files(Path(source.path))
         return run_sfm(Path(source.path), work_dir / "sfm", [n for n, k in zip(names, kept(names, source.hold_out))
-                                                            if k], pairs=pairs, progress=progress)
+                                                            if k], pairs=pairs, tasks=tasks, mapper=source.mapper)
 
 
 @dataclass(frozen=True)
@@ -193,11 +197,11 @@ class PosedFormat(SourceFormat):
     def images(self, source):
         return self.posed(Path(source.path), source.images)[0]
 
-    def scene(self, source, work_dir, pairs, progress):
+    def scene(self, source, work_dir, pairs, tasks):
         from pipeline.mapping.readers.colmap import triangulate_known_poses
         images, root = self.posed(Path(source.path), source.images)
         return triangulate_known_poses(without_held_out(images, source), root, work_dir / "triangulation",
-                                       pairs=pairs, progress=progress)
+                                       pairs=pairs, tasks=tasks)
 
 
 @SOURCES.register("strecha")
@@ -326,7 +330,7 @@ class SevenScenes(SourceFormat):
                              "training split), --query-sequences for queries (official test split: 1 4).")
         return read_7scenes(Path(source.path), source.sequences)
 
-    def scene(self, source, work_dir, pairs, progress):
+    def scene(self, source, work_dir, pairs, tasks):
         from pipeline.mapping.depth import rgbd_scene
         return rgbd_scene(without_held_out(self.images(source), source), method=source.rgbd_points)
 
@@ -347,7 +351,7 @@ class PoseTxt(SourceFormat):
         camera = CameraRecord("PINHOLE", width, height, tuple(source.intrinsics))
         return read_pose_txt(path, camera, source.depth_scale, source.depth_ext)
 
-    def scene(self, source, work_dir, pairs, progress):
+    def scene(self, source, work_dir, pairs, tasks):
         from pipeline.mapping.depth import rgbd_scene
         return rgbd_scene(without_held_out(self.images(source), source), method=source.rgbd_points)
 
@@ -386,11 +390,12 @@ def posed_images(kind: str, path: Path, images: Optional[Path] = None) -> Tuple[
 
 
 def load_scene(source: MapSource, work_dir: Path, pairs: PairsConfig = PairsConfig(),
-               progress: Callable = Silent) -> Scene:
+               progress: Callable = Silent, tasks: Optional[Tasks] = None) -> Scene:
     """The Scene of ``source`` without its held-out images; SfM and triangulation write their
-    COLMAP files under ``work_dir``, match the image pairs of ``pairs`` and count images and
-    pairs with ``progress``."""
-    scene = source.format.scene(source, Path(work_dir), pairs, progress)
+    COLMAP files under ``work_dir``, match the image pairs of ``pairs``, run their SIFT and
+    matching shards by ``tasks`` (``pipeline.mapping.structure``; in this process by default)
+    and count images and pairs with ``progress`` (or ``tasks.progress``)."""
+    scene = source.format.scene(source, Path(work_dir), pairs, tasks or Tasks(progress=progress))
     if source.densify:
         from pipeline.mapping.depth import densify
         scene = densify(scene)

@@ -248,7 +248,9 @@ def test_unreadable_images_are_left_out_of_sift_by_name(shared, tmp_path, caplog
     """SfM and triangulation read their images with the one image reader first: a truncated, empty or
     fake image is left out of SIFT and matching with its reason (before: COLMAP read a truncated JPEG in
     part, and logged 'Image X does not exist' once per pair for one it could not read)."""
-    from pipeline.mapping.readers.colmap import readable_images
+    from pipeline.mapping.readers.colmap import images_fingerprint
+    from pipeline.mapping.image_pairs import PairsConfig
+    from pipeline.mapping.structure import Tasks, build_database
     photos = sorted((shared / "data" / "sacre_coeur" / "mapping").glob("*.jpg"))[:2]
     for p in photos:
         (tmp_path / p.name).symlink_to(p)
@@ -256,13 +258,20 @@ def test_unreadable_images_are_left_out_of_sift_by_name(shared, tmp_path, caplog
     (tmp_path / "zero.jpg").write_bytes(b"")
     (tmp_path / "fake.png").write_bytes(b"GIF89a")
     names = ["cut.jpg", photos[0].name, "zero.jpg", "fake.png", photos[1].name, "missing.jpg"]
+
+    def build(names, work):
+        files = {f[0]: f for f in images_fingerprint(tmp_path, names)["images"]}
+        return build_database(work / "database.db", tmp_path, names, files, PairsConfig(), Tasks())
     with caplog.at_level("WARNING"):
-        kept, tags = readable_images(tmp_path, names, list(range(len(names))))
-    assert kept == [photos[0].name, photos[1].name] and tags == [1, 4]
+        kept = build(names, tmp_path / "work")
+    assert kept == [photos[0].name, photos[1].name]
     said = caplog.text
     assert "4 of 6 images left out of SIFT and matching" in said
     for name, why in (("cut.jpg", "cannot be decoded"), ("zero.jpg", "is empty"), ("fake.png", "cannot be decoded"),
                       ("missing.jpg", "is missing")):
         assert f"{name}: image file {tmp_path / name} {why}" in said, said
+    import pycolmap
+    with pycolmap.Database.open(tmp_path / "work" / "database.db") as db:
+        assert sorted(im.name for im in db.read_all_images()) == sorted(kept) and db.num_matched_image_pairs() == 1
     with pytest.raises(SceneError, match=r"None of the 2 images .* can be read \(first: zero.jpg"):
-        readable_images(tmp_path, ["zero.jpg", "fake.png"])
+        build(["zero.jpg", "fake.png"], tmp_path / "none")

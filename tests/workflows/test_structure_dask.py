@@ -1,0 +1,25 @@
+"""The structure stage's shards made by a real Dask cluster of 2 worker processes: the same database
+as in one process, and a build-map whose structure stage ran on the cluster."""
+
+import pycolmap
+
+from pipeline.mapping.structure import Tasks, build_database
+from pipeline.mapping.readers.colmap import images_fingerprint
+from tests.pipeline.test_structure import PAIRS, build, contents, temple  # noqa: F401 - temple is a fixture
+from workflows.executor import Session
+
+
+def test_two_workers_make_the_same_database_as_one_process(temple, tmp_path):  # noqa: F811
+    images, root = temple
+    build(images, root, tmp_path / "here")
+    names = [im.name for im in images]
+    files = {f[0]: f for f in images_fingerprint(root, names)["images"]}
+    with Session(sync=False, workers=2) as session:
+        tasks = Tasks(run=session.run, threads=1, sift_chunk=4, match_chunk=8)
+        build_database(tmp_path / "dask" / "database.db", root, names, files, PAIRS, tasks,
+                       cameras=[im.camera for im in images], cam_from_world=[im.cam_from_world for im in images])
+        workers = {w["id"] for w in session.client.scheduler_info()["workers"].values()}
+    assert len(workers) == 2
+    assert contents(tmp_path / "dask" / "database.db") == contents(tmp_path / "here" / "database.db")
+    with pycolmap.Database.open(tmp_path / "dask" / "database.db") as db:
+        assert db.num_images() == 12 and db.num_verified_image_pairs() > 15
