@@ -1,5 +1,5 @@
-"""The structure stage's shards made by a real Dask cluster of 2 worker processes: the same database
-as in one process, and a build-map whose structure stage ran on the cluster."""
+"""The structure stage's shards made by a real Dask cluster of 2 worker processes (one pycolmap thread
+each): the same database as in one process with pycolmap's threads on every core (``--sync``)."""
 
 import pycolmap
 
@@ -11,7 +11,7 @@ from workflows.executor import Session
 
 def test_two_workers_make_the_same_database_as_one_process(temple, tmp_path):  # noqa: F811
     images, root = temple
-    build(images, root, tmp_path / "here")
+    build(images, root, tmp_path / "here", threads=0)  # as --sync: pycolmap's threads on every core
     names = [im.name for im in images]
     files = {f[0]: f for f in images_fingerprint(root, names)["images"]}
     with Session(sync=False, workers=2) as session:

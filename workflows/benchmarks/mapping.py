@@ -12,9 +12,9 @@ number of points.
 Part ``sfm``: structure from motion of the posed real scenes' images (their poses unused) and of the
 city's, with each ``--mappers`` entry (``pipeline.mapping.readers.colmap.MAPPERS``), in this
 process (SIFT and matching once per scene, their shards shared by the mappers; the mapper timed
-alone): seconds, images registered, and the poses' accuracy after a similarity alignment of the
-camera centres to the known ones (Umeyama): median position error in % of the scene's scale (the
-median distance of the known camera centres to their centroid) and median rotation error.
+alone): seconds, images registered, and the poses' accuracy after a similarity alignment to the
+known ones (``align_error``): median position error in % of the scene's scale (the median distance of
+the known camera centres to their centroid) and median rotation error.
 """
 
 import argparse
@@ -67,8 +67,23 @@ def city(args) -> List:
 
 
 def _peak_rss() -> int:
-    """This process's peak resident memory, bytes (Linux reports KiB)."""
+    """This process's peak resident memory since ``_reset_peak``, bytes (``VmHWM``; a forked worker's
+    ``ru_maxrss`` would start at its parent's)."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) * 1024
+    except OSError:
+        pass
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+
+
+def _reset_peak() -> None:
+    """Start the peak resident memory again from the current one (Linux: ``clear_refs`` 5)."""
+    try:
+        Path("/proc/self/clear_refs").write_text("5")
+    except OSError:
+        pass
 
 
 def _warm() -> bool:
@@ -76,6 +91,7 @@ def _warm() -> bool:
 
     import pipeline.images  # noqa: F401
     import pipeline.mapping.structure  # noqa: F401
+    _reset_peak()
     return True
 
 
@@ -93,6 +109,7 @@ def workers_rows(args) -> List[Dict]:
             shutil.rmtree(work, ignore_errors=True)
             with Session(sync=False, workers=workers) as session:
                 session.client.run(_warm)
+                _reset_peak()
                 tasks = Tasks(run=session.run, threads=1)
                 t0 = time.perf_counter()
                 scene = triangulate_known_poses(images, root, work, pairs=PairsConfig("spatial"), tasks=tasks)
@@ -129,26 +146,28 @@ def same_database(a: str, b: str) -> bool:
 def align_error(known: Dict[str, np.ndarray], found: Dict[str, np.ndarray]) -> Dict[str, float]:
     """Median position error (% of the scale: the median distance of the known centres to their
     centroid) and rotation error (degrees) of ``found`` (name -> cam_from_world 4x4) after the
-    similarity that best maps its camera centres onto the known ones (Umeyama, least squares)."""
+    similarity that best maps it onto the known poses: its rotation from the cameras' orientations
+    (the rotation nearest the mean of each camera's ``found_from_known``; the camera centres alone
+    leave it free about their line or plane, as in a forward-facing capture), then its scale and
+    translation from the centres (least squares)."""
     names = sorted(set(known) & set(found))
     if len(names) < 3:
         return {"position_pct": float("nan"), "rotation_deg": float("nan")}
 
     def centre(T):
         return -T[:3, :3].T @ T[:3, 3]
-    X = np.stack([centre(found[n]) for n in names])
+    # cam_from_known = cam_from_found @ found_from_known: found_from_known = R_found^T R_known per camera
+    U, _, Vt = np.linalg.svd(sum(found[n][:3, :3].T @ known[n][:3, :3] for n in names))
+    R = U @ np.diag([1, 1, np.sign(np.linalg.det(U @ Vt))]) @ Vt  # found_from_known
+    X = np.stack([R.T @ centre(found[n]) for n in names])  # found centres, rotated into the known axes
     Y = np.stack([centre(known[n]) for n in names])
     mx, my = X.mean(0), Y.mean(0)
-    U, S, Vt = np.linalg.svd((Y - my).T @ (X - mx) / len(names))
-    D = np.diag([1, 1, np.sign(np.linalg.det(U @ Vt))])
-    R = U @ D @ Vt  # world_known_from_world_found
-    s = np.trace(np.diag(S) @ D) / ((X - mx) ** 2).sum(1).mean()
-    t = my - s * R @ mx
+    s = ((X - mx) * (Y - my)).sum() / max(((X - mx) ** 2).sum(), 1e-300)
     scale = np.median(np.linalg.norm(Y - my, axis=1))
-    pos = np.linalg.norm((s * (R @ X.T)).T + t - Y, axis=1) / scale * 100
+    pos = np.linalg.norm(s * (X - mx) + my - Y, axis=1) / scale * 100
     rot = []
-    for n in names:  # cam_from_known = cam_from_found @ found_from_known
-        dR = found[n][:3, :3] @ R.T @ known[n][:3, :3].T
+    for n in names:
+        dR = found[n][:3, :3] @ R @ known[n][:3, :3].T
         rot.append(np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1))))
     return {"position_pct": float(np.median(pos)), "rotation_deg": float(np.median(rot))}
 
@@ -185,6 +204,7 @@ def sfm_rows(args) -> List[Dict]:
             if shards.exists():
                 (folder / "shards").symlink_to(shards.resolve())  # SIFT and matching made once per scene
             tasks = Tasks()
+            _reset_peak()
             t0 = time.perf_counter()
             try:
                 scene = run_sfm(root, folder, names, tasks=tasks, mapper=mapper)
