@@ -266,12 +266,8 @@ def check_resources(client, resources: Optional[Dict[str, float]]) -> None:
 
 def run_sync(fn: Callable, calls: Sequence[tuple], on_done: Optional[Callable] = None) -> List:
     """Run ``fn(*args)`` for each argument tuple, in order, in this process."""
-    out = []
-    for args in calls:
-        out.append(fn(*args))
-        if on_done:
-            on_done(out[-1])
-    return out
+    from pipeline.mapping.structure import in_process
+    return in_process(fn, calls, "in this process", on_done)
 
 
 def run_dask(client, fn: Callable, calls: Sequence[tuple], name: str, device: str = "cpu",

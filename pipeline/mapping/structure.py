@@ -126,6 +126,15 @@ def read_sift(shard: SiftShard) -> Optional[Dict[str, np.ndarray]]:
     return _load(shard.path, "SIFT shard", wrong)
 
 
+def _finished(read: Callable, shard) -> bool:
+    """Whether ``shard`` is made (``read`` finds it whole); a damaged one is said and made again."""
+    try:
+        return read(shard) is not None
+    except ValueError as e:
+        logger.warning("%s: made again.", e)
+        return False
+
+
 def _save(path: str, arrays: Dict[str, np.ndarray]) -> None:
     buffer = io.BytesIO()
     np.savez(buffer, **arrays)
@@ -141,11 +150,8 @@ def extract_sift(shard: SiftShard, image_dir: str, cameras: Optional[Dict[str, s
 
     from pipeline.images import ImageReadError, read_image
     from pipeline.scene import CameraRecord
-    try:
-        if read_sift(shard) is not None:
-            return {"names": len(shard.names), "status": "skipped"}
-    except ValueError as e:
-        logger.warning("%s: made again.", e)
+    if _finished(read_sift, shard):
+        return {"names": len(shard.names), "status": "skipped"}
     t0 = time.perf_counter()
     refused, keep = {}, []
     for name in shard.names:
@@ -272,11 +278,8 @@ def match_pairs(shard: MatchShard, sift_shards: Dict[str, str], ids: Dict[str, i
     ``match_image_pairs`` on a database of their images only, in a temporary folder), saved as the
     shard's npz. Skipped when the shard is finished."""
     import pycolmap
-    try:
-        if read_matches(shard) is not None:
-            return {"pairs": len(shard.pairs), "status": "skipped"}
-    except ValueError as e:
-        logger.warning("%s: made again.", e)
+    if _finished(read_matches, shard):
+        return {"pairs": len(shard.pairs), "status": "skipped"}
     t0 = time.perf_counter()
     names = sorted({n for p in shard.pairs for n in p}, key=lambda n: ids[n])
     with tempfile.TemporaryDirectory(prefix="pixloc-match-") as tmp:
