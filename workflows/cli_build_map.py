@@ -106,6 +106,10 @@ def main(args: argparse.Namespace) -> int:
     source = MapSource(args.kind, absolute(args.path), absolute(args.images), tuple(args.sequences),
                        args.rgbd_points, args.densify, tuple(args.intrinsics), args.depth_scale, args.depth_ext,
                        tuple(args.hold_out), args.mapper)
+    if args.mapper != MapSource.mapper and "mapper" not in source.format.reads:  # not ignored without a word
+        how = "triangulated from its known poses" if source.format.reconstructs else "read as it is"
+        raise ValueError(f"--mapper {args.mapper}: only an sfm source is reconstructed by SfM; a {args.kind} source "
+                         f"is {how}.")
     pairs = PairsConfig("file" if args.pairs_file and args.pairs == "auto" else args.pairs,
                         args.pairs_neighbors, path=str(absolute(args.pairs_file)) if args.pairs_file else None)
     work_dir = absolute(args.work_dir) or location.work_dir(store)

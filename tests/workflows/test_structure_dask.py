@@ -23,3 +23,13 @@ def test_two_workers_make_the_same_database_as_one_process(temple, tmp_path):  #
     assert contents(tmp_path / "dask" / "database.db") == contents(tmp_path / "here" / "database.db")
     with pycolmap.Database.open(tmp_path / "dask" / "database.db") as db:
         assert db.num_images() == 12 and db.num_verified_image_pairs() > 15
+
+
+def test_a_mapper_for_a_source_that_sfm_does_not_reconstruct_is_refused(shared, tmp_path, capsys):
+    from workflows import cli
+    argv = ["build-map", "middlebury", str(shared / "data" / "middlebury" / "templeRing"), "--store",
+            str(tmp_path / "map.zarr"), "--mapper", "global", "--dry-run"]
+    assert cli.main(argv) == 2
+    assert ("--mapper global: only an sfm source is reconstructed by SfM; a middlebury source is triangulated "
+            "from its known poses") in capsys.readouterr().err
+    assert not (tmp_path / "map.zarr").exists()
