@@ -34,6 +34,7 @@ from pipeline.textfiles import write_atomic
 logger = logging.getLogger(__name__)
 
 SIFT_CHUNK = 8  # images per SIFT task: long enough to keep a worker busy, short enough to resume from
+MIN_SIFT_TASKS = 8  # fewer images per SIFT task below SIFT_CHUNK x 8 (10 images: 5 tasks of 2, not 8 + 2)
 MATCH_CHUNK = 256  # image pairs per matching task (64: each task copies its images anew, 1.6x the CPU)
 Pair = Tuple[str, str]
 
@@ -87,9 +88,11 @@ class SiftShard:
 
 def plan_sift(shard_dir: Path, names: Sequence[str], files: Dict[str, list],
               cameras: Optional[Dict[str, str]] = None, chunk: int = SIFT_CHUNK) -> List[SiftShard]:
-    """The SIFT shards of ``names`` in chunks of ``chunk``; ``files``: name -> [name, bytes, digest]
-    of each image (``images_fingerprint``: the same bytes in another folder keep their shard),
-    ``cameras``: name -> known camera (``CameraRecord.to_json``), if any."""
+    """The SIFT shards of ``names`` in chunks of ``chunk`` (fewer where that makes fewer than
+    ``MIN_SIFT_TASKS``; by the number of images only, so a resumed build chunks alike); ``files``:
+    name -> [name, bytes, digest] of each image (``images_fingerprint``: the same bytes in another
+    folder keep their shard), ``cameras``: name -> known camera (``CameraRecord.to_json``), if any."""
+    chunk = max(1, min(chunk, -(-len(names) // MIN_SIFT_TASKS)))  # a small map still spreads over the workers
     shards = []
     for k in range(0, len(names), chunk):
         part = tuple(names[k:k + chunk])

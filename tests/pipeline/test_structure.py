@@ -74,7 +74,7 @@ def test_a_killed_build_redoes_only_missing_shards_and_assembles_the_same_databa
     assert sum(k.startswith("tvg") for k in whole) == len((tmp_path / "whole" / "pairs.txt").read_text().splitlines())
     assert sum(len(v) > 0 for k, v in whole.items() if k.startswith("matches")) > 20
 
-    # killed during SIFT (after 1 of 2 chunks), then during matching (after 1 chunk of pairs)
+    # killed during SIFT (after 1 of 6 chunks of 2 images), then during matching (after 2 chunks of pairs)
     work = tmp_path / "resumed"
     with pytest.raises(KeyboardInterrupt):
         build(images, root, work, Counting("sift", 1))
@@ -87,7 +87,7 @@ def test_a_killed_build_redoes_only_missing_shards_and_assembles_the_same_databa
         build(images, root, work, run)
     made = len(list((work / "shards").glob("matches-*.npz")))
     assert run.calls == ["matching"] * (made - 2)  # no SIFT, and only the pairs' chunks not made yet
-    assert "SIFT features: 2 of 2 shards already made" in caplog.text
+    assert "SIFT features: 6 of 6 shards already made" in caplog.text
     assert contents(work / "database.db") == whole
 
     # a rerun makes nothing; damaged shards are named and made again, to the same database
@@ -115,7 +115,7 @@ def test_a_build_killed_while_mapping_reuses_every_shard(temple, tmp_path):
     images, root = temple
     run = Counting()
     first = triangulate_known_poses(images, root, tmp_path, pairs=PAIRS, tasks=Tasks(run=run, threads=1))
-    assert run.calls.count("sift") == 2 and run.calls.count("matching") >= 1
+    assert run.calls.count("sift") == 6 and run.calls.count("matching") >= 1
     (tmp_path / "triangulation.json").unlink()  # as a kill before the model is finished leaves it
     run = Counting()
     again = triangulate_known_poses(images, root, tmp_path, pairs=PAIRS, tasks=Tasks(run=run, threads=1))
