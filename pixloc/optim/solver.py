@@ -15,6 +15,7 @@ from ..geometry import Pose
 from ..interpolation import Interpolator
 from ..losses import get_loss
 from .cost import FeaturemetricProblem, Linearization, build_system, linearize, robust_weights, use_cell_products
+from .bodies import Bodies
 from .damping import ConstantDamping
 from .keypoints import KeypointTerm, scaled_system
 
@@ -50,7 +51,8 @@ class LMResult:
     stopped earlier keeps its last cost in the later columns).
     iterations: (B,) iterations each problem took (until it converged or the
     budget ran out). num_valid: (B,) valid points at the last iteration.
-    trajectory: (B, I) pose after each iteration, if asked for.
+    trajectory: (B, I) pose after each iteration, if asked for. body_pose: (K,) body_from_world of
+    each body where the problems were solved as bodies (``pixloc.optim.bodies``).
     """
 
     pose: Pose
@@ -59,6 +61,7 @@ class LMResult:
     iterations: Tensor
     num_valid: Tensor
     trajectory: Optional[Pose] = None
+    body_pose: Optional[Pose] = None
 
     @property
     def num_iters(self) -> int:
@@ -172,23 +175,35 @@ class LevenbergMarquardt(nn.Module):
 
     def forward(self, problem: FeaturemetricProblem, T_init: Pose,
                 num_iters: Optional[int] = None, record_trajectory: bool = False,
-                keypoints: Optional[KeypointTerm] = None) -> LMResult:
+                keypoints: Optional[KeypointTerm] = None, bodies: Optional[Bodies] = None) -> LMResult:
         """Refine T_init (B,) cam_from_world poses on ``problem`` (B problems); with ``keypoints``, the
         cost adds their reprojection error, each term normalised by its residual scale
-        (``pixloc.optim.keypoints``)."""
+        (``pixloc.optim.keypoints``); with ``bodies``, the problems of one body move as one
+        (``pixloc.optim.bodies``: its pose starts from its first problem's T_init, and it converges,
+        fails and stops as one)."""
         B = problem.batch_size
         if tuple(T_init.shape) != (B,):
             raise ValueError(f"T_init must have batch shape ({B},), got {tuple(T_init.shape)}.")
         if not bool(T_init.isfinite().all()):
             raise ValueError("T_init contains NaN or infinite values.")
+        if bodies is not None and len(bodies.index) != B:
+            raise ValueError(f"bodies must give a body to each of the {B} problems, got {len(bodies.index)}.")
         num_iters = self.num_iters if num_iters is None else num_iters
         lambda_ = self.damping().to(problem.F_ref)
         device = problem.F_ref.device
 
-        T = T_init
-        failed = torch.zeros(B, dtype=torch.bool, device=device)
-        active = torch.ones(B, dtype=torch.bool, device=device)
-        iterations = torch.zeros(B, dtype=torch.long, device=device)
+        # the optimised poses: the problems' own, or their bodies'; ``per_problem`` maps (K,) to (B,)
+        if bodies is not None:
+            bodies = bodies.to(device)
+            T_opt = bodies.body_poses(T_init)
+            per_problem = bodies.spread
+        else:
+            T_opt, per_problem = T_init, (lambda x: x)
+        T = T_init if bodies is None else bodies.camera_poses(T_opt)
+        K = len(T_opt)
+        failed = torch.zeros(K, dtype=torch.bool, device=device)
+        active = torch.ones(K, dtype=torch.bool, device=device)
+        iterations = torch.zeros(K, dtype=torch.long, device=device)
         costs, trajectory = [], []
         if use_cell_products(problem, self.interpolator):  # built once for the batch; its chunks share them
             _ = problem.cell_products
@@ -208,33 +223,40 @@ class LevenbergMarquardt(nn.Module):
                 cost = cost.index_copy(0, rows, cost_a)
                 spread = spread.index_copy(0, rows, spread_a)
             g, H, scale_f = scaled_system(scale_f, g, H, keypoints, T, spread)
-            failed = failed | (num_valid < self.min_points)
+            if bodies is None:
+                g_opt, H_opt, valid_opt = g, H, num_valid
+            else:  # each camera's system through its cam_from_body, summed per body
+                g_opt, H_opt = bodies.reduce(g, H)
+                valid_opt = bodies.sum(num_valid)
+            failed = failed | (valid_opt < self.min_points)
 
             step_mask = active & ~failed
-            delta = solve_damped(g, H, lambda_, step_mask)
+            delta = solve_damped(g_opt, H_opt, lambda_, step_mask)
             dt, dw = delta.split([3, 3], dim=-1)
             step = Pose.from_aa(dw, dt)
-            T_new = step @ T
+            T_new = step @ T_opt
             # A non-finite step fails its problem and keeps the last pose.
             bad = ~T_new.isfinite()
             failed = failed | bad
-            T = Pose(torch.where(bad[:, None], T.data, T_new.data))
+            T_opt = Pose(torch.where(bad[:, None], T_opt.data, T_new.data))
+            T = T_opt if bodies is None else bodies.camera_poses(T_opt)
 
             costs.append(cost)
             iterations = iterations + active.long()
             if record_trajectory:
                 trajectory.append(T.detach())
             if not self.training and i % self.stopping.every == 0:
-                running = active & ~(self.stopping.converged(step, g) | failed)
+                running = active & ~(self.stopping.converged(step, g_opt) | failed)
                 if not bool(running.any()):
                     break
                 if not bool(torch.equal(running, active)):  # some stopped: linearize only the others
                     active = running
-                    chunks, linearized = self._chunks(problem, active), None
+                    chunks, linearized = self._chunks(problem, per_problem(active)), None
 
         if bool(failed.any()):
-            logger.debug("%d of %d problems failed (too few valid points).", int(failed.sum()), B)
+            logger.debug("%d of %d problems failed (too few valid points).", int(failed.sum()), K)
         return LMResult(
-            pose=T, failed=failed, cost=torch.stack(costs, -1), iterations=iterations,
+            pose=T, failed=per_problem(failed), cost=torch.stack(costs, -1), iterations=per_problem(iterations),
             num_valid=num_valid,
-            trajectory=Pose.stack(trajectory, dim=1) if record_trajectory else None)
+            trajectory=Pose.stack(trajectory, dim=1) if record_trajectory else None,
+            body_pose=T_opt if bodies is not None else None)
