@@ -111,6 +111,7 @@ def build_parser() -> argparse.ArgumentParser:
     from .benchmarks import rgbd as bench_rgbd
     from .benchmarks import scale as bench_scale
     from .benchmarks import retrieval as bench_retrieval
+    from .benchmarks import rigs as bench_rigs
     from .benchmarks import search as bench_search
     from .benchmarks import storage as bench_storage
     from .benchmarks import store_latency as bench_store_latency
@@ -138,7 +139,9 @@ def build_parser() -> argparse.ArgumentParser:
              "recall@1/5/10 of each retrieval method per scene and condition, against the co-visibility oracle"),
             ("mapping", bench_mapping,
              "the structure stage: SIFT and matching on 1 vs 2 Dask workers; incremental vs global SfM against "
-             "known poses")]:
+             "known poses"),
+            ("rigs", bench_rigs,
+             "a three-camera rig localized as one body against its images one by one, per condition")]:
         p = bench_sub.add_parser(name, help=text)
         module.add_arguments(p)
         p.set_defaults(func=module.main)

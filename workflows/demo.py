@@ -14,7 +14,7 @@ import argparse
 import logging
 import time
 from pathlib import Path
-from typing import Dict
+from typing import Dict, Tuple
 
 from pipeline.mapping.depth import rgbd_scene
 from pipeline.evaluate import evaluate, evaluation_document, fmt, to_json
@@ -69,15 +69,7 @@ def run_demo(output: Path, model: str = "pixloc-lite0", num_references: int = 30
         print(f"      reused {root} (generated earlier with these settings)")
 
     t = _stage(2, f"building the map store from depth and known poses, features of {model}")
-    scene = rgbd_scene(mapping, method="frames", stride=8, min_track_length=3)
-    fconf = FeatureConfig(model=model, resize=max(DEMO_CAMERA.width, DEMO_CAMERA.height), image_scales=(1,),
-                          descriptor=Grid.name)
-    store = output / "map.zarr"
-    plan = build_map.plan_build(scene, store, fconf, source={"kind": Synthetic.name, "seed": seed})
-    todo = sum(len(b) for b in plan.batches)
-    build_map.run_sync(plan, progress=True)
-    print(f"      {len(scene.images)} images, {len(scene.points)} points in {time.perf_counter() - t:.1f} s"
-          + ("" if todo else f" (reused {store}: every image already had its features)"))
+    store, fconf = demo_map(output, mapping, model, seed)
 
     job = LocalizationJob(str(store), fconf, model, LocalizerConfig(num_dbs=3, num_iters=num_iters),
                           GlobalDescriptors(k=5, same_tag="area"), prior=PRIORS.entry(prior)())
@@ -111,6 +103,22 @@ def run_demo(output: Path, model: str = "pixloc-lite0", num_references: int = 30
     print(format_table(summary))
     print(f"\nreport: {report}\ntotal: {time.perf_counter() - t_start:.0f} s")
     return summary
+
+
+def demo_map(output: Path, mapping, model: str, seed: int) -> Tuple[Path, FeatureConfig]:
+    """The demo's map store at ``output/map.zarr`` from the generated scene's ``mapping`` views (their depth
+    and known poses), built or completed; (its path, its feature settings)."""
+    t = time.perf_counter()
+    scene = rgbd_scene(mapping, method="frames", stride=8, min_track_length=3)
+    fconf = FeatureConfig(model=model, resize=max(DEMO_CAMERA.width, DEMO_CAMERA.height), image_scales=(1,),
+                          descriptor=Grid.name)
+    store = output / "map.zarr"
+    plan = build_map.plan_build(scene, store, fconf, source={"kind": Synthetic.name, "seed": seed})
+    todo = sum(len(b) for b in plan.batches)
+    build_map.run_sync(plan, progress=True)
+    print(f"      {len(scene.images)} images, {len(scene.points)} points in {time.perf_counter() - t:.1f} s"
+          + ("" if todo else f" (reused {store}: every image already had its features)"))
+    return store, fconf
 
 
 def _run_dask(plan, workers: int, client=None):

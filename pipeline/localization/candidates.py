@@ -64,6 +64,16 @@ class Keypoints:
     weight: float = 1.0
 
 
+@dataclass(frozen=True, eq=False)
+class BodyRef:
+    """The body a start belongs to (a rig at one instant, a chunk of frames): its ``key`` (the same for the
+    starts refined as one body) and this image's camera in the body's frame, ``cam_from_body`` (3 x 4).
+    The starts of one body must start from one body pose: prior = cam_from_body @ body_from_world."""
+
+    key: str
+    cam_from_body: np.ndarray
+
+
 @dataclass
 class Candidate:
     """One start of a query's refinement: the references ``dbs`` (map image indices), the start
@@ -76,7 +86,8 @@ class Candidate:
     start is refined on, of the localizer's (refinement mode for a pose from another method: the two
     finest); it always ends at the localizer's finest level, whose evidence verification reads;
     ``keypoints``: the 2D-3D matches that support the start (``Keypoints``), whose reprojection error the
-    refinement adds to its cost and verification reads."""
+    refinement adds to its cost and verification reads; ``body``: the body it is refined with (``BodyRef``:
+the starts of one body are solved as one pose, ``pixloc.optim.bodies``)."""
 
     query: QueryRecord
     dbs: List[int]
@@ -88,3 +99,4 @@ class Candidate:
     rival: bool = False
     levels: Optional[Sequence[int]] = None
     keypoints: Optional[Keypoints] = None
+    body: Optional[BodyRef] = None

@@ -31,7 +31,8 @@ from pipeline import kernels
 from pipeline.localization.finest import FinestFill, level_like, level_shape, write_level
 from pipeline.store.reader import MapReader, Observations, StoreReadError
 from pipeline.queries import QueryRecord
-from pipeline.localization.candidates import Candidate, Keypoints, QueryCache, QueryResult  # noqa: F401
+from pipeline.localization.candidates import BodyRef, Candidate, Keypoints, QueryCache, QueryResult  # noqa: F401
+from pipeline.localization.bodies import group_bodies, split_bodies
 from pipeline.localization.verify import VerificationConfig, keep_start, verify
 
 logger = logging.getLogger(__name__)
@@ -86,7 +87,8 @@ class LevelState:
     ``T``, the reference features of the image scale being run (``refs``), whether it is still
     ``active``, its own seconds (``t_own``) and the result being filled; for a rival start, its
     query's own starts' poses at the end of each level (``own``: (image scale, level) -> 3 x 4 pose);
-    the ``levels`` it is refined on; the 2D-3D matches that support its start (``keypoints``)."""
+    the ``levels`` it is refined on; the 2D-3D matches that support its start (``keypoints``); the body it is
+    refined with (``body``)."""
 
     query: QueryRecord
     rgb: Optional[np.ndarray]
@@ -101,6 +103,7 @@ class LevelState:
     own: Optional[List[Dict[Tuple[int, int], np.ndarray]]] = None
     levels: Sequence[int] = ()
     keypoints: Optional[Keypoints] = None
+    body: Optional[BodyRef] = None
 
 
 def own_solvers(solvers: Sequence[LevenbergMarquardt], compiled: bool) -> List[LevenbergMarquardt]:
@@ -243,7 +246,7 @@ class Localizer:
             levels = self.levels if c.levels is None else sorted(set(c.levels) & set(self.levels) | {self.levels[-1]},
                                                                   reverse=True)
             st = LevelState(query, c.rgb, QueryCache() if c.cache is None else c.cache, result, levels=levels,
-                            keypoints=c.keypoints)
+                            keypoints=c.keypoints, body=c.body)
             states.append(st)
             try:
                 seen = self.reader.observations(c.dbs, 1, c.selected)
@@ -301,6 +304,7 @@ class Localizer:
                 if st.active:
                     key = (level_shape(st.cache.passes[k][0], 0), st.query.camera.to_pixloc().distortion)
                     groups.setdefault(key, []).append(st)
+            split_bodies(groups)
             t0 = time.perf_counter()
             for level in self.levels:
                 final = k == self.scales[-1] and level == self.levels[-1]
@@ -415,7 +419,7 @@ class Localizer:
         T = Pose.stack([st.T for st in group]).to(device)
         keypoints = keypoint_term(group)
         solver = self.solvers[level]
-        lm = solver(problem, T, num_iters=self.conf.num_iters, keypoints=keypoints)
+        lm = solver(problem, T, num_iters=self.conf.num_iters, keypoints=keypoints, bodies=group_bodies(group))
         start = alignment_evidence(problem, T, solver.loss_fn, solver.interpolator)
         end = alignment_evidence(problem, lm.pose, solver.loss_fn, solver.interpolator)
         contrast = {}

@@ -1,0 +1,210 @@
+"""Localizing a rig (its cameras at one instant) or a chunk of frames as one body.
+
+Each image of a ``Frame`` is read and retrieves its own references, as a query alone does. The body
+starts from each image's top-1 reference in turn, moved into the body's frame (body_from_world =
+cam_from_body^-1 @ cam_from_world of that reference), so that a night or occluded camera can start from
+where its day camera's retrieval puts the rig; from each start, every image is refined against its own
+references, all images of the frame as one pose (``pixloc.optim.bodies``), batched with the other frames and
+starts; each image's evidence is read at its camera's pose (``pipeline.localization.verify``).
+
+The frame keeps the start whose end pose the most images verify (ties: the higher confidence, then the start
+of the most similar retrieval). It is verified when at least one image is verified there, unless another
+start is verified by as many images at a body pose that does not agree with it (``agree_t`` x the median
+point depth, ``agree_R``): the frame is then rejected as ambiguous, with both starts named. Each image
+reports the body's pose through its camera, the images that could not be refined (too few points of their
+own) included: that is what a rig is for. The images' own verdicts are kept in their notes. A frame of N
+images costs N starts of N images, N^2 image refinements (the network pass and the references' features
+of an image are shared by its starts).
+"""
+
+import dataclasses
+import logging
+from dataclasses import dataclass, field
+from typing import List, Optional, Sequence, Tuple
+
+import numpy as np
+
+from pixloc.geometry import relative_motion
+
+from pipeline.images import ImageReadError
+from pipeline.localization.candidates import BodyRef, Candidate, QueryCache, QueryResult
+from pipeline.localization.priors import NO_MATCH, failure
+from pipeline.localization.refine import Localizer
+from pipeline.localization.verify import VerificationConfig
+from pipeline.localization.retrieval import Retrieved, retrieve
+from pipeline.localization.shard import LocalizationJob, describer, fit_query
+from pipeline.queries import QueryRecord
+from pipeline.store.reader import MapReader
+
+logger = logging.getLogger(__name__)
+
+
+def compose(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a @ b of two 3 x 4 poses."""
+    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    return np.concatenate([a[:, :3] @ b[:, :3], (a[:, :3] @ b[:, 3] + a[:, 3])[:, None]], 1)
+
+
+def invert(a: np.ndarray) -> np.ndarray:
+    """The inverse of a 3 x 4 pose."""
+    a = np.asarray(a, np.float64)
+    return np.concatenate([a[:, :3].T, (-a[:, :3].T @ a[:, 3])[:, None]], 1)
+
+
+@dataclass(frozen=True)
+class Frame:
+    """The images of one body: a rig at one instant (``key``: rig and timestamp) or a chunk of frames;
+    ``cam_from_body[i]`` (3 x 4) is image i's camera in the body's frame."""
+
+    key: str
+    queries: Tuple[QueryRecord, ...]
+    cam_from_body: Tuple[np.ndarray, ...]
+    tags: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        if not self.queries or len(self.queries) != len(self.cam_from_body):
+            raise ValueError(f"frame {self.key!r}: one cam_from_body per image, and at least one image.")
+
+    def body_gt(self) -> Optional[np.ndarray]:
+        """The body's ground-truth pose from its first image with one, or None."""
+        for q, C in zip(self.queries, self.cam_from_body):
+            if q.cam_from_world_gt is not None:
+                return compose(invert(C), q.cam_from_world_gt)
+        return None
+
+
+@dataclass
+class FrameResult:
+    """A frame's outcome: its images' results (``images``, in the frame's order), the body's pose
+    (body_from_world, 3 x 4: refined where verified, else its start), whether it is verified, the
+    reason where not, the image it started from (``start``) and the images verified at the body's pose."""
+
+    key: str
+    images: List[QueryResult]
+    pose: Optional[np.ndarray]
+    success: bool
+    reason: str = ""
+    start: str = ""
+    verified_by: List[str] = field(default_factory=list)
+    confidence: float = 0.0
+
+
+def _prepare(job: LocalizationJob, reader: MapReader, localizer: Localizer, query: QueryRecord):
+    """An image's read, camera check and retrieval: (query, rgb, cache, Retrieved) or a failure (QueryResult)."""
+    if query.error:
+        return failure(query, query.error)
+    reason = query.camera.check()
+    if reason:
+        return failure(query, reason)
+    try:
+        query, rgb = fit_query(query)
+    except ImageReadError as e:
+        return failure(query, str(e))
+    cache = QueryCache()
+    r: Retrieved = retrieve(job.retrieval, reader, query, describer(reader, localizer, rgb, cache))
+    if not r.dbs:
+        return failure(query, NO_MATCH)
+    return query, rgb, cache, r
+
+
+def _similarity(r: Retrieved) -> float:
+    return float(r.similarity[0]) if r.similarity is not None and len(r.similarity) else float("-inf")
+
+
+def localize_frames(job: LocalizationJob, reader: MapReader, localizer: Localizer,
+                    frames: Sequence[Frame]) -> List[FrameResult]:
+    """Localize each frame as one body (see the module docstring); the frames' LM problems are batched."""
+    candidates: List[Candidate] = []
+    plans = []  # per frame: its images' failures, and per start (its image, body pose, per image a slot)
+    for frame in frames:
+        prepared = []
+        for q in frame.queries:
+            try:
+                prepared.append(_prepare(job, reader, localizer, q))
+            except (OSError, ValueError, RuntimeError) as e:  # recorded, never dropped
+                logger.warning("Query %s failed: %s", q.name, e)
+                prepared.append(failure(q, f"{type(e).__name__}: {e}"))
+        ready = [i for i, p in enumerate(prepared) if not isinstance(p, QueryResult)]
+        runs = []
+        for s, o in enumerate(sorted(ready, key=lambda i: -_similarity(prepared[i][3]))):  # stable: ties in order
+            body = compose(invert(frame.cam_from_body[o]), reader.cam_from_world[prepared[o][3].dbs[0]])
+            slots = []
+            for i, p in enumerate(prepared):
+                if isinstance(p, QueryResult):
+                    slots.append(p)
+                    continue
+                query, rgb, cache, r = p
+                C = np.asarray(frame.cam_from_body[i], np.float64)
+                slots.append(len(candidates))
+                candidates.append(Candidate(query, list(r.dbs[:job.localizer.num_dbs]), compose(C, body), rgb, cache,
+                                            origin=f"the top-1 reference of {frame.queries[o].name}",
+                                            body=BodyRef(f"{frame.key}#{s}", C)))
+            runs.append((o, body, slots))
+        plans.append((prepared, runs))
+    results = localizer.localize_batch(candidates) if candidates else []
+    return [_finish(frame, prepared, runs, results, localizer.conf.verification)
+            for frame, (prepared, runs) in zip(frames, plans)]
+
+
+@dataclass
+class _Run:
+    """One start of a frame after refinement: the image it came from, its body pose at the start and at the end,
+    its images' results, those refined and those verified, its confidence."""
+
+    origin: int
+    start: np.ndarray
+    body: np.ndarray
+    images: List[QueryResult]
+    refined: List[int]
+    verified: List[int]
+    confidence: float
+
+
+def _run(frame: Frame, origin: int, start: np.ndarray, slots, results: List[QueryResult]) -> _Run:
+    images = [s if isinstance(s, QueryResult) else results[s] for s in slots]
+    refined = [i for i, r in enumerate(images) if r.refined is not None and not isinstance(slots[i], QueryResult)]
+    C = [np.asarray(c, np.float64) for c in frame.cam_from_body]
+    body = compose(invert(C[refined[0]]), images[refined[0]].refined) if refined else start
+    return _Run(origin, start, body, images, refined, [i for i in refined if images[i].success],
+                max((images[i].confidence for i in refined), default=0.0))
+
+
+def _disagreement(frame: Frame, best: _Run, runs: List[_Run], conf: VerificationConfig) -> str:
+    """Why the best start is ambiguous: another start verified by as many images at a body pose that does not
+    agree with it (``agree_t`` x the median point depth, ``agree_R``); else ""."""
+    depth = float(np.nanmedian([best.images[i].evidence.get("depth", np.nan) for i in best.verified]))
+    depth = depth if np.isfinite(depth) and depth > 0 else 1.0
+    for other in runs:
+        if other is best or len(other.verified) < len(best.verified):
+            continue
+        dt, dR = relative_motion(best.body, other.body, depth)
+        if dt > conf.agree_t or dR > conf.agree_R:
+            return (f"rejected: ambiguous: the starts from {frame.queries[best.origin].name} and "
+                    f"{frame.queries[other.origin].name} are each verified by {len(best.verified)} images, at body "
+                    f"poses {dt:.2f} depths and {dR:.1f} deg apart")
+    return ""
+
+
+def _finish(frame: Frame, prepared, runs, results: List[QueryResult], conf: VerificationConfig) -> FrameResult:
+    """A frame's verdict from its starts' results, and each image's reported pose (see the module docstring)."""
+    if not runs:
+        return FrameResult(frame.key, list(prepared), None, False, "no image of the frame could be refined: "
+                           + "; ".join(f"{r.name}: {r.reason}" for r in prepared))
+    done = [_run(frame, o, start, slots, results) for o, start, slots in runs]
+    best = max(done, key=lambda r: (len(r.verified), r.confidence))  # ties: the earlier start
+    reason = _disagreement(frame, best, done, conf) if best.verified else ""
+    success = bool(best.verified) and not reason
+    if not best.verified:
+        reason = ("no image verified at the body's pose from any start: " if best.refined else
+                  "the body was not refined: ") + "; ".join(f"{r.name}: {r.reason}" for r in best.images)
+    Cs = [np.asarray(C, np.float64) for C in frame.cam_from_body]
+    images = []
+    for i, r in enumerate(best.images):
+        own = "verified" if i in best.verified else (r.reason or "not refined")
+        note = (f"body {frame.key}: {len(frame.queries)} images refined as one pose, from {len(done)} starts; the "
+                f"best from {frame.queries[best.origin].name}'s retrieval; this image alone: {own}")
+        images.append(dataclasses.replace(
+            r, success=success, refined=compose(Cs[i], best.body) if best.refined else None,
+            prior=compose(Cs[i], best.start), confidence=best.confidence, reason=reason, notes=list(r.notes) + [note]))
+    return FrameResult(frame.key, images, best.body if success else best.start, success, reason,
+                       frame.queries[best.origin].name, [images[i].name for i in best.verified], best.confidence)

@@ -1,0 +1,119 @@
+"""Benchmark: a rig localized as one body against its images localized one by one.
+
+The demo's scene and map (``pixloc demo``: the generated courtyard, seed 7, its map from depth and known
+poses, the shipped model's features), and a three-camera rig (``pipeline.data.rigs``: 55 degrees and 15
+cm apart) rendered at the demo's query poses of each condition (day, dusk, night, occluded). Both ways
+use the demo's job (retrieval among the images of the query's area, the top-1 reference's pose as the
+prior, 3 references, 50 LM iterations): ``single``, every image as a query of its own
+(``pipeline.localization.shard.localize_queries``, as ``pixloc localize`` runs it); ``rig``, each frame
+as one body (``pipeline.localization.rigs.localize_frames``). Per condition: each image's recall at the
+demo's thresholds (its reported pose: refined where verified, else its prior), the frames verified and
+the verified frames whose rig pose is wrong (beyond (0.25 m, 2 deg), and beyond (1 m, 5 deg)), and the
+seconds per image of each way.
+"""
+
+import argparse
+import json
+import time
+from pathlib import Path
+from typing import Dict, List
+
+import numpy as np
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--work", type=Path, default=Path("outputs/benchmark-rigs"), help="work folder (scene and map)")
+    p.add_argument("--frames-per-condition", type=int, default=5, help="rig frames per condition")
+    p.add_argument("--model", default="pixloc-lite0", help="feature model (default: the shipped pixloc-lite0)")
+    p.set_defaults(func=main)
+
+
+def frame_errors(frames, results) -> List[Dict]:
+    """Per frame: its condition, whether it is verified, and its rig pose's error (m, deg)."""
+    from pipeline.evaluate import pose_errors
+    out = []
+    for frame, r in zip(frames, results):
+        t, R = pose_errors(r.pose, frame.body_gt())
+        out.append({"key": frame.key, "condition": frame.tags["condition"], "verified": r.success,
+                    "verified_images": len(r.verified_by), "start": r.start, "reason": r.reason,
+                    "error_t": t if np.isfinite(t) else None, "error_R": R if np.isfinite(R) else None})
+    return out
+
+
+def run(work: Path, frames_per_condition: int, model: str) -> Dict:
+    from pipeline.data.rigs import generate_rig_frames, read_rig_frames
+    from pipeline.data.synthetic import SyntheticConfig, ensure_generated, read_synthetic
+    from pipeline.evaluate import evaluate
+    from pipeline.localization.priors import Top1
+    from pipeline.localization.refine import Localizer, LocalizerConfig
+    from pipeline.localization.results import result_to_record
+    from pipeline.localization.retrieval import GlobalDescriptors
+    from pipeline.localization.rigs import Frame, localize_frames
+    from pipeline.localization.shard import LocalizationJob, localize_queries
+    from pipeline.models import localization_model
+    from pipeline.runtime import torch_threads
+    from pipeline.store.reader import open_reader
+    from workflows.demo import DEMO_CAMERA, DEMO_SEED, DEMO_THRESHOLDS, demo_map
+
+    work = Path(work).resolve()
+    root = work / "scene"
+    ensure_generated(root, SyntheticConfig(seed=DEMO_SEED), 30, 1, DEMO_CAMERA, query_spread=0.5)
+    mapping, _ = read_synthetic(root)
+    store, fconf = demo_map(work, mapping, model, DEMO_SEED)
+    generate_rig_frames(root, SyntheticConfig(seed=DEMO_SEED), DEMO_CAMERA, frames_per_condition)
+    frames = [Frame(key, tuple(queries), tuple(cams), {"condition": condition})
+              for key, condition, queries, cams in read_rig_frames(root, DEMO_CAMERA)]
+    images = [q for f in frames for q in f.queries]
+    job = LocalizationJob(str(store), fconf, model, LocalizerConfig(num_dbs=3, num_iters=50),
+                          GlobalDescriptors(k=5, same_tag="area"), prior=Top1())
+    gt = {q.name: q.cam_from_world_gt for q in images}
+    out: Dict = {"frames": len(frames), "cameras": len(frames[0].queries), "thresholds": DEMO_THRESHOLDS}
+    with torch_threads(1):
+        refiner, digest = localization_model(job.model, job.device)
+        reader = open_reader(job.store, job.features, digest)
+        localizer = Localizer(refiner.extractor, refiner.solvers, reader, job.localizer, job.device)
+        t0 = time.perf_counter()
+        single = localize_queries(job, reader, localizer, images)
+        t1 = time.perf_counter()
+        rig = localize_frames(job, reader, localizer, frames)
+        t2 = time.perf_counter()
+    out["seconds_per_image"] = {"single": (t1 - t0) / len(images), "rig": (t2 - t1) / len(images)}
+    tags = {q.name: q.tags for q in images}
+    for way, results in (("single", single), ("rig", [r for f in rig for r in f.images])):
+        records = [result_to_record(r, tags[r.name]) for r in results]
+        out[way] = evaluate(records, gt, DEMO_THRESHOLDS, tag_keys=["condition"])
+    out["frames_detail"] = frame_errors(frames, rig)
+    return out
+
+
+def format_table(out: Dict) -> str:
+    keys = [f"recall@{t}m,{r}deg" for t, r in out["thresholds"]]
+    head = f"{'condition':<20} {'way':<7} {'n':>3}  " + "  ".join(f"{k[7:]:>12}" for k in keys) + \
+        "  frames verified  verified wrong (0.25 m, 2 deg / 1 m, 5 deg)"
+    lines = [head, "-" * len(head)]
+    detail = out["frames_detail"]
+    for group in out["single"]:
+        for way in ("single", "rig"):
+            s = out[way][group]["refined"]
+            row = f"{group:<20} {way:<7} {s['count']:>3}  " + "  ".join(f"{100 * s[k]:>11.0f}%" for k in keys)
+            if way == "rig":
+                cond = group.split("=", 1)[1] if "=" in group else None
+                fr = [d for d in detail if cond is None or d["condition"] == cond]
+                ver = [d for d in fr if d["verified"]]
+                wrong = [sum(1 for d in ver if d["error_t"] is None or d["error_t"] > t or d["error_R"] > r)
+                         for t, r in ((0.25, 2), (1, 5))]
+                row += f"  {len(ver):>4} of {len(fr):<4}    {wrong[0]} / {wrong[1]}"
+            lines.append(row)
+    s = out["seconds_per_image"]
+    lines.append(f"seconds per image: single {s['single']:.2f}, rig {s['rig']:.2f} "
+                 f"(ratio {s['rig'] / s['single']:.2f})")
+    return "\n".join(lines)
+
+
+def main(args: argparse.Namespace) -> int:
+    out = run(args.work, args.frames_per_condition, args.model)
+    print(format_table(out))
+    path = Path(args.work) / "rigs.json"
+    path.write_text(json.dumps(out, indent=1))
+    print(f"\nwritten: {path}")
+    return 0
