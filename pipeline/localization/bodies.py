@@ -1,20 +1,17 @@
 """Bodies in the localizer: the images of a rig at one instant, or of a chunk of frames, refined as one
 pose (``pixloc.optim.bodies``), and what a body's images report."""
 
-from typing import TYPE_CHECKING, Dict, List, Optional, Tuple
+from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
 from pixloc.geometry import Pose
 from pixloc.optim import Bodies
 
-if TYPE_CHECKING:  # the localizer imports this module
-    from pipeline.localization.refine import LevelState
-
-
-def split_bodies(groups: Dict[Tuple, List["LevelState"]]) -> None:
+def split_bodies(groups: Dict[Tuple, List]) -> None:
     """Fail the images of a body that fell into different LM batches (feature maps of different sizes, or
-    camera models of different kinds): a body is solved in one batch."""
+    camera models of different kinds): a body is solved in one batch. ``groups``: the localizer's batches of
+    its ``LevelState`` (which imports this module)."""
     where: Dict[str, set] = {}
     for key, group in groups.items():
         for st in group:
@@ -29,7 +26,7 @@ def split_bodies(groups: Dict[Tuple, List["LevelState"]]) -> None:
                                     "cameras of different kinds: a body is refined in one batch, of one size")
 
 
-def group_bodies(group: List["LevelState"]) -> Optional[Bodies]:
+def group_bodies(group: List) -> Optional[Bodies]:
     """The bodies of an LM batch (``pixloc.optim.bodies``): the images of one body together, every other
     query its own; None where no image of the batch belongs to a body."""
     if all(st.body is None for st in group):
