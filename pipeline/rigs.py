@@ -13,13 +13,21 @@ rig_from_world). A **frames file** says which query image is which camera of whi
 The images of one (rig_id, frame_id) are localized as one body (``pipeline.localization.rigs``); a query
 that no line names is localized alone. Every error names its file and line: an image that is not in the
 query list, a rig or a sensor that the rig file does not define, an image or a (frame, sensor) given twice.
+
+A **sequence** is given by an odometry file, one frame per line in the order taken::
+
+    image_name qw qx qy qz tx ty tz
+
+with (q, t) the frame's cam_from_odom (its pose in the odometry's own frame, which may drift); its frames
+are cut into chunks of ``chunk`` consecutive lines, each localized as one body whose frame is its first
+image's camera (cam_from_body = cam_from_odom @ first_from_odom^-1).
 """
 
 from typing import Dict, List, Tuple
 
 import numpy as np
 
-from pipeline.localization.rigs import Frame
+from pipeline.localization.bodies import Frame
 from pipeline.queries import QueryRecord
 from pipeline.textfiles import InputError, data_lines, pose_from_line
 
@@ -52,9 +60,11 @@ def read_rigs(path) -> Rigs:
     return rigs
 
 
-def read_frames(path, queries: List[QueryRecord], rigs: Rigs) -> List[Frame]:
+def read_frames(path, queries: List[QueryRecord], rigs: Rigs, listed_only: bool = False) -> List[Frame]:
     """The bodies to localize: a ``Frame`` per (rig, frame) of the frames file, its images in the order of
-    their lines, then one frame of its own for each query that no line names (see the module docstring)."""
+    their lines, then one frame of its own for each query that no line names (see the module docstring).
+    ``listed_only``: lines of images that are not among ``queries`` are passed over (a shard's part of a file
+    read whole before)."""
     by_name = {q.name: q for q in queries}
     named: Dict[str, str] = {}
     slots: Dict[Tuple[str, str, str], str] = {}
@@ -64,6 +74,8 @@ def read_frames(path, queries: List[QueryRecord], rigs: Rigs) -> List[Frame]:
             raise InputError(f"{where}: expected 'image_name rig_id frame_id sensor_id' (4 fields), "
                              f"got {len(fields)}")
         name, rig, frame, sensor = fields
+        if listed_only and name not in by_name:
+            continue
         if name not in by_name:
             raise InputError(f"{where}: {name!r} is not a query of the list")
         if name in named:
@@ -84,3 +96,44 @@ def read_frames(path, queries: List[QueryRecord], rigs: Rigs) -> List[Frame]:
     frames += [Frame(q.name, (q,), (IDENTITY,)) for q in queries if q.name not in named]
     return frames
 
+
+
+def read_odometry(path, queries: List[QueryRecord], chunk: int, listed_only: bool = False) -> List[Frame]:
+    """The chunks of a sequence (see the module docstring): a ``Frame`` per ``chunk`` consecutive lines (the
+    last may be shorter), then one frame of its own for each query that no line names. ``listed_only``: lines
+    of images that are not among ``queries`` are passed over (a shard's part of a file read whole before)."""
+    if chunk < 1:
+        raise ValueError(f"--chunk {chunk}: a chunk has at least one frame")
+    by_name = {q.name: q for q in queries}
+    first: Dict[str, str] = {}
+    sequence: List[Tuple[QueryRecord, np.ndarray]] = []
+    for where, fields in _lines(path, "odometry file"):
+        name = fields[0]
+        pose = pose_from_line(fields[1:], where)
+        if name in first:
+            raise InputError(f"{where}: {name!r} is given twice (first at {first[name]})")
+        first[name] = where
+        if name not in by_name:
+            if listed_only:
+                continue
+            raise InputError(f"{where}: {name!r} is not a query of the list")
+        sequence.append((by_name[name], pose))
+    frames = []
+    for k in range(0, len(sequence), chunk):
+        part = sequence[k:k + chunk]
+        inv0 = np.concatenate([part[0][1][:, :3].T, (-part[0][1][:, :3].T @ part[0][1][:, 3])[:, None]], 1)
+        cams = tuple(np.concatenate([T[:, :3] @ inv0[:, :3], (T[:, :3] @ inv0[:, 3] + T[:, 3])[:, None]], 1)
+                     for _, T in part)
+        frames.append(Frame(f"chunk:{part[0][0].name}", tuple(q for q, _ in part), cams, {"sequence": "odometry"}))
+    frames += [Frame(q.name, (q,), (IDENTITY,)) for q in queries if q.name not in first]
+    return frames
+
+
+def bodies_of(job, queries: List[QueryRecord], listed_only: bool = False) -> List[Frame]:
+    """The frames a job localizes as bodies: its rig frames (``job.rigs``, ``job.rig_frames``) or its sequence's
+    chunks (``job.odometry``, ``job.chunk``), each query of none alone; none where the job has neither."""
+    if job.rigs is not None:
+        return read_frames(job.rig_frames, queries, read_rigs(job.rigs), listed_only)
+    if job.odometry is not None:
+        return read_odometry(job.odometry, queries, job.chunk, listed_only)
+    return []

@@ -142,6 +142,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "not finished (refused by default: the results would change as the build goes on)")
     p.add_argument("--ground-truth", type=Path, help="ground-truth poses file (name qw qx qy qz tx ty tz, "
                    "cam_from_world): the accuracy table is printed after the run")
+    p.add_argument("--rigs", type=Path, help="rig file: 'rig_id sensor_id qw qx qy qz tx ty tz' per camera "
+                   "(cam_from_rig; kapture's rigs.txt reads as is); with --rig-frames, the images of a rig frame are "
+                   "localized as one body (docs/localize.md, 'Rigs and sequences')")
+    p.add_argument("--rig-frames", type=Path, help="frames file: 'image_name rig_id frame_id sensor_id' per query "
+                   "image of a rig (queries it does not name are localized alone)")
+    p.add_argument("--odometry", type=Path, help="odometry file of a sequence: 'image_name qw qx qy qz tx ty tz' "
+                   "(cam_from_odom) per frame, in the order taken; its chunks of --chunk frames are localized as "
+                   "one body each (docs/localize.md, 'Rigs and sequences')")
+    p.add_argument("--chunk", type=at_least(1), help="frames per chunk of an --odometry sequence (default 5)")
     p.add_argument("--dry-run", action="store_true", help="print the plan and exit; writes nothing")
     p.add_argument("--preset", help="dataset preset with the paper's settings: " + ", ".join(presets_available()))
     p.set_defaults(func=main)
@@ -235,7 +244,13 @@ def build_job(args: argparse.Namespace) -> LocalizationJob:
         for flag, wanted in levels:
             if not set(wanted) <= set(range(n)):
                 raise ValueError(f"{flag} {list(wanted)}: the store's features have levels 0 (finest) to {n - 1}.")
-    job = build(LocalizationJob, {"store": str(store), "features": fconf, "model": fconf.model}, settings,
+    rigs = {"rigs": _absolute(args.rigs), "rig_frames": _absolute(args.rig_frames)} if args.rigs or args.rig_frames \
+        else {}
+    if args.chunk is not None and not args.odometry:
+        raise ValueError("--chunk cuts an --odometry sequence into chunks: give --odometry too.")
+    if args.odometry:
+        rigs.update(odometry=_absolute(args.odometry), chunk=args.chunk or LocalizationJob.chunk)
+    job = build(LocalizationJob, {"store": str(store), "features": fconf, "model": fconf.model, **rigs}, settings,
                 where="localize options")
     job.validate()
     return job

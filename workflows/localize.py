@@ -41,6 +41,7 @@ from pipeline import runtime
 from pipeline.progress import count
 from pipeline.queries import QueryRecord
 from pipeline.regions import camera_centres, region_order
+from pipeline.rigs import bodies_of
 from pipeline.store.feature_groups import feature_key
 from pipeline.store import location
 from pipeline.store.check import store_fingerprint
@@ -81,6 +82,7 @@ class LocalizationPlan:
     store: Dict = field(default_factory=dict)  # the store's fingerprint (``store_fingerprint``), into job.json
     thresholds: Optional[List] = None  # the run's recall thresholds, into job.json (evaluate and report read them)
     damaged: set = field(default_factory=set)  # finished shards whose file cannot be read: run again
+    frames: Dict[str, List[str]] = field(default_factory=dict)  # with rigs: each query's frame (its images' names)
 
     def retrieval_path(self, part: int) -> Path:
         return self.output / "retrieval" / f"part-{part:05d}.json"
@@ -122,8 +124,9 @@ class LocalizationPlan:
             if k in self.whole:
                 self.todo[k] = shard
             else:  # a query without a record (a shard file cut short) is always run again
-                retry = [q for q in shard if q.name not in done
-                         or (not self.keep_failures and is_retryable(done[q.name]))]
+                retry = {q.name for q in shard if q.name not in done
+                         or (not self.keep_failures and is_retryable(done[q.name]))}
+                retry = [q for q in shard if q.name in retry or set(self.frames.get(q.name, ())) & retry]
                 if retry:
                     self.todo[k] = retry
 
@@ -202,9 +205,14 @@ def resolve_order(order: str, job: LocalizationJob, num_queries: int) -> str:
     if order == "region" and not retrieves:
         raise ValueError(f"--order region groups queries by their retrieved references; prior {job.prior.name!r} "
                          "retrieves none.")
+    bodies = job.rigs is not None or job.odometry is not None
+    if order == "region" and bodies:
+        raise ValueError("--order region shards queries one by one; the images of a rig frame or a chunk are "
+                         "localized together: use --order list with --rigs or --odometry.")
     if order == "auto":  # a retrieval stage that runs the network costs one more network pass per query
         cheap = not job.retrieval.needs_image
-        return "region" if retrieves and cheap and num_queries >= REGION_MIN_QUERIES else "list"
+        region = retrieves and cheap and num_queries >= REGION_MIN_QUERIES and not bodies
+        return "region" if region else "list"
     return order
 
 
@@ -277,9 +285,12 @@ def plan_localization(job: LocalizationJob, queries: List[QueryRecord], output, 
     if stored is not None and not overwrite and {k: v for k, v in stored.items() if k not in RECORDED} != now:
         raise AnotherRun(f"{output} holds a run with another job, query list or order ({_changes(stored, now)}): "
                          "use another --output, or --overwrite to redo it.")
-    shards = [queries[i:i + shard_size] for i in range(0, len(queries), shard_size)]
+    frames = frame_groups(job, queries)
+    shards = shard_frames(frames, shard_size) if frames else \
+        [queries[i:i + shard_size] for i in range(0, len(queries), shard_size)]
     plan = LocalizationPlan(job, shards, output, overwrite=overwrite, shard_size=shard_size,
-                            keep_failures=keep_failures, order=order, queries=list(queries), store=store)
+                            keep_failures=keep_failures, order=order, queries=list(queries), store=store,
+                            frames={q.name: [p.name for p in f] for f in frames for q in f})
     if not plan.needs_retrieval():
         if order == "region":
             plan.apply_regions()
@@ -288,6 +299,23 @@ def plan_localization(job: LocalizationJob, queries: List[QueryRecord], output, 
         plan.whole = set(range(len(shards)))
         plan.todo = dict(enumerate(shards))
     return plan
+
+
+def frame_groups(job: LocalizationJob, queries: List[QueryRecord]) -> List[List[QueryRecord]]:
+    """With rigs or a sequence: the queries of each rig frame or chunk (``pipeline.rigs.bodies_of``: the files
+    read whole, a bad line an InputError naming it), a query of none alone; else none."""
+    return [list(f.queries) for f in bodies_of(job, queries)]
+
+
+def shard_frames(frames: List[List[QueryRecord]], shard_size: int) -> List[List[QueryRecord]]:
+    """Shards of at least ``shard_size`` queries (the last may hold fewer) that never split a frame."""
+    shards, current = [], []
+    for f in frames:
+        current += f
+        if len(current) >= shard_size:
+            shards.append(current)
+            current = []
+    return shards + ([current] if current else [])
 
 
 RECORDED = ("store", "thresholds", "runtime")  # recorded in job.json, not part of the job a rerun must match
@@ -416,7 +444,8 @@ def _shard_records(plan: LocalizationPlan, k: int, commit: bool = True) -> List[
 
 def merge(plan: LocalizationPlan) -> List[Dict]:
     """All shard records, in query (list) order, written to records.jsonl, poses.txt (full names; and
-    ``poses_{names}.txt`` with the plan's ``pose_names`` for a benchmark), kapture/ and failed.txt."""
+    ``poses_{names}.txt`` with the plan's ``pose_names`` for a benchmark), kapture/ and failed.txt; with rigs,
+    bodies.txt: each rig frame's rig_from_world (``key qw qx qy qz tx ty tz``)."""
     records = []
     for k in range(len(plan.shards)):
         records += _shard_records(plan, k)
@@ -438,6 +467,13 @@ def merge(plan: LocalizationPlan) -> List[Dict]:
             write_poses(records, plan.output / f"poses_{plan.pose_names}.txt", plan.pose_names)
         except ValueError as e:  # checked before running (cli); a library caller still gets poses.txt
             logger.error("poses_%s.txt not written: %s", plan.pose_names, e)
+    bodies = {}
+    for r in records:  # each rig frame's pose (rig_from_world: refined where verified, else its start)
+        if r.get("body", {}).get("pose") is not None:
+            bodies.setdefault(r["body"]["key"], r["body"])
+    if bodies:
+        write_poses([{"name": k, "success": b["success"], "refined": b["pose"], "prior": b["pose"]}
+                     for k, b in bodies.items()], plan.output / "bodies.txt")
     cameras = {q.name: q.camera for s in plan.shards for q in s}
     write_kapture([r for r in records if cameras.get(r["name"]) is not None], cameras, plan.output / "kapture")
     write_failed(records, plan.output / "failed.txt")

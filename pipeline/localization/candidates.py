@@ -28,6 +28,7 @@ class QueryResult:
     evidence: Dict[str, float] = field(default_factory=dict)
     notes: List[str] = field(default_factory=list)
     filters: Dict[str, int] = field(default_factory=dict)  # what the point filters left out
+    body: Dict = field(default_factory=dict)  # the rig frame it was localized with (``pipeline.localization.rigs``)
 
     @property
     def pose(self) -> Optional[np.ndarray]:

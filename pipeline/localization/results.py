@@ -38,12 +38,15 @@ def is_retryable(rec: Optional[Dict]) -> bool:
 def result_to_record(r: QueryResult, tags: Optional[Dict[str, str]] = None) -> Dict:
     def mat(T):
         return None if T is None else np.asarray(T, np.float64).tolist()
-    return {"name": r.name, "success": r.success, "prior": mat(r.prior), "refined": mat(r.refined),
-            "references": r.references, "num_points": r.num_points,
-            "cost": None if not np.isfinite(r.cost) else r.cost, "iterations": r.iterations,
-            "reason": r.reason, "confidence": r.confidence, "evidence": r.evidence, "notes": r.notes,
-            "filters": r.filters, "timings": r.timings,
-            "tags": dict(tags or {}), "per_level": r.per_level}
+    rec = {"name": r.name, "success": r.success, "prior": mat(r.prior), "refined": mat(r.refined),
+           "references": r.references, "num_points": r.num_points,
+           "cost": None if not np.isfinite(r.cost) else r.cost, "iterations": r.iterations,
+           "reason": r.reason, "confidence": r.confidence, "evidence": r.evidence, "notes": r.notes,
+           "filters": r.filters, "timings": r.timings,
+           "tags": dict(tags or {}), "per_level": r.per_level}
+    if r.body:  # an image of a rig frame: the frame's key, pose and verdict (``pipeline.localization.rigs``)
+        rec["body"] = r.body
+    return rec
 
 
 def write_records(records: Iterable[Dict], path) -> None:

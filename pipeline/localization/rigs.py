@@ -20,7 +20,7 @@ of an image are shared by its starts).
 import dataclasses
 import logging
 from dataclasses import dataclass, field
-from typing import List, Optional, Sequence, Tuple
+from typing import List, Optional, Sequence
 
 import numpy as np
 
@@ -32,45 +32,12 @@ from pipeline.localization.priors import NO_MATCH, failure
 from pipeline.localization.refine import Localizer
 from pipeline.localization.verify import VerificationConfig
 from pipeline.localization.retrieval import Retrieved, retrieve
-from pipeline.localization.shard import LocalizationJob, describer, fit_query
+from pipeline.localization.bodies import Frame, compose, invert
+from pipeline.localization.query_image import describer, fit_query
 from pipeline.queries import QueryRecord
 from pipeline.store.reader import MapReader
 
 logger = logging.getLogger(__name__)
-
-
-def compose(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """a @ b of two 3 x 4 poses."""
-    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
-    return np.concatenate([a[:, :3] @ b[:, :3], (a[:, :3] @ b[:, 3] + a[:, 3])[:, None]], 1)
-
-
-def invert(a: np.ndarray) -> np.ndarray:
-    """The inverse of a 3 x 4 pose."""
-    a = np.asarray(a, np.float64)
-    return np.concatenate([a[:, :3].T, (-a[:, :3].T @ a[:, 3])[:, None]], 1)
-
-
-@dataclass(frozen=True)
-class Frame:
-    """The images of one body: a rig at one instant (``key``: rig and timestamp) or a chunk of frames;
-    ``cam_from_body[i]`` (3 x 4) is image i's camera in the body's frame."""
-
-    key: str
-    queries: Tuple[QueryRecord, ...]
-    cam_from_body: Tuple[np.ndarray, ...]
-    tags: dict = field(default_factory=dict)
-
-    def __post_init__(self):
-        if not self.queries or len(self.queries) != len(self.cam_from_body):
-            raise ValueError(f"frame {self.key!r}: one cam_from_body per image, and at least one image.")
-
-    def body_gt(self) -> Optional[np.ndarray]:
-        """The body's ground-truth pose from its first image with one, or None."""
-        for q, C in zip(self.queries, self.cam_from_body):
-            if q.cam_from_world_gt is not None:
-                return compose(invert(C), q.cam_from_world_gt)
-        return None
 
 
 @dataclass
@@ -89,7 +56,7 @@ class FrameResult:
     confidence: float = 0.0
 
 
-def _prepare(job: LocalizationJob, reader: MapReader, localizer: Localizer, query: QueryRecord):
+def _prepare(job, reader: MapReader, localizer: Localizer, query: QueryRecord):
     """An image's read, camera check and retrieval: (query, rgb, cache, Retrieved) or a failure (QueryResult)."""
     if query.error:
         return failure(query, query.error)
@@ -111,9 +78,10 @@ def _similarity(r: Retrieved) -> float:
     return float(r.similarity[0]) if r.similarity is not None and len(r.similarity) else float("-inf")
 
 
-def localize_frames(job: LocalizationJob, reader: MapReader, localizer: Localizer,
+def localize_frames(job, reader: MapReader, localizer: Localizer,
                     frames: Sequence[Frame]) -> List[FrameResult]:
-    """Localize each frame as one body (see the module docstring); the frames' LM problems are batched."""
+    """Localize each frame as one body (see the module docstring); the frames' LM problems are batched. ``job``:
+    the run's ``LocalizationJob`` (its retrieval and number of references)."""
     candidates: List[Candidate] = []
     plans = []  # per frame: its images' failures, and per start (its image, body pose, per image a slot)
     for frame in frames:
@@ -188,8 +156,10 @@ def _disagreement(frame: Frame, best: _Run, runs: List[_Run], conf: Verification
 def _finish(frame: Frame, prepared, runs, results: List[QueryResult], conf: VerificationConfig) -> FrameResult:
     """A frame's verdict from its starts' results, and each image's reported pose (see the module docstring)."""
     if not runs:
-        return FrameResult(frame.key, list(prepared), None, False, "no image of the frame could be refined: "
-                           + "; ".join(f"{r.name}: {r.reason}" for r in prepared))
+        reason = "no image of the frame could be refined: " + "; ".join(f"{r.name}: {r.reason}" for r in prepared)
+        body = {"key": frame.key, "pose": None, "success": False, "images": [q.name for q in frame.queries],
+                "start": None, "verified_by": []}
+        return FrameResult(frame.key, [dataclasses.replace(r, body=body) for r in prepared], None, False, reason)
     done = [_run(frame, o, start, slots, results) for o, start, slots in runs]
     best = max(done, key=lambda r: (len(r.verified), r.confidence))  # ties: the earlier start
     reason = _disagreement(frame, best, done, conf) if best.verified else ""
@@ -198,6 +168,9 @@ def _finish(frame: Frame, prepared, runs, results: List[QueryResult], conf: Veri
         reason = ("no image verified at the body's pose from any start: " if best.refined else
                   "the body was not refined: ") + "; ".join(f"{r.name}: {r.reason}" for r in best.images)
     Cs = [np.asarray(C, np.float64) for C in frame.cam_from_body]
+    pose = best.body if success else best.start
+    body = {"key": frame.key, "pose": pose.tolist(), "success": success, "images": [q.name for q in frame.queries],
+            "start": frame.queries[best.origin].name, "verified_by": [best.images[i].name for i in best.verified]}
     images = []
     for i, r in enumerate(best.images):
         own = "verified" if i in best.verified else (r.reason or "not refined")
@@ -205,6 +178,7 @@ def _finish(frame: Frame, prepared, runs, results: List[QueryResult], conf: Veri
                 f"best from {frame.queries[best.origin].name}'s retrieval; this image alone: {own}")
         images.append(dataclasses.replace(
             r, success=success, refined=compose(Cs[i], best.body) if best.refined else None,
-            prior=compose(Cs[i], best.start), confidence=best.confidence, reason=reason, notes=list(r.notes) + [note]))
-    return FrameResult(frame.key, images, best.body if success else best.start, success, reason,
+            prior=compose(Cs[i], best.start), confidence=best.confidence, reason=reason, notes=list(r.notes) + [note],
+            body=body))
+    return FrameResult(frame.key, images, pose, success, reason,
                        frame.queries[best.origin].name, [images[i].name for i in best.verified], best.confidence)

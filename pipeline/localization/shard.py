@@ -15,8 +15,8 @@ from typing import ClassVar, Dict, List, Optional, Tuple
 
 import numpy as np
 
-from pipeline.mapping.features import FeatureConfig, global_descriptor
-from pipeline.images import ImageReadError, read_image_for
+from pipeline.mapping.features import FeatureConfig
+from pipeline.images import ImageReadError
 from pipeline.localization.refine import Localizer, LocalizerConfig, QueryCache, QueryResult
 from pipeline.store.reader import MapReader, open_reader
 from pipeline.models import localization_model
@@ -24,6 +24,9 @@ from pipeline.localization.priors import PRIORS, PriorSettings, Prepared, Sift, 
 from pipeline.queries import QueryRecord
 from pipeline.localization.results import read_records, result_to_record, write_records
 from pipeline.localization.retrieval import RETRIEVERS, GlobalDescriptors, RetrievalSettings, retrieve
+from pipeline.localization.query_image import describer, fit_query  # noqa: F401 (callers import them here)
+from pipeline.localization.rigs import localize_frames
+from pipeline.rigs import bodies_of, read_odometry, read_rigs
 from pipeline.localization.search import Hypotheses, refine_and_pick, rival_starts, screen, top1_first
 from pipeline.runtime import keep_freed_memory, torch_threads
 from pipeline.settings import build, dotted
@@ -58,13 +61,23 @@ class LocalizationJob:
     device: str = "cpu"
     levels: Optional[Tuple[int, ...]] = None
     scales: Optional[Tuple[int, ...]] = None
+    rigs: Optional[str] = None
+    rig_frames: Optional[str] = None
+    odometry: Optional[str] = None
+    chunk: int = 5
 
     SCHEMA: ClassVar[int] = 3
 
     def to_dict(self) -> Dict:
-        """The job as recorded in job.json (and compared by reruns, after ``from_dict``)."""
+        """The job as recorded in job.json (and compared by reruns, after ``from_dict``); the rig files only
+        where given (a job without rigs is recorded as before them)."""
         d = asdict(self)
         d.update(schema=self.SCHEMA, retrieval=RETRIEVERS.record(self.retrieval), prior=PRIORS.record(self.prior))
+        for key in ("rigs", "rig_frames", "odometry"):
+            if d[key] is None:
+                del d[key]
+        if self.odometry is None:
+            del d["chunk"]
         return d
 
     @classmethod
@@ -89,6 +102,19 @@ class LocalizationJob:
             raise ValueError("num_dbs must be at least 1.")
         self.retrieval.validate()
         self.prior.validate()
+        if (self.rigs is None) != (self.rig_frames is None):
+            raise ValueError("Give a rig file and a frames file together (--rigs and --rig-frames).")
+        if self.rigs is not None and self.odometry is not None:
+            raise ValueError("--rigs and --odometry: give one of them (a rig's frames, or a sequence's chunks).")
+        if self.rigs is not None or self.odometry is not None:
+            flag = "--rigs" if self.rigs is not None else "--odometry"
+            if self.prior.name != Top1.name:
+                raise ValueError(f"{flag}: a body starts from its images' top-1 references; --prior "
+                                 f"{self.prior.name} is not there yet for rigs and sequences: use --prior {Top1.name}.")
+            if self.rigs is not None:
+                read_rigs(self.rigs)
+            else:
+                read_odometry(self.odometry, [], self.chunk, listed_only=True)
 
 
 def _from_schema_1(d: Dict) -> Dict:
@@ -113,27 +139,6 @@ def _from_schema_2(d: Dict) -> Dict:
         d.setdefault("localizer", {}).setdefault("verification", {}).setdefault("max_keypoint_chi2", 0.0)
         d["prior"].setdefault("keypoint_weight", 0.0)
     return d
-
-
-def fit_query(query: QueryRecord) -> Tuple[QueryRecord, np.ndarray]:
-    """The query's image (``pipeline.images.read_image_for``: decoded in full, its size checked
-    against the camera) and the query with the camera that fits it; a resized copy is noted in
-    the record. Raises ImageReadError naming the file."""
-    rgb, camera, note = read_image_for(query.path, query.camera)
-    if note:
-        logger.warning("%s: %s", query.name, note)
-        query = dataclasses.replace(query, camera=camera, notes=query.notes + (note,))
-    return query, rgb
-
-
-def describer(reader: MapReader, localizer: Localizer, rgb: Optional[np.ndarray], cache: QueryCache):
-    """The query's global descriptor, computed when first asked (the network at the coarsest
-    image scale, kept in ``cache`` for the refinement)."""
-    def describe() -> np.ndarray:
-        k_last = len(reader.conf.image_scales) - 1
-        pred = cache.network(k_last, lambda: localizer.predict(rgb, k_last))[0]
-        return global_descriptor(pred["features"][-1][0], reader.conf.descriptor).cpu().numpy()
-    return describe
 
 
 def prepare_query(job: LocalizationJob, reader: MapReader, localizer: Localizer, query: QueryRecord) -> Prepared:
@@ -265,7 +270,12 @@ def localize_shard(job: LocalizationJob, queries: List[QueryRecord], out_path) -
             results = [failure(q, f"job does not fit the map store: {e}") for q in queries]
         else:
             before = dict(reader.stats)
-            results = localize_queries(job, reader, localizer, queries)
+            frames = bodies_of(job, queries, listed_only=True)  # the shard holds whole ones (``workflows.localize``)
+            if frames:
+                by_name = {r.name: r for f in localize_frames(job, reader, localizer, frames) for r in f.images}
+                results = [by_name[q.name] for q in queries]
+            else:
+                results = localize_queries(job, reader, localizer, queries)
             io = {k: reader.stats[k] - before[k] for k in before}
     records = [result_to_record(r, q.tags) for r, q in zip(results, queries)]
     if io is not None:  # the shard's reads of the map store (shared by its queries)

@@ -1,5 +1,6 @@
-"""A rig localized as one body (``pipeline.localization.rigs``) in the demo's generated courtyard: the frame's
-pose, each image's pose through its camera, an image that cannot be read, and the rigs benchmark's table."""
+"""A rig localized as one body (``pipeline.localization.rigs``) in the demo's generated courtyard, by ``pixloc
+localize --rigs --rig-frames``: the frame's pose, each image's pose through its camera, the rig poses file, a
+rerun; and an image of a frame that cannot be read."""
 
 import dataclasses
 from pathlib import Path
@@ -37,23 +38,6 @@ def rig_scene(tmp_path_factory):
     return job, reader, Localizer(refiner.extractor, refiner.solvers, reader, job.localizer), frames
 
 
-def test_a_rig_frame_is_localized_as_one_body(rig_scene):
-    job, reader, localizer, frames = rig_scene
-    results = localize_frames(job, reader, localizer, frames)
-    day = results[0]
-    assert day.success, day.reason
-    t, R = pose_errors(day.pose, frames[0].body_gt())
-    assert t < 0.1 and R < 1.0, (t, R)
-    for r, q, C in zip(day.images, frames[0].queries, frames[0].cam_from_body):
-        assert r.success and r.name == q.name
-        np.testing.assert_allclose(r.refined, compose(C, day.pose), atol=1e-9)
-        assert "3 images refined as one pose, from 3 starts" in r.notes[-1]
-    for frame, r in zip(frames, results):  # no frame verified wrong
-        if r.success:
-            t, R = pose_errors(r.pose, frame.body_gt())
-            assert t <= 0.25 and R <= 2.0, (frame.key, t, R)
-
-
 def test_an_unreadable_image_of_a_rig_gets_the_bodys_pose(rig_scene):
     job, reader, localizer, frames = rig_scene
     day = frames[0]
@@ -66,3 +50,59 @@ def test_an_unreadable_image_of_a_rig_gets_the_bodys_pose(rig_scene):
     t, R = pose_errors(lost.refined, day.queries[2].cam_from_world_gt)
     assert t < 0.1 and R < 1.0, (t, R)
     assert "2 starts" in lost.notes[-1]
+
+
+def rig_files(folder: Path, frames) -> list:
+    """The query list, rig file and frames file of ``frames`` (one rig, cameras cam0..), as a user writes them."""
+    from pipeline.scene import rotmat_to_qvec
+    lines, frame_lines = [], []
+    for f in frames:
+        for i, q in enumerate(f.queries):
+            c = q.camera
+            lines.append(f"{q.name} {c.model} {c.width} {c.height} " + " ".join(f"{v:g}" for v in c.params))
+            frame_lines.append(f"{q.name} demo_rig {f.key} cam{i}")
+    rig_lines = [f"demo_rig, cam{i}, " + ", ".join(f"{v:.12g}" for v in (*rotmat_to_qvec(C[:, :3]), *C[:, 3]))
+                 for i, C in enumerate(frames[0].cam_from_body)]
+    for name, text in (("queries.txt", lines), ("rigs.txt", rig_lines), ("frames.txt", frame_lines)):
+        (folder / name).write_text("\n".join(text) + "\n")
+    images = frames[0].queries[0].path.parents[3]
+    return ["localize", "list", str(folder / "queries.txt"), "--query-images", str(images),
+            "--rigs", str(folder / "rigs.txt"), "--rig-frames", str(folder / "frames.txt"), "--sync"]
+
+
+def test_pixloc_localize_with_rigs(rig_scene, tmp_path, capsys):
+    """The user's path: ``pixloc localize --rigs --rig-frames`` writes each image's pose through its camera and
+    each frame's rig pose (bodies.txt); a rerun is a no-op; a prior that rigs do not take yet is refused."""
+    from pipeline.localization.results import read_records, record_pose
+    from pipeline.textfiles import read_poses
+    from workflows.cli import main
+    job, _, _, frames = rig_scene
+    args = rig_files(tmp_path, frames) + ["--store", job.store, "--output", str(tmp_path / "out"),
+                                          "--num-dbs", "3", "--retrieval-k", "5",
+                                          "--iters", "50"]
+    assert main(args) == 0
+    records = {r["name"]: r for r in read_records(tmp_path / "out" / "records.jsonl")}
+    assert len(records) == 6
+    day = frames[0]
+    body = records[day.queries[0].name]["body"]
+    assert body["key"] == f"demo_rig/{day.key}" and body["success"] and body["images"] == [q.name for q in day.queries]
+    t, R = pose_errors(np.asarray(body["pose"]), day.body_gt())
+    assert t < 0.1 and R < 1.0, (t, R)
+    for q, C in zip(day.queries, day.cam_from_body):
+        np.testing.assert_allclose(record_pose(records[q.name]), compose(C, np.asarray(body["pose"])), atol=1e-9)
+        rec = records[q.name]
+        assert rec["success"] and "3 images refined as one pose, from 3 starts" in rec["notes"][-1]
+    for frame in frames:  # no frame verified wrong
+        b = records[frame.queries[0].name]["body"]
+        if b["success"]:
+            t, R = pose_errors(np.asarray(b["pose"]), frame.body_gt())
+            assert t <= 0.25 and R <= 2.0, (frame.key, t, R)
+    rigs = read_poses(tmp_path / "out" / "bodies.txt")
+    assert sorted(rigs.poses) == sorted(f"demo_rig/{f.key}" for f in frames)
+    capsys.readouterr()
+    assert main(args) == 0
+    assert "6 of 6 queries already done" in capsys.readouterr().out
+    assert main(args[:-4] + ["--output", str(tmp_path / "other"), "--prior", "search"]) == 2
+    assert "--prior search is not there yet for rigs: use --prior top1" in capsys.readouterr().err
+    assert main(args[:-4] + ["--output", str(tmp_path / "other"), "--order", "region"]) == 2
+    assert "use --order list with --rigs" in capsys.readouterr().err
