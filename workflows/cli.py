@@ -112,6 +112,7 @@ def build_parser() -> argparse.ArgumentParser:
     from .benchmarks import scale as bench_scale
     from .benchmarks import retrieval as bench_retrieval
     from .benchmarks import rigs as bench_rigs
+    from .benchmarks import sequences as bench_sequences
     from .benchmarks import search as bench_search
     from .benchmarks import storage as bench_storage
     from .benchmarks import store_latency as bench_store_latency
@@ -141,7 +142,10 @@ def build_parser() -> argparse.ArgumentParser:
              "the structure stage: SIFT and matching on 1 vs 2 Dask workers; incremental vs global SfM against "
              "known poses"),
             ("rigs", bench_rigs,
-             "a three-camera rig localized as one body against its images one by one, per condition")]:
+             "a three-camera rig localized as one body against its images one by one, per condition"),
+            ("sequences", bench_sequences,
+             "a sequence's chunks localized as one body each (simulated odometry with drift) against its frames "
+             "one by one")]:
         p = bench_sub.add_parser(name, help=text)
         module.add_arguments(p)
         p.set_defaults(func=module.main)

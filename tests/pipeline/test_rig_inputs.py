@@ -70,3 +70,28 @@ def test_a_bad_frames_line_is_named(tmp_path, text, message):
     (tmp_path / "frames.txt").write_text(text)
     with pytest.raises(InputError, match=message.replace("(", r"\(").replace(")", r"\)")):
         read_frames(tmp_path / "frames.txt", queries("a.jpg", "b.jpg"), read_rigs(tmp_path / "rig.txt"))
+
+
+def test_a_sequence_is_cut_into_chunks_in_its_frame_order(tmp_path):
+    """Chunks of 2 consecutive lines; each chunk's frame is its first image's camera; a query that no line names
+    is alone."""
+    from pipeline.rigs import read_odometry
+    (tmp_path / "odo.txt").write_text("c.jpg 1 0 0 0 0 0 2\n# a comment\nb.jpg 1 0 0 0 0 0 1\na.jpg 1 0 0 0 0 0 0\n")
+    frames = read_odometry(tmp_path / "odo.txt", queries("a.jpg", "b.jpg", "c.jpg", "d.jpg"), 2)
+    assert [[q.name for q in f.queries] for f in frames] == [["c.jpg", "b.jpg"], ["a.jpg"], ["d.jpg"]]
+    np.testing.assert_allclose(frames[0].cam_from_body[0], np.eye(4)[:3], atol=1e-12)
+    np.testing.assert_allclose(frames[0].cam_from_body[1][:, 3], [0, 0, -1], atol=1e-12)
+    np.testing.assert_allclose(frames[1].cam_from_body[0], np.eye(4)[:3], atol=1e-12)
+
+
+@pytest.mark.parametrize("text, message", [
+    ("a.jpg 1 0 0 0 0 0\n", "odo.txt:1: expected 'name qw qx qy qz tx ty tz' (8 fields), got 7"),
+    ("a.jpg 1 0 0 0 0 0 0\nb.jpg 0 0 0 0 0 0 0\n", "odo.txt:2: the quaternion"),
+    ("a.jpg 1 0 0 0 0 0 0\na.jpg 1 0 0 0 0 0 1\n", "odo.txt:2: 'a.jpg' is given twice (first at"),
+    ("x.jpg 1 0 0 0 0 0 0\n", "odo.txt:1: 'x.jpg' is not a query of the list"),
+])
+def test_a_bad_odometry_line_is_named(tmp_path, text, message):
+    from pipeline.rigs import read_odometry
+    (tmp_path / "odo.txt").write_text(text)
+    with pytest.raises(InputError, match=message.replace("(", r"\(").replace(")", r"\)")):
+        read_odometry(tmp_path / "odo.txt", queries("a.jpg", "b.jpg"), 5)

@@ -106,3 +106,24 @@ def test_pixloc_localize_with_rigs(rig_scene, tmp_path, capsys):
     assert "--prior search is not there yet for rigs: use --prior top1" in capsys.readouterr().err
     assert main(args[:-4] + ["--output", str(tmp_path / "other"), "--order", "region"]) == 2
     assert "use --order list with --rigs" in capsys.readouterr().err
+
+
+def test_a_sequences_chunks_are_never_split_across_shards(rig_scene, tmp_path, capsys):
+    """``--odometry --chunk``: the plan's shards hold whole chunks; a bad odometry line is named before any work;
+    ``--chunk`` alone is refused."""
+    from pipeline.textfiles import InputError
+    from workflows.cli import main
+    from workflows.localize import plan_localization
+    job, _, _, frames = rig_scene
+    images = [q for f in frames for q in f.queries]
+    (tmp_path / "odo.txt").write_text("".join(f"{q.name} 1 0 0 0 0 0 {k}\n" for k, q in enumerate(images)))
+    plan = plan_localization(dataclasses.replace(job, odometry=str(tmp_path / "odo.txt"), chunk=4), images,
+                             tmp_path / "out", shard_size=3)
+    assert [[q.name for q in s] for s in plan.shards] == [[q.name for q in images[:4]], [q.name for q in images[4:]]]
+    (tmp_path / "bad.txt").write_text(f"{images[0].name} 1 0 0 0 0 0 0\n{images[1].name} 1 0 0 0 0 0\n")
+    with pytest.raises(InputError, match="bad.txt:2: expected 'name qw qx qy qz tx ty tz'"):
+        plan_localization(dataclasses.replace(job, odometry=str(tmp_path / "bad.txt"), chunk=4), images,
+                          tmp_path / "out2")
+    args = rig_files(tmp_path, frames)[:5] + ["--store", job.store, "--output", str(tmp_path / "o3"), "--chunk", "3"]
+    assert main(args) == 2
+    assert "--chunk cuts an --odometry sequence into chunks: give --odometry too" in capsys.readouterr().err
