@@ -11,35 +11,26 @@
 """
 
 import argparse
+import json
 import logging
 import time
 from pathlib import Path
-from typing import Dict, Tuple
+from typing import Dict
 
-from pipeline.mapping.depth import rgbd_scene
 from pipeline.evaluate import evaluate, evaluation_document, fmt, to_json
-from pipeline.mapping.features import FeatureConfig
 from pipeline.localization.refine import LocalizerConfig
-from pipeline.scene import CameraRecord
 from pipeline.localization.retrieval import GlobalDescriptors
-from pipeline.descriptors import Grid
 from pipeline.localization.priors import PRIORS, Top1
-from pipeline.mapping.readers.sources import Synthetic
 from pipeline.localization.shard import LocalizationJob
 from pipeline.data.synthetic import SyntheticConfig, ensure_generated, read_synthetic
 from pipeline.textfiles import write_atomic
 
-from . import build_map, executor, localize
+from . import executor, localize
+from .demo_scene import DEMO_CAMERA, DEMO_SEED, DEMO_THRESHOLDS, MIN_REFERENCES, demo_map  # noqa: F401 (re-exported)
 from .options import at_least
 from .report import make_report
 
 logger = logging.getLogger(__name__)
-DEMO_SEED = 7  # the training configs use other seeds
-DEMO_CAMERA = CameraRecord("PINHOLE", 320, 240, (250.0, 250.0, 160.0, 120.0))
-DEMO_THRESHOLDS = ((0.1, 1.0), (0.25, 2.0), (1.0, 5.0))  # (metres, degrees)
-# The references stand on a circle looking outwards, 360 / n degrees apart, with a 65 degree field
-# of view: below 18 a facade point is seen by fewer than three of them and the map has no points.
-MIN_REFERENCES = 18
 
 
 def _stage(k: int, text: str) -> float:
@@ -105,22 +96,6 @@ def run_demo(output: Path, model: str = "pixloc-lite0", num_references: int = 30
     return summary
 
 
-def demo_map(output: Path, mapping, model: str, seed: int) -> Tuple[Path, FeatureConfig]:
-    """The demo's map store at ``output/map.zarr`` from the generated scene's ``mapping`` views (their depth
-    and known poses), built or completed; (its path, its feature settings)."""
-    t = time.perf_counter()
-    scene = rgbd_scene(mapping, method="frames", stride=8, min_track_length=3)
-    fconf = FeatureConfig(model=model, resize=max(DEMO_CAMERA.width, DEMO_CAMERA.height), image_scales=(1,),
-                          descriptor=Grid.name)
-    store = output / "map.zarr"
-    plan = build_map.plan_build(scene, store, fconf, source={"kind": Synthetic.name, "seed": seed})
-    todo = sum(len(b) for b in plan.batches)
-    build_map.run_sync(plan, progress=True)
-    print(f"      {len(scene.images)} images, {len(scene.points)} points in {time.perf_counter() - t:.1f} s"
-          + ("" if todo else f" (reused {store}: every image already had its features)"))
-    return store, fconf
-
-
 def _run_dask(plan, workers: int, client=None):
     if client is not None:
         return localize.run_dask(plan, client, progress=True)
@@ -157,10 +132,35 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--sync", action="store_true", help="localize in this process, without Dask")
     p.add_argument("--prior", choices=OWN_INPUTS, default=Top1.name,
                    help="pose prior of the localization (see pixloc localize --help; sift: SIFT + PnP, refined)")
+    p.add_argument("--rig", action="store_true",
+                   help="instead: a three-camera rig at the query poses of each condition, localized as one body "
+                        "beside its images one by one (pixloc benchmark rigs; in-process)")
     p.set_defaults(func=main)
 
 
+def run_rig_demo(output: Path, model: str, num_references: int, queries_per_condition: int) -> Dict:
+    """``pixloc demo --rig``: the demo's scene and map in ``output``, and the rig benchmark on them."""
+    from .benchmarks import rigs
+    if num_references < MIN_REFERENCES:
+        raise ValueError(f"--references {num_references}: the demo needs at least {MIN_REFERENCES}")
+    print(f"a three-camera rig at {queries_per_condition} query poses per condition, each frame localized as one "
+          "body, and its images one by one (in-process)", flush=True)
+    out = rigs.run(Path(output).resolve(), queries_per_condition, model, num_references, queries_per_condition)
+    print()
+    print(rigs.format_table(out))
+    path = Path(output) / "rigs.json"
+    path.write_text(json.dumps(out, indent=1))
+    print(f"\nwritten: {path}")
+    return out
+
+
 def main(args: argparse.Namespace) -> int:
+    if args.rig:
+        if args.prior != Top1.name:
+            raise ValueError(f"--rig --prior {args.prior}: a rig frame starts from its images' top-1 references "
+                             f"(--prior {Top1.name}); the other priors are not there yet for rigs")
+        run_rig_demo(args.output, args.model, args.references, args.queries_per_condition)
+        return 0
     run_demo(args.output, args.model, args.references, args.queries_per_condition, args.workers, args.sync,
              prior=args.prior)
     return 0

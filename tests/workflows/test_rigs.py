@@ -3,6 +3,7 @@ localize --rigs --rig-frames``: the frame's pose, each image's pose through its 
 rerun; and an image of a frame that cannot be read."""
 
 import dataclasses
+import re
 from pathlib import Path
 
 import numpy as np
@@ -49,7 +50,7 @@ def test_an_unreadable_image_of_a_rig_gets_the_bodys_pose(rig_scene):
     np.testing.assert_allclose(lost.refined, compose(day.cam_from_body[2], result.pose), atol=1e-9)
     t, R = pose_errors(lost.refined, day.queries[2].cam_from_world_gt)
     assert t < 0.1 and R < 1.0, (t, R)
-    assert "2 starts" in lost.notes[-1]
+    assert re.search(r"from [12] starts", lost.notes[-1])
 
 
 def rig_files(folder: Path, frames) -> list:
@@ -91,7 +92,7 @@ def test_pixloc_localize_with_rigs(rig_scene, tmp_path, capsys):
     for q, C in zip(day.queries, day.cam_from_body):
         np.testing.assert_allclose(record_pose(records[q.name]), compose(C, np.asarray(body["pose"])), atol=1e-9)
         rec = records[q.name]
-        assert rec["success"] and "3 images refined as one pose, from 3 starts" in rec["notes"][-1]
+        assert rec["success"] and re.search(r"3 images refined as one pose, from [123] starts", rec["notes"][-1])
     for frame in frames:  # no frame verified wrong
         b = records[frame.queries[0].name]["body"]
         if b["success"]:
@@ -103,7 +104,7 @@ def test_pixloc_localize_with_rigs(rig_scene, tmp_path, capsys):
     assert main(args) == 0
     assert "6 of 6 queries already done" in capsys.readouterr().out
     assert main(args[:-4] + ["--output", str(tmp_path / "other"), "--prior", "search"]) == 2
-    assert "--prior search is not there yet for rigs: use --prior top1" in capsys.readouterr().err
+    assert "--prior search is not there yet for rigs and sequences: use --prior top1" in capsys.readouterr().err
     assert main(args[:-4] + ["--output", str(tmp_path / "other"), "--order", "region"]) == 2
     assert "use --order list with --rigs" in capsys.readouterr().err
 
@@ -127,3 +128,24 @@ def test_a_sequences_chunks_are_never_split_across_shards(rig_scene, tmp_path, c
     args = rig_files(tmp_path, frames)[:5] + ["--store", job.store, "--output", str(tmp_path / "o3"), "--chunk", "3"]
     assert main(args) == 2
     assert "--chunk cuts an --odometry sequence into chunks: give --odometry too" in capsys.readouterr().err
+
+
+def test_the_demo_refuses_a_rig_with_another_prior(capsys):
+    from workflows.cli import main
+    assert main(["demo", "--rig", "--prior", "sift", "--output", "/nonexistent/demo"]) == 2
+    assert "--rig --prior sift: a rig frame starts from its images' top-1 references" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_pixloc_demo_rig(tmp_path, capsys):
+    """``pixloc demo --rig`` as the README would run it, at the smallest size: its table has both ways per condition
+    and no frame verified wrong."""
+    import json
+    from workflows.cli import main
+    assert main(["demo", "--rig", "--references", "18", "--queries-per-condition", "1", "--output",
+                 str(tmp_path / "demo")]) == 0
+    out = capsys.readouterr().out
+    assert "condition=night      rig" in out and "seconds per image" in out
+    detail = json.loads((tmp_path / "demo" / "rigs.json").read_text())["frames_detail"]
+    assert len(detail) == 4
+    assert not [d for d in detail if d["verified"] and not (d["error_t"] <= 0.25 and d["error_R"] <= 2.0)]

@@ -40,7 +40,10 @@ def frame_errors(frames, results) -> List[Dict]:
     return out
 
 
-def run(work: Path, frames_per_condition: int, model: str) -> Dict:
+def run(work: Path, frames_per_condition: int, model: str, num_references: int = 30, queries_per_condition: int = 1,
+        seed: int = None) -> Dict:
+    """The benchmark in ``work`` (the demo's scene and map there, as ``pixloc demo`` makes them with
+    ``num_references`` and ``queries_per_condition``; reused where they are)."""
     from pipeline.data.rigs import generate_rig_frames, read_rig_frames
     from pipeline.data.synthetic import SyntheticConfig, ensure_generated, read_synthetic
     from pipeline.evaluate import evaluate
@@ -53,14 +56,16 @@ def run(work: Path, frames_per_condition: int, model: str) -> Dict:
     from pipeline.models import localization_model
     from pipeline.runtime import torch_threads
     from pipeline.store.reader import open_reader
-    from workflows.demo import DEMO_CAMERA, DEMO_SEED, DEMO_THRESHOLDS, demo_map
+    from workflows.demo_scene import DEMO_CAMERA, DEMO_SEED, DEMO_THRESHOLDS, demo_map
 
     work = Path(work).resolve()
+    seed = DEMO_SEED if seed is None else seed
     root = work / "scene"
-    ensure_generated(root, SyntheticConfig(seed=DEMO_SEED), 30, 1, DEMO_CAMERA, query_spread=0.5)
+    ensure_generated(root, SyntheticConfig(seed=seed), num_references, queries_per_condition, DEMO_CAMERA,
+                     query_spread=0.5)
     mapping, _ = read_synthetic(root)
-    store, fconf = demo_map(work, mapping, model, DEMO_SEED)
-    generate_rig_frames(root, SyntheticConfig(seed=DEMO_SEED), DEMO_CAMERA, frames_per_condition)
+    store, fconf = demo_map(work, mapping, model, seed)
+    generate_rig_frames(root, SyntheticConfig(seed=seed), DEMO_CAMERA, frames_per_condition)
     frames = [Frame(key, tuple(queries), tuple(cams), {"condition": condition})
               for key, condition, queries, cams in read_rig_frames(root, DEMO_CAMERA)]
     images = [q for f in frames for q in f.queries]
