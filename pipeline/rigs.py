@@ -92,7 +92,7 @@ def read_frames(path, queries: List[QueryRecord], rigs: Rigs, listed_only: bool 
         named[name] = slots[rig, frame, sensor] = where
         members.setdefault((rig, frame), []).append((by_name[name], rigs[rig][sensor]))
     frames = [Frame(f"{rig}/{frame}", tuple(q for q, _ in m), tuple(C for _, C in m), {"rig": rig})
-              for (rig, frame), m in members.items()]
+              for (rig, frame), m in members.items()]  # tagged: a body (an untagged frame is a query alone)
     frames += [Frame(q.name, (q,), (IDENTITY,)) for q in queries if q.name not in named]
     return frames
 

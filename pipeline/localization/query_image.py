@@ -7,7 +7,7 @@ from typing import Optional, Tuple
 
 import numpy as np
 
-from pipeline.images import read_image_for
+from pipeline.images import ImageReadError, read_image_for
 from pipeline.localization.candidates import QueryCache
 from pipeline.mapping.features import global_descriptor
 from pipeline.queries import QueryRecord
@@ -34,3 +34,18 @@ def describer(reader, localizer, rgb: Optional[np.ndarray], cache: QueryCache):
         pred = cache.network(k_last, lambda: localizer.predict(rgb, k_last))[0]
         return global_descriptor(pred["features"][-1][0], reader.conf.descriptor).cpu().numpy()
     return describe
+
+
+def read_query(query: QueryRecord) -> Tuple[QueryRecord, Optional[np.ndarray], str]:
+    """A query ready to run: (the query with the camera that fits its file, its image, "") after its list line,
+    camera and image are checked (``fit_query``), or (the query, None, the reason it cannot run)."""
+    if query.error:
+        return query, None, query.error
+    reason = query.camera.check()
+    if reason:
+        return query, None, reason
+    try:
+        query, rgb = fit_query(query)
+    except ImageReadError as e:
+        return query, None, str(e)
+    return query, rgb, ""

@@ -30,7 +30,6 @@ import numpy as np
 
 from pixloc.geometry import relative_motion
 
-from pipeline.images import ImageReadError
 from pipeline.localization.candidates import BodyRef, Candidate, QueryCache, QueryResult
 from pipeline.localization.priors import NO_MATCH, failure
 from pipeline.localization.refine import Localizer
@@ -38,7 +37,7 @@ from pipeline.localization.verify import VerificationConfig
 from pipeline.localization.retrieval import Retrieved, retrieve
 from pipeline.localization.search import median_depth
 from pipeline.localization.bodies import Frame, compose, invert
-from pipeline.localization.query_image import describer, fit_query
+from pipeline.localization.query_image import describer, read_query
 from pipeline.queries import QueryRecord
 from pipeline.store.reader import MapReader
 
@@ -63,15 +62,9 @@ class FrameResult:
 
 def _prepare(job, reader: MapReader, localizer: Localizer, query: QueryRecord):
     """An image's read, camera check and retrieval: (query, rgb, cache, Retrieved) or a failure (QueryResult)."""
-    if query.error:
-        return failure(query, query.error)
-    reason = query.camera.check()
+    query, rgb, reason = read_query(query)
     if reason:
         return failure(query, reason)
-    try:
-        query, rgb = fit_query(query)
-    except ImageReadError as e:
-        return failure(query, str(e))
     cache = QueryCache()
     r: Retrieved = retrieve(job.retrieval, reader, query, describer(reader, localizer, rgb, cache))
     if not r.dbs:
@@ -174,7 +167,7 @@ def _finish(frame: Frame, prepared, runs, results: List[QueryResult], conf: Veri
     if not runs:
         reason = "no image of the frame could be refined: " + "; ".join(f"{r.name}: {r.reason}" for r in prepared)
         body = {"key": frame.key, "pose": None, "success": False, "images": [q.name for q in frame.queries],
-                "start": None, "verified_by": []}
+                "start": None, "verified_by": []} if frame.tags else {}
         return FrameResult(frame.key, [dataclasses.replace(r, body=body) for r in prepared], None, False, reason)
     done = [_run(frame, o, start, slots, results) for o, start, slots in runs]
     best = max(done, key=lambda r: (len(r.verified), r.confidence))  # ties: the earlier start
@@ -192,6 +185,7 @@ def _finish(frame: Frame, prepared, runs, results: List[QueryResult], conf: Veri
     pose = best.body if success else best.start
     body = {"key": frame.key, "pose": pose.tolist(), "success": success, "images": [q.name for q in frame.queries],
             "start": frame.queries[best.origin].name, "verified_by": [best.images[i].name for i in best.verified]}
+    body = body if frame.tags else {}  # an untagged frame of one image is a query alone: no body in its record
     images = []
     for i, r in enumerate(best.images):
         own = "verified" if i in best.verified else (r.reason or "not refined")

@@ -24,7 +24,7 @@ from pipeline.localization.priors import PRIORS, PriorSettings, Prepared, Sift, 
 from pipeline.queries import QueryRecord
 from pipeline.localization.results import read_records, result_to_record, write_records
 from pipeline.localization.retrieval import RETRIEVERS, GlobalDescriptors, RetrievalSettings, retrieve
-from pipeline.localization.query_image import describer, fit_query  # noqa: F401 (callers import them here)
+from pipeline.localization.query_image import describer, fit_query, read_query  # noqa: F401 (callers import them here)
 from pipeline.localization.rigs import localize_frames
 from pipeline.rigs import bodies_of, read_odometry, read_rigs
 from pipeline.localization.search import Hypotheses, refine_and_pick, rival_starts, screen, top1_first
@@ -144,15 +144,9 @@ def _from_schema_2(d: Dict) -> Dict:
 def prepare_query(job: LocalizationJob, reader: MapReader, localizer: Localizer, query: QueryRecord) -> Prepared:
     """Retrieval and prior of one query (``pipeline.localization.retrieval`` and ``priors``): a
     failure (QueryResult), or its candidates."""
-    if query.error:
-        return failure(query, query.error)
-    reason = query.camera.check()
+    query, rgb, reason = read_query(query)
     if reason:
         return failure(query, reason)
-    try:
-        query, rgb = fit_query(query)
-    except ImageReadError as e:
-        return failure(query, str(e))
     cache = QueryCache()
     describe = describer(reader, localizer, rgb, cache)
     return job.prior.prepare(Start(reader, query, rgb, cache, lambda: retrieve(job.retrieval, reader, query, describe),
@@ -248,6 +242,23 @@ def retrieve_queries(job: LocalizationJob, queries: List[QueryRecord], out_path)
     return out
 
 
+def localize_bodies_and_queries(job: LocalizationJob, reader: MapReader, localizer: Localizer,
+                                queries: List[QueryRecord]) -> List[QueryResult]:
+    """The job's rig frames and chunks among ``queries`` as bodies (``pipeline.localization.rigs``; a shard holds
+    whole ones, ``workflows.localize``), the other queries alone (``localize_queries``); in query order. A rig,
+    frames or odometry file that cannot be read now (changed since the run was planned) fails every query of the
+    shard with the reason."""
+    try:
+        bodies = [f for f in bodies_of(job, queries, listed_only=True) if f.tags]
+    except ValueError as e:  # InputError included: the file names itself
+        return [failure(q, f"rig or odometry file unusable: {e}") for q in queries]
+    by_name = {r.name: r for f in localize_frames(job, reader, localizer, bodies) for r in f.images}
+    alone = [q for q in queries if q.name not in by_name]
+    if alone:
+        by_name.update((r.name, r) for r in localize_queries(job, reader, localizer, alone))
+    return [by_name[q.name] for q in queries]
+
+
 def localize_shard(job: LocalizationJob, queries: List[QueryRecord], out_path) -> List[Dict]:
     """Localize ``queries`` and write their records to ``out_path``; a finished shard is read back."""
     out_path = Path(out_path)
@@ -270,12 +281,7 @@ def localize_shard(job: LocalizationJob, queries: List[QueryRecord], out_path) -
             results = [failure(q, f"job does not fit the map store: {e}") for q in queries]
         else:
             before = dict(reader.stats)
-            frames = bodies_of(job, queries, listed_only=True)  # the shard holds whole ones (``workflows.localize``)
-            if frames:
-                by_name = {r.name: r for f in localize_frames(job, reader, localizer, frames) for r in f.images}
-                results = [by_name[q.name] for q in queries]
-            else:
-                results = localize_queries(job, reader, localizer, queries)
+            results = localize_bodies_and_queries(job, reader, localizer, queries)
             io = {k: reader.stats[k] - before[k] for k in before}
     records = [result_to_record(r, q.tags) for r, q in zip(results, queries)]
     if io is not None:  # the shard's reads of the map store (shared by its queries)

@@ -16,7 +16,7 @@ import argparse
 import json
 import time
 from pathlib import Path
-from typing import Dict, List
+from typing import Dict, List, Tuple
 
 import numpy as np
 
@@ -40,6 +40,27 @@ def frame_errors(frames, results) -> List[Dict]:
     return out
 
 
+def one_by_one_and_as_bodies(job, images, frames) -> Tuple[List, List, Tuple[float, float]]:
+    """``images`` localized one by one (``localize_queries``) and ``frames`` as bodies (``localize_frames``), in
+    this process on one thread: (their QueryResults, the FrameResults, the seconds of each way)."""
+    from pipeline.localization.refine import Localizer
+    from pipeline.localization.rigs import localize_frames
+    from pipeline.localization.shard import localize_queries
+    from pipeline.models import localization_model
+    from pipeline.runtime import torch_threads
+    from pipeline.store.reader import open_reader
+    with torch_threads(1):
+        refiner, digest = localization_model(job.model, job.device)
+        reader = open_reader(job.store, job.features, digest)
+        localizer = Localizer(refiner.extractor, refiner.solvers, reader, job.localizer, job.device)
+        t0 = time.perf_counter()
+        single = localize_queries(job, reader, localizer, images)
+        t1 = time.perf_counter()
+        bodies = localize_frames(job, reader, localizer, frames)
+        t2 = time.perf_counter()
+    return single, bodies, (t1 - t0, t2 - t1)
+
+
 def run(work: Path, frames_per_condition: int, model: str, num_references: int = 30, queries_per_condition: int = 1,
         seed: int = None) -> Dict:
     """The benchmark in ``work`` (the demo's scene and map there, as ``pixloc demo`` makes them with
@@ -48,14 +69,11 @@ def run(work: Path, frames_per_condition: int, model: str, num_references: int =
     from pipeline.data.synthetic import SyntheticConfig, ensure_generated, read_synthetic
     from pipeline.evaluate import evaluate
     from pipeline.localization.priors import Top1
-    from pipeline.localization.refine import Localizer, LocalizerConfig
+    from pipeline.localization.refine import LocalizerConfig
     from pipeline.localization.results import result_to_record
     from pipeline.localization.retrieval import GlobalDescriptors
-    from pipeline.localization.rigs import Frame, localize_frames
-    from pipeline.localization.shard import LocalizationJob, localize_queries
-    from pipeline.models import localization_model
-    from pipeline.runtime import torch_threads
-    from pipeline.store.reader import open_reader
+    from pipeline.localization.rigs import Frame
+    from pipeline.localization.shard import LocalizationJob
     from workflows.demo_scene import DEMO_CAMERA, DEMO_SEED, DEMO_THRESHOLDS, demo_map
 
     work = Path(work).resolve()
@@ -73,16 +91,8 @@ def run(work: Path, frames_per_condition: int, model: str, num_references: int =
                           GlobalDescriptors(k=5, same_tag="area"), prior=Top1())
     gt = {q.name: q.cam_from_world_gt for q in images}
     out: Dict = {"frames": len(frames), "cameras": len(frames[0].queries), "thresholds": DEMO_THRESHOLDS}
-    with torch_threads(1):
-        refiner, digest = localization_model(job.model, job.device)
-        reader = open_reader(job.store, job.features, digest)
-        localizer = Localizer(refiner.extractor, refiner.solvers, reader, job.localizer, job.device)
-        t0 = time.perf_counter()
-        single = localize_queries(job, reader, localizer, images)
-        t1 = time.perf_counter()
-        rig = localize_frames(job, reader, localizer, frames)
-        t2 = time.perf_counter()
-    out["seconds_per_image"] = {"single": (t1 - t0) / len(images), "rig": (t2 - t1) / len(images)}
+    single, rig, seconds = one_by_one_and_as_bodies(job, images, frames)
+    out["seconds_per_image"] = {"single": seconds[0] / len(images), "rig": seconds[1] / len(images)}
     tags = {q.name: q.tags for q in images}
     for way, results in (("single", single), ("rig", [r for f in rig for r in f.images])):
         records = [result_to_record(r, tags[r.name]) for r in results]

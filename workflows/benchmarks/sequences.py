@@ -15,7 +15,6 @@ scene's scale, medians, verified and wrong), per scene and pooled.
 import argparse
 import json
 import math
-import time
 from pathlib import Path
 from typing import Dict, List
 
@@ -62,17 +61,14 @@ def simulated_odometry(poses: List[np.ndarray], drift: float, seed: int) -> List
 
 def main(args: argparse.Namespace) -> int:
     from pipeline.localization.priors import Top1
-    from pipeline.localization.refine import Localizer, LocalizerConfig
+    from pipeline.localization.refine import LocalizerConfig
     from pipeline.localization.results import result_to_record
     from pipeline.localization.retrieval import GlobalDescriptors
-    from pipeline.localization.rigs import localize_frames
-    from pipeline.localization.shard import LocalizationJob, localize_queries
+    from pipeline.localization.shard import LocalizationJob
     from pipeline.mapping.features import FeatureConfig
-    from pipeline.models import localization_model
     from pipeline.rigs import read_odometry
-    from pipeline.runtime import torch_threads
     from pipeline.scene import rotmat_to_qvec
-    from pipeline.store.reader import open_reader
+    from .rigs import one_by_one_and_as_bodies
     from .accuracy import OWN_SPLITS, SPLITS, pooled, row, scene_parts, scene_scale, table
 
     fconf = FeatureConfig(model=args.model, resize=args.resize, image_scales=(1,), sift=args.sift,
@@ -102,17 +98,9 @@ def main(args: argparse.Namespace) -> int:
             frames = read_odometry(path, queries, args.chunk)
             job = LocalizationJob(str(store), fconf, fconf.model, LocalizerConfig(num_dbs=3, num_iters=50),
                                   GlobalDescriptors(k=5), prior=Top1())
-            with torch_threads(1):
-                refiner, digest = localization_model(job.model, job.device)
-                reader = open_reader(job.store, job.features, digest)
-                localizer = Localizer(refiner.extractor, refiner.solvers, reader, job.localizer, job.device)
-                t0 = time.perf_counter()
-                single = localize_queries(job, reader, localizer, queries)
-                t1 = time.perf_counter()
-                chunks = localize_frames(job, reader, localizer, frames)
-                t2 = time.perf_counter()
-            seconds["single"] += t1 - t0
-            seconds["chunk"] += t2 - t1
+            single, chunks, (t_single, t_chunks) = one_by_one_and_as_bodies(job, queries, frames)
+            seconds["single"] += t_single
+            seconds["chunk"] += t_chunks
             records["single"] += [result_to_record(r) for r in single]
             records["chunk"] += [result_to_record(r) for f in chunks for r in f.images]
         for way in ("single", "chunk"):
