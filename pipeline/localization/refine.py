@@ -419,14 +419,16 @@ class Localizer:
         T = Pose.stack([st.T for st in group]).to(device)
         keypoints = keypoint_term(group)
         solver = self.solvers[level]
-        lm = solver(problem, T, num_iters=self.conf.num_iters, keypoints=keypoints, bodies=group_bodies(group))
+        bodies = group_bodies(group)
+        lm = solver(problem, T, num_iters=self.conf.num_iters, keypoints=keypoints, bodies=bodies)
         start = alignment_evidence(problem, T, solver.loss_fn, solver.interpolator)
         end = alignment_evidence(problem, lm.pose, solver.loss_fn, solver.interpolator)
         contrast = {}
         if final:
             contrast = {f"contrast_{px:g}px": alignment_contrast(problem, lm.pose, solver.loss_fn,
                                                                  solver.interpolator, px) for px in CONTRAST_SHIFTS}
-            contrast.update(alignment_uncertainty(problem, lm.pose, solver.loss_fn, solver.interpolator))
+            contrast.update(alignment_uncertainty(problem, lm.pose, solver.loss_fn, solver.interpolator,
+                                                  bodies=bodies))
         for b, st in enumerate(group):
             failed = bool(lm.failed[b])
             result = st.result

@@ -8,13 +8,14 @@ and its robust weight rho'(|r|^2) is at least one half (for official PixLoc's
 the problem's points, so points that leave the image count against a pose.
 """
 
-from typing import Callable, Dict
+from typing import Callable, Dict, Optional
 
 import torch
 from torch import Tensor
 
 from ..geometry import Pose
 from ..interpolation import Interpolator
+from .bodies import Bodies
 from .cost import FeaturemetricProblem, build_system, linearize, robust_weights
 
 
@@ -120,7 +121,8 @@ def alignment_depth_contrast(problem: FeaturemetricProblem, cam_from_world: Pose
 
 @torch.no_grad()
 def alignment_uncertainty(problem: FeaturemetricProblem, cam_from_world: Pose, loss_fn: Callable,
-                          interpolator: Interpolator, unit_t: float = 0.01, unit_R: float = 1.0) -> Dict[str, Tensor]:
+                          interpolator: Interpolator, unit_t: float = 0.01, unit_R: float = 1.0,
+                          bodies: Optional[Bodies] = None) -> Dict[str, Tensor]:
     """(B,) how well the featuremetric cost pins the pose down, from the Gauss-Newton Hessian H of the
     robust, confidence-weighted cost at ``cam_from_world``: the covariance s^2 H^-1 of the left
     update (dt, dw), s^2 the weighted residual variance per channel. ``sigma``: the standard deviation
@@ -131,11 +133,31 @@ def alignment_uncertainty(problem: FeaturemetricProblem, cam_from_world: Pose, l
     A pose that can slide (a camera on a ring around a texture-poor object, turning to keep it in
     view) has a large ``sigma`` even where the cost is sharp for image shifts (the contrast).
     Residuals of neighbouring points are correlated, so these are not calibrated probabilities:
-    thresholds are measured (docs/verification.md, where pixel units separated worse)."""
+    thresholds are measured (docs/verification.md, where pixel units separated worse).
+
+    With ``bodies`` (``pixloc.optim.bodies``), also ``body_sigma``, ``body_sigma_t`` and ``body_sigma_R`` of
+    each problem's body: its cameras' information (inverse covariances) moved to the body's update through their
+    adjoints and summed, the depth the median of its cameras' (a direction one camera leaves free, another may
+    pin down)."""
     # one problem at a time: the Jacobians of a whole batch of dense problems would double the peak memory
     covs, depths = zip(*(_covariance(problem.index(b), cam_from_world[b:b + 1], loss_fn, interpolator)
                          for b in range(problem.batch_size)))
     cov, depth = torch.cat(covs), torch.cat(depths)
+    out = _sigmas(cov, depth, unit_t, unit_R)
+    if bodies is not None:  # the information of a body's cameras, through their adjoints, summed
+        A = bodies.adjoint.to(cov)
+        index = bodies.index.to(cov.device)
+        info = A.transpose(-1, -2) @ torch.linalg.pinv(cov) @ A
+        info = info.new_zeros(bodies.num_bodies, 6, 6).index_add_(0, index, info)
+        body_depth = torch.stack([depth[index == k].median() for k in range(bodies.num_bodies)])
+        out.update({f"body_{k}": bodies.spread(v) for k, v in
+                    _sigmas(torch.linalg.pinv(info), body_depth, unit_t, unit_R).items()})
+    return out
+
+
+def _sigmas(cov: Tensor, depth: Tensor, unit_t: float, unit_R: float) -> Dict[str, Tensor]:
+    """``sigma``, ``sigma_t``, ``sigma_R`` of covariances (B, 6, 6) of a left update (dt, dw) and the
+    median point depths (B,) (``alignment_uncertainty``)."""
     unit = torch.cat([(unit_t * depth)[:, None].expand(-1, 3),
                       torch.full_like(depth, unit_R * torch.pi / 180)[:, None].expand(-1, 3)], -1)
 

@@ -151,6 +151,25 @@ def test_pixloc_demo_rig(tmp_path, capsys):
                  str(tmp_path / "demo")]) == 0
     out = capsys.readouterr().out
     assert "condition=night      rig" in out and "seconds per image" in out
-    detail = json.loads((tmp_path / "demo" / "rigs.json").read_text())["frames_detail"]
+    detail = json.loads((tmp_path / "demo" / "rigs.json").read_text())["frames_detail"]["rig-half"]
     assert len(detail) == 4
     assert not [d for d in detail if d["verified"] and not (d["error_t"] <= 0.25 and d["error_R"] <= 2.0)]
+
+
+def test_a_bodys_evidence_pools_its_images():
+    """The pooled verdict's evidence: contrast weighted by the points in view, fraction in view by points, the body's
+    own sigma, the median motion; a sharp image carries a weak one where the body is pinned down."""
+    from pipeline.localization.candidates import QueryResult
+    from pipeline.localization.rigs import body_evidence
+    from pipeline.localization.verify import verify
+    common = {"move_t": 0.1, "move_R": 1.0, "last_t": 0.01, "last_R": 0.1, "depth": 5.0, "body_sigma": 0.03}
+    sharp = QueryResult("a", True, None, None, num_points=300, evidence={"contrast_3px": 0.2, "valid": 1.0,
+                                                                          "sigma": 0.1, **common})
+    weak = QueryResult("b", False, None, None, num_points=100, evidence={"contrast_3px": 0.0, "valid": 0.5,
+                                                                         "sigma": 0.5, **common})
+    ev = body_evidence([sharp, weak], [0, 1])
+    assert ev["contrast_3px"] == pytest.approx(0.2 * 300 / 350)
+    assert ev["valid"] == pytest.approx(350 / 400)
+    assert ev["sigma"] == pytest.approx(0.03) and ev["move_R"] == 1.0
+    assert verify(ev)[1] is None
+    assert verify(body_evidence([weak], [0]))[1] is not None

@@ -16,7 +16,7 @@ import argparse
 import json
 import time
 from pathlib import Path
-from typing import Dict, List, Tuple
+from typing import Dict, List, Sequence, Tuple
 
 import numpy as np
 
@@ -25,6 +25,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--work", type=Path, default=Path("outputs/benchmark-rigs"), help="work folder (scene and map)")
     p.add_argument("--frames-per-condition", type=int, default=5, help="rig frames per condition")
     p.add_argument("--model", default="pixloc-lite0", help="feature model (default: the shipped pixloc-lite0)")
+    p.add_argument("--rules", nargs="+", default=["half", "any", "pooled"], choices=["half", "any", "pooled"],
+                   help="when a frame is verified (pipeline.localization.rigs.BODY_RULES), each a row")
     p.set_defaults(func=main)
 
 
@@ -40,29 +42,34 @@ def frame_errors(frames, results) -> List[Dict]:
     return out
 
 
-def one_by_one_and_as_bodies(job, images, frames) -> Tuple[List, List, Tuple[float, float]]:
-    """``images`` localized one by one (``localize_queries``) and ``frames`` as bodies (``localize_frames``), in
-    this process on one thread: (their QueryResults, the FrameResults, the seconds of each way)."""
+def one_by_one_and_as_bodies(job, images, frames, rules: Sequence[str] = ("half",)
+                             ) -> Tuple[List, Dict[str, List], Dict[str, float]]:
+    """``images`` localized one by one (``localize_queries``) and ``frames`` as bodies (``localize_frames``) with
+    each of ``rules``, in this process on one thread: (their QueryResults, the FrameResults per rule, the seconds
+    of each way: ``single`` and each rule)."""
     from pipeline.localization.refine import Localizer
     from pipeline.localization.rigs import localize_frames
     from pipeline.localization.shard import localize_queries
     from pipeline.models import localization_model
     from pipeline.runtime import torch_threads
     from pipeline.store.reader import open_reader
+    bodies, seconds = {}, {}
     with torch_threads(1):
         refiner, digest = localization_model(job.model, job.device)
         reader = open_reader(job.store, job.features, digest)
         localizer = Localizer(refiner.extractor, refiner.solvers, reader, job.localizer, job.device)
         t0 = time.perf_counter()
         single = localize_queries(job, reader, localizer, images)
-        t1 = time.perf_counter()
-        bodies = localize_frames(job, reader, localizer, frames)
-        t2 = time.perf_counter()
-    return single, bodies, (t1 - t0, t2 - t1)
+        seconds["single"] = time.perf_counter() - t0
+        for rule in rules:
+            t0 = time.perf_counter()
+            bodies[rule] = localize_frames(job, reader, localizer, frames, rule)
+            seconds[rule] = time.perf_counter() - t0
+    return single, bodies, seconds
 
 
 def run(work: Path, frames_per_condition: int, model: str, num_references: int = 30, queries_per_condition: int = 1,
-        seed: int = None) -> Dict:
+        seed: int = None, rules: Sequence[str] = ("half",)) -> Dict:
     """The benchmark in ``work`` (the demo's scene and map there, as ``pixloc demo`` makes them with
     ``num_references`` and ``queries_per_condition``; reused where they are)."""
     from pipeline.data.rigs import generate_rig_frames, read_rig_frames
@@ -90,43 +97,45 @@ def run(work: Path, frames_per_condition: int, model: str, num_references: int =
     job = LocalizationJob(str(store), fconf, model, LocalizerConfig(num_dbs=3, num_iters=50),
                           GlobalDescriptors(k=5, same_tag="area"), prior=Top1())
     gt = {q.name: q.cam_from_world_gt for q in images}
-    out: Dict = {"frames": len(frames), "cameras": len(frames[0].queries), "thresholds": DEMO_THRESHOLDS}
-    single, rig, seconds = one_by_one_and_as_bodies(job, images, frames)
-    out["seconds_per_image"] = {"single": seconds[0] / len(images), "rig": seconds[1] / len(images)}
+    out: Dict = {"frames": len(frames), "cameras": len(frames[0].queries), "thresholds": DEMO_THRESHOLDS,
+                 "ways": ["single"] + [f"rig-{rule}" for rule in rules]}
+    single, bodies, seconds = one_by_one_and_as_bodies(job, images, frames, rules)
+    out["seconds_per_image"] = {("single" if k == "single" else f"rig-{k}"): v / len(images)
+                                for k, v in seconds.items()}
     tags = {q.name: q.tags for q in images}
-    for way, results in (("single", single), ("rig", [r for f in rig for r in f.images])):
+    ways = [("single", single)] + [(f"rig-{rule}", [r for f in bodies[rule] for r in f.images]) for rule in rules]
+    for way, results in ways:
         records = [result_to_record(r, tags[r.name]) for r in results]
         out[way] = evaluate(records, gt, DEMO_THRESHOLDS, tag_keys=["condition"])
-    out["frames_detail"] = frame_errors(frames, rig)
+    out["frames_detail"] = {f"rig-{rule}": frame_errors(frames, bodies[rule]) for rule in rules}
     return out
 
 
 def format_table(out: Dict) -> str:
     keys = [f"recall@{t}m,{r}deg" for t, r in out["thresholds"]]
-    head = f"{'condition':<20} {'way':<7} {'n':>3}  " + "  ".join(f"{k[7:]:>12}" for k in keys) + \
+    head = f"{'condition':<20} {'way':<11} {'n':>3}  " + "  ".join(f"{k[7:]:>12}" for k in keys) + \
         "  frames verified  verified wrong (0.25 m, 2 deg / 1 m, 5 deg)"
     lines = [head, "-" * len(head)]
-    detail = out["frames_detail"]
     for group in out["single"]:
-        for way in ("single", "rig"):
+        for way in out["ways"]:
             s = out[way][group]["refined"]
-            row = f"{group:<20} {way:<7} {s['count']:>3}  " + "  ".join(f"{100 * s[k]:>11.0f}%" for k in keys)
-            if way == "rig":
+            row = f"{group:<20} {way:<11} {s['count']:>3}  " + "  ".join(f"{100 * s[k]:>11.0f}%" for k in keys)
+            if way != "single":
                 cond = group.split("=", 1)[1] if "=" in group else None
-                fr = [d for d in detail if cond is None or d["condition"] == cond]
+                fr = [d for d in out["frames_detail"][way] if cond is None or d["condition"] == cond]
                 ver = [d for d in fr if d["verified"]]
                 wrong = [sum(1 for d in ver if d["error_t"] is None or d["error_t"] > t or d["error_R"] > r)
                          for t, r in ((0.25, 2), (1, 5))]
                 row += f"  {len(ver):>4} of {len(fr):<4}    {wrong[0]} / {wrong[1]}"
             lines.append(row)
     s = out["seconds_per_image"]
-    lines.append(f"seconds per image: single {s['single']:.2f}, rig {s['rig']:.2f} "
-                 f"(ratio {s['rig'] / s['single']:.2f})")
+    lines.append("seconds per image: " + ", ".join(f"{way} {s[way]:.2f}" for way in out["ways"])
+                 + "; " + ", ".join(f"{way} / single {s[way] / s['single']:.2f}" for way in out["ways"][1:]))
     return "\n".join(lines)
 
 
 def main(args: argparse.Namespace) -> int:
-    out = run(args.work, args.frames_per_condition, args.model)
+    out = run(args.work, args.frames_per_condition, args.model, rules=args.rules)
     print(format_table(out))
     path = Path(args.work) / "rigs.json"
     path.write_text(json.dumps(out, indent=1))

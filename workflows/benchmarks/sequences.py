@@ -30,6 +30,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--drift", type=float, default=0.01, help="the odometry's drift per step, as a fraction of the "
                    "step's motion (default 0.01)")
     p.add_argument("--seed", type=int, default=0, help="the odometry noise's seed")
+    p.add_argument("--rules", nargs="+", default=["half", "any", "pooled"], choices=["half", "any", "pooled"],
+                   help="when a chunk is verified (pipeline.localization.rigs.BODY_RULES), each a row")
     p.set_defaults(func=main, scenes=list(SCENES), work=Path("outputs/benchmark-accuracy"))
 
 
@@ -84,8 +86,9 @@ def main(args: argparse.Namespace) -> int:
         parts = scene_parts(key, args, fconf)
         scale = scene_scale(parts[0][1])
         metric = OWN_SPLITS[key] if key in OWN_SPLITS else SPLITS[key].metric
-        records: Dict[str, List[Dict]] = {"single": [], "chunk": []}
-        seconds = {"single": 0.0, "chunk": 0.0}
+        ways = ["single"] + [f"chunk-{rule}" for rule in args.rules]
+        records: Dict[str, List[Dict]] = {way: [] for way in ways}
+        seconds = {way: 0.0 for way in ways}
         gt = {}
         for name, store, queries in parts:
             queries = sorted(queries, key=lambda q: q.name)
@@ -98,12 +101,13 @@ def main(args: argparse.Namespace) -> int:
             frames = read_odometry(path, queries, args.chunk)
             job = LocalizationJob(str(store), fconf, fconf.model, LocalizerConfig(num_dbs=3, num_iters=50),
                                   GlobalDescriptors(k=5), prior=Top1())
-            single, chunks, (t_single, t_chunks) = one_by_one_and_as_bodies(job, queries, frames)
-            seconds["single"] += t_single
-            seconds["chunk"] += t_chunks
+            single, chunks, spent = one_by_one_and_as_bodies(job, queries, frames, args.rules)
             records["single"] += [result_to_record(r) for r in single]
-            records["chunk"] += [result_to_record(r) for f in chunks for r in f.images]
-        for way in ("single", "chunk"):
+            seconds["single"] += spent["single"]
+            for rule in args.rules:
+                records[f"chunk-{rule}"] += [result_to_record(r) for f in chunks[rule] for r in f.images]
+                seconds[f"chunk-{rule}"] += spent[rule]
+        for way in records:
             rows.append(row(key, way, records[way], gt, scale, metric, seconds[way]))
             (args.work / "sequences" / f"{key}-{way}.jsonl").write_text(
                 "".join(json.dumps(r) + "\n" for r in records[way]))

@@ -104,3 +104,18 @@ def test_bodies_are_checked():
     with pytest.raises(ValueError, match="cam_from_body"):
         Bodies(torch.tensor([0, 0]), Pose.identity(3))
     assert Bodies.of(["b", "a", "b"], Pose.identity(3)).index.tolist() == [0, 1, 0]
+
+
+def test_a_bodys_uncertainty_adds_its_cameras_information():
+    """``alignment_uncertainty`` with bodies: a body of one camera at the identity has that camera's sigma; a rig's
+    three cameras pin its pose down better than any of them alone."""
+    from pixloc.optim import alignment_uncertainty
+    problem, C = rig_problem(3, 150, seed=4)
+    solver = LevenbergMarquardt(ConstantDamping(1e-3)).eval()
+    own = alignment_uncertainty(problem, C, solver.loss_fn, solver.interpolator,
+                                bodies=Bodies(torch.arange(3), Pose.identity(3)))
+    torch.testing.assert_close(own["body_sigma"], own["sigma"], rtol=1e-3, atol=1e-6)
+    rig = alignment_uncertainty(problem, C, solver.loss_fn, solver.interpolator,
+                                bodies=Bodies(torch.zeros(3, dtype=torch.long), C))
+    assert len(set(rig["body_sigma"].tolist())) == 1
+    assert float(rig["body_sigma"][0]) < float(rig["sigma"].min()), (rig["body_sigma"], rig["sigma"])
