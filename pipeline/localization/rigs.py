@@ -15,8 +15,8 @@ confidence, the start of the most similar retrieval). By default (``half``) a fr
 half of the images refined from that start are verified there: one image of a wrong pose can be sharp by
 chance (on the real sequences, 3 of the 4 chunks verified wrong by ``any`` image had 1 or 2 of 5 verified),
 and pooling the images' evidence into one verdict (``pooled``: the body's own uncertainty from its cameras'
-summed information) verified the chunks that stay at a neighbouring view on a ring of views (39 wrong images
-of 85 verified, against 4 of 45 with ``half``; docs/benchmarks.md, "Sequences"). A frame is rejected as
+summed information) verified the chunks that stay at a neighbouring view on a ring of views (28 wrong images
+of 84 verified, against 4 of 51 with ``half``; docs/benchmarks.md, "Sequences"). A frame is rejected as
 ambiguous where another start is verified too, by as many images, at a body pose that does not agree with it
 (``agree_t`` x the median point depth, ``agree_R``), with both starts named. Each image
 reports the body's pose through its camera, the images that could not be refined (too few points of their
