@@ -58,10 +58,12 @@ def one_by_one_and_as_bodies(job, images, frames, rules: Sequence[str] = ("half"
         refiner, digest = localization_model(job.model, job.device)
         reader = open_reader(job.store, job.features, digest)
         localizer = Localizer(refiner.extractor, refiner.solvers, reader, job.localizer, job.device)
+        print(f"      {len(images)} images one by one ...", flush=True)
         t0 = time.perf_counter()
         single = localize_queries(job, reader, localizer, images)
         seconds["single"] = time.perf_counter() - t0
         for rule in rules:
+            print(f"      {len(frames)} frames as bodies (a body verified by the {rule!r} rule) ...", flush=True)
             t0 = time.perf_counter()
             bodies[rule] = localize_frames(job, reader, localizer, frames, rule)
             seconds[rule] = time.perf_counter() - t0

@@ -13,7 +13,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from pipeline.images import ImageReadError, read_image_for
-from pipeline.queries import read_queries_with_intrinsics
+from pipeline.queries import QueryRecord, read_queries_with_intrinsics
 from pipeline.localization.results import read_records
 from pipeline.scene import CameraRecord, ImageRecord, name_problem
 from pipeline.store.layout import StoreError
@@ -251,3 +251,51 @@ def test_pose_txt_trajectory(data):
     (root / "pose.txt").write_bytes(data)
     camera = CameraRecord("PINHOLE", 640, 480, (518.0, 519.0, 325.5, 253.5))
     _named_or_checked(lambda: read_pose_txt(root, camera, 1e-3), root / "pose.txt")
+
+
+RIG = "car front 1 0 0 0 0 0 0\ncar, left, 0.7071068, 0, 0.7071068, 0, 0.2, 0, 0\n# cams\nbus rear 0 0 1 0 0 0 -1\n"
+RIG_QUERIES = ["a.jpg", "b.jpg", "c.jpg", "d.jpg"]
+
+
+def _rig_queries():
+    return [QueryRecord(n, Path(n), CameraRecord("PINHOLE", 64, 48, (50.0, 50.0, 32.0, 24.0)))
+            for n in RIG_QUERIES]
+
+
+def _rotation_ok(T):
+    return T.shape == (3, 4) and np.isfinite(T).all() and np.allclose(T[:, :3] @ T[:, :3].T, np.eye(3), atol=1e-6)
+
+
+@settings(max_examples=120, **SETTINGS)
+@given(damaged(RIG))
+def test_rig_file(data):
+    from pipeline.rigs import read_rigs
+    rigs = _read(read_rigs, data, "rigs.txt") or {}
+    assert all(_rotation_ok(C) for cams in rigs.values() for C in cams.values())
+
+
+@settings(max_examples=120, **SETTINGS)
+@given(damaged("a.jpg car 1 front\nb.jpg car 1 left\nc.jpg bus 7 rear\n"))
+def test_rig_frames_file(data):
+    """Every query is in exactly one frame (a body or alone), each frame's cameras are the rig file's."""
+    from pipeline.rigs import read_frames, read_rigs
+    rigs = read_rigs(_write(RIG.encode(), "rigs.txt"))
+    frames = _read(lambda p: read_frames(p, _rig_queries(), rigs), data, "frames.txt")
+    if frames is not None:
+        names = [q.name for f in frames for q in f.queries]
+        assert sorted(names) == sorted(RIG_QUERIES)
+        known = [C for cams in rigs.values() for C in cams.values()] + [np.eye(4)[:3]]
+        assert all(any(np.array_equal(C, K) for K in known) for f in frames for C in f.cam_from_body)
+
+
+@settings(max_examples=120, **SETTINGS)
+@given(damaged("a.jpg 1 0 0 0 0 0 0\nb.jpg 1 0 0 0 0.1 0 0\nc.jpg 0.9 0.1 0 0 0.2 0 0\n"), st.integers(1, 4))
+def test_odometry_file(data, chunk):
+    """Every query is in exactly one chunk or alone; a chunk's first camera is its frame."""
+    from pipeline.rigs import read_odometry
+    frames = _read(lambda p: read_odometry(p, _rig_queries(), chunk), data, "odometry.txt")
+    if frames is not None:
+        assert sorted(q.name for f in frames for q in f.queries) == sorted(RIG_QUERIES)
+        for f in frames:
+            assert len(f.queries) <= chunk and all(_rotation_ok(C) for C in f.cam_from_body)
+            np.testing.assert_allclose(f.cam_from_body[0], np.eye(4)[:3], atol=1e-9)
