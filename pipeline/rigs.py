@@ -27,7 +27,7 @@ from typing import Dict, List, Tuple
 
 import numpy as np
 
-from pipeline.localization.bodies import Frame
+from pipeline.localization.bodies import Frame, compose, invert
 from pipeline.queries import QueryRecord
 from pipeline.textfiles import InputError, data_lines, pose_from_line
 
@@ -121,9 +121,8 @@ def read_odometry(path, queries: List[QueryRecord], chunk: int, listed_only: boo
     frames = []
     for k in range(0, len(sequence), chunk):
         part = sequence[k:k + chunk]
-        inv0 = np.concatenate([part[0][1][:, :3].T, (-part[0][1][:, :3].T @ part[0][1][:, 3])[:, None]], 1)
-        cams = tuple(np.concatenate([T[:, :3] @ inv0[:, :3], (T[:, :3] @ inv0[:, 3] + T[:, 3])[:, None]], 1)
-                     for _, T in part)
+        first_from_odom = invert(part[0][1])
+        cams = tuple(compose(T, first_from_odom) for _, T in part)
         frames.append(Frame(f"chunk:{part[0][0].name}", tuple(q for q, _ in part), cams, {"sequence": "odometry"}))
     frames += [Frame(q.name, (q,), (IDENTITY,)) for q in queries if q.name not in first]
     return frames

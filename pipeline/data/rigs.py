@@ -20,6 +20,7 @@ from typing import List, Sequence, Tuple
 import numpy as np
 
 from pipeline.data.synthetic import CONDITIONS, SyntheticConfig, SyntheticScene, area
+from pipeline.localization.bodies import compose
 from pipeline.queries import QueryRecord
 from pipeline.scene import CameraRecord
 
@@ -35,10 +36,6 @@ def rig_cameras(yaws: Sequence[float] = RIG_YAWS, offsets: Sequence[float] = RIG
         R = np.array([[math.cos(a), 0.0, -math.sin(a)], [0.0, 1.0, 0.0], [math.sin(a), 0.0, math.cos(a)]])
         out.append(np.concatenate([R, (-R @ np.array([x, 0.0, 0.0]))[:, None]], 1))
     return out
-
-
-def _compose(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    return np.concatenate([a[:, :3] @ b[:, :3], (a[:, :3] @ b[:, 3] + a[:, 3])[:, None]], 1)
 
 
 def generate_rig_frames(root, conf: SyntheticConfig, camera: CameraRecord, frames_per_condition: int,
@@ -69,7 +66,7 @@ def generate_rig_frames(root, conf: SyntheticConfig, camera: CameraRecord, frame
         for j, body in enumerate(scene.query_poses(frames_per_condition, seed=conf.seed * 100 + c, spread=spread)):
             names = []
             for i, C in enumerate(cams):
-                rgb, _ = scene.render(camera, _compose(C, body), condition,
+                rgb, _ = scene.render(camera, compose(C, body), condition,
                                       seed=conf.seed * 1000 + 700 + 40 * c + 4 * j + i)
                 name = f"rigs/{condition}/{j:04d}/cam{i}.png"
                 (root / name).parent.mkdir(parents=True, exist_ok=True)
@@ -92,7 +89,7 @@ def read_rig_frames(root, camera: CameraRecord) -> List[Tuple[str, str, List[Que
         body = np.asarray(f["rig_from_world"], np.float64)
         queries = []
         for name, C in zip(f["images"], cams):
-            T = _compose(C, body)
+            T = compose(C, body)
             queries.append(QueryRecord(name, root / name, camera, {"condition": f["condition"], "area": area(T)}, T))
         out.append((f["key"], f["condition"], queries, cams))
     return out

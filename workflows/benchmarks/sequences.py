@@ -35,17 +35,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.set_defaults(func=main, scenes=list(SCENES), work=Path("outputs/benchmark-accuracy"))
 
 
-def _rotation(axis_angle: np.ndarray) -> np.ndarray:
-    angle = float(np.linalg.norm(axis_angle))
-    if angle < 1e-12:
-        return np.eye(3)
-    k = axis_angle / angle
-    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + math.sin(angle) * K + (1 - math.cos(angle)) * K @ K
-
-
 def simulated_odometry(poses: List[np.ndarray], drift: float, seed: int) -> List[np.ndarray]:
     """cam_from_odom of each frame (see the module docstring); the first frame's is its ground truth."""
+    import torch
+    from pixloc.geometry import lie
     from pipeline.localization.bodies import compose, invert
     rng = np.random.default_rng(seed)
     out = [np.asarray(poses[0], np.float64)]
@@ -53,8 +46,8 @@ def simulated_odometry(poses: List[np.ndarray], drift: float, seed: int) -> List
         step = compose(b, invert(a))  # cam_b_from_cam_a
         angle = math.acos(np.clip((np.trace(step[:, :3]) - 1) / 2, -1, 1))
         axis = rng.normal(size=3)
-        noise_R = _rotation(axis / np.linalg.norm(axis) * math.radians(
-            max(drift * math.degrees(angle), 0.01)) * abs(rng.normal()))
+        noise_R = lie.so3_exp(torch.from_numpy(axis / np.linalg.norm(axis) * math.radians(
+            max(drift * math.degrees(angle), 0.01)) * abs(rng.normal()))).numpy()
         noise_t = rng.normal(size=3) * drift * np.linalg.norm(step[:, 3]) / math.sqrt(3)
         noisy = np.concatenate([noise_R @ step[:, :3], (step[:, 3] + noise_t)[:, None]], 1)
         out.append(compose(noisy, out[-1]))
